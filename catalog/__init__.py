@@ -1,0 +1,1 @@
+"""The versioned Parquet + Zarr catalog (readers never need Prefect)."""

@@ -1,0 +1,1 @@
+"""Synthetic capture rig: sessions written to the contract, with ground truth."""

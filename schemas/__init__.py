@@ -1,0 +1,1 @@
+"""Contracts: the capture-session manifest, catalog table schemas, Zarr layout, format versions."""

@@ -1,0 +1,1 @@
+"""Pure, Prefect-free pipeline stages: typed records in, typed records out."""
