@@ -1,4 +1,101 @@
-"""Command-line front end: `graspcap synth|validate|demo|...` (filled in per command)."""
+"""Command-line front end: a thin layer over the library functions.
 
-def main(argv=None):
-    raise SystemExit("not yet")
+Every default lives in the library's config models, not here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from graspcap.synth import generate
+
+    t0 = time.perf_counter()
+    dirs = generate(
+        args.out,
+        sessions=args.sessions,
+        seed=args.seed,
+        difficulty=args.difficulty,
+        frames=args.frames,
+        objects=args.object,
+        workers=args.workers,
+    )
+    for d in dirs:
+        print(d)
+    print(f"wrote {len(dirs)} session(s) to {args.out} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _cmd_validate(args: argparse.Namespace) -> int:
+    from graspcap.tasks.load_session import discover_sessions, validate_session
+
+    sessions = discover_sessions(args.dirs)
+    if not sessions:
+        print(f"no session.json found under {' '.join(map(str, args.dirs))}", file=sys.stderr)
+        return 2
+    failed = 0
+    for directory in sessions:
+        problems = validate_session(directory, check_images=not args.no_images)
+        if problems:
+            failed += 1
+            print(f"FAIL {directory}: {len(problems)} problem(s)")
+            for p in problems:
+                print(f"  - {p}")
+        else:
+            print(f"OK   {directory}")
+    print(f"{len(sessions) - failed} ok, {failed} failed")
+    return 1 if failed else 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from graspcap.demo import run_demo
+
+    return run_demo(args.out, sessions=args.sessions, frames=args.frames, seed=args.seed)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="graspcap", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("synth", help="write synthetic capture sessions with ground truth")
+    p.add_argument("out", type=Path, help="folder to write the sessions into")
+    p.add_argument("--sessions", type=int, default=4, help="number of sessions")
+    p.add_argument("--seed", type=int, default=0, help="random seed (deterministic per seed)")
+    p.add_argument(
+        "--difficulty", choices=["easy", "realistic", "hard"], default="realistic",
+        help="detection noise and outliers",
+    )
+    p.add_argument("--frames", type=int, default=None, help="grasp-video frames per session")
+    p.add_argument(
+        "--object", type=Path, action="append", default=[],
+        help="object mesh file in metres (repeatable); default: procedural objects",
+    )
+    p.add_argument("--workers", type=int, default=1, help="processes to generate sessions with")
+    p.set_defaults(func=_cmd_synth)
+
+    p = sub.add_parser("validate", help="check sessions against the capture-session contract")
+    p.add_argument("dirs", type=Path, nargs="+", help="session folders or roots holding many")
+    p.add_argument("--no-images", action="store_true", help="skip decoding every image")
+    p.set_defaults(func=_cmd_validate)
+
+    p = sub.add_parser("demo", help="synthesise sessions, validate them and run the pipeline")
+    p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder")
+    p.add_argument("--sessions", type=int, default=3, help="number of synthetic sessions")
+    p.add_argument("--frames", type=int, default=60, help="grasp-video frames per session")
+    p.add_argument("--seed", type=int, default=7, help="random seed")
+    p.set_defaults(func=_cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

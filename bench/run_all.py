@@ -1,0 +1,22 @@
+"""Run every benchmark under bench/ in turn (`make bench`); each prints a markdown table."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+BENCHES = ["synth_speed.py"]
+
+
+def main() -> int:
+    here = Path(__file__).parent
+    status = 0
+    for name in BENCHES:
+        print(f"\n## {name}\n", flush=True)
+        status |= subprocess.call([sys.executable, str(here / name)])
+    return status
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
