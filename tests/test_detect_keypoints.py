@@ -1,0 +1,77 @@
+"""detect_keypoints, OpenPose JSON backend: real OpenPose output, tracking, bad values."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from graspcap.tasks.detect_keypoints import (
+    Backend,
+    DetectKeypointsConfig,
+    detect_keypoints,
+    track_hands,
+)
+from graspcap.tasks.load_session import load_session
+from tests.session_factory import write_session
+
+CONFIG = DetectKeypointsConfig()
+
+
+def _hand(offset: float, conf: float = 0.8) -> np.ndarray:
+    h = np.zeros((21, 3))
+    h[:, 0] = np.arange(21) + offset
+    h[:, 1] = 100.0
+    h[:, 2] = conf
+    return h
+
+
+def test_tracks_the_hand_nearest_the_previous_frame():
+    near, far = _hand(0.0), _hand(300.0, conf=0.95)
+    frames = [[_hand(1.0)], [far, near], [near.copy(), far]]
+    out = track_hands(frames, CONFIG)
+    assert np.allclose(out[1], near) and np.allclose(out[2], near)
+
+
+def test_first_detection_is_the_most_confident_and_empty_frames_stay_missing():
+    out = track_hands([[], [_hand(0.0, 0.3), _hand(50.0, 0.9)]], CONFIG)
+    assert (out[0, :, 2] == 0).all()
+    assert np.allclose(out[1], _hand(50.0, 0.9))
+
+
+def test_nan_and_low_confidence_become_missing():
+    h = _hand(0.0)
+    h[3, 0] = np.nan
+    h[4, 2] = 0.01
+    out = track_hands([[h]], CONFIG)
+    assert out[0, 3, 2] == 0 and out[0, 4, 2] == 0 and (out[0, 5:, 2] > 0).all()
+
+
+def test_reads_real_openpose_output_with_confidences(shared_data, tmp_path):
+    src = shared_data / "openpose_hand_json" / "COCO_val2014_000000000192_keypoints.json"
+    directory = write_session(tmp_path / "s", frames=2)
+    session = load_session(directory, check_images=False)
+    for i in range(2):
+        shutil.copy(src, session.grasp_path("keypoints", i))
+    result = detect_keypoints(load_session(directory, check_images=False), CONFIG)
+    raw = np.asarray(json.loads(src.read_text())["people"][0]["hand_right_keypoints_2d"])
+    raw = raw.reshape(21, 3)
+    kept = raw[:, 2] >= CONFIG.min_confidence
+    assert result.backend is Backend.OPENPOSE_JSON
+    assert result.keypoints.shape == (2, 21, 3)
+    assert np.allclose(result.keypoints[0][kept], raw[kept])
+    assert (result.keypoints[0][~kept, 2] == 0).all()
+    assert result.frames_with_hand == (2 if kept.any() else 0)
+
+
+def test_session_without_keypoint_files_fails_with_reason(tmp_path):
+    directory = write_session(tmp_path / "s", frames=2)
+    session = load_session(directory, check_images=False)
+    manifest = session.manifest.model_copy(
+        update={"grasp": session.manifest.grasp.model_copy(update={"keypoints": None})}
+    )
+    bare = type(session)(root=session.root, manifest=manifest)
+    with pytest.raises(Exception, match="no image detector"):
+        detect_keypoints(bare, CONFIG)
