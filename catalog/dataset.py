@@ -1,0 +1,184 @@
+"""A map-style dataset over one catalog version, for training code (no torch import).
+
+``GraspDataset`` items are dicts of numpy arrays: a frame row (``unit="frames"``) or a session row
+(``unit="sessions"``) joined with its session's arrays (contact map, refined hand mesh and
+joints) and its object mesh. The dataset pickles as its catalog root, pinned version and item
+keys; tables and arrays are opened lazily in whichever process indexes it, so it works with a
+torch ``DataLoader`` with workers.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from enum import StrEnum
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from graspcap.catalog.store import Catalog
+from graspcap.catalog.store import open as open_catalog
+from graspcap.schemas.tables import FRAMES_SCHEMA, SESSIONS_SCHEMA
+
+
+class Unit(StrEnum):
+    """What one item is."""
+
+    FRAMES = "frames"
+    SESSIONS = "sessions"
+
+
+class SplitKey(StrEnum):
+    """Columns a dataset can be split by without leaking between the parts."""
+
+    PARTICIPANT = "participant"
+    OBJECT_ID = "object_id"
+
+
+_SESSION_FIELDS = ["session_id", "participant", "object_id", "intent", "hand", "status",
+                   "steady_from", "T_w_o_stage1", "T_adj", "T_w_p", "T_turntable_o_scan",
+                   "hand_scale", "joint_angles_rad", "joints_w", "joints_fit_w"]
+_CACHE_SESSIONS = 64
+
+
+def _shape(field: pa.Field) -> tuple[int, ...] | None:
+    """The per-row shape of a fixed-size list column from its ``shape`` metadata."""
+    if not pa.types.is_fixed_size_list(field.type):
+        return None
+    text = (field.metadata or {}).get(b"shape", b"").decode().split(" ")[0]
+    return tuple(int(d) for d in text.split("x")) if text else (field.type.list_size,)
+
+
+def _columns(table: pa.Table, schema: pa.Schema) -> dict[str, np.ndarray]:
+    """Each column as a numpy array with the per-row shape of the schema, rows first."""
+    out = {}
+    for name in table.column_names:
+        col = table[name].combine_chunks()
+        shape = _shape(schema.field(name))
+        if shape is None:
+            out[name] = col.to_numpy(zero_copy_only=False)
+        else:
+            k = col.type.list_size
+            flat = col.values.to_numpy(zero_copy_only=False)[col.offset * k:
+                                                             (col.offset + len(col)) * k]
+            out[name] = flat.reshape(len(col), *shape)
+    return out
+
+
+class GraspDataset:
+    """Frames (or sessions) of one catalog version, filtered, as dicts of numpy arrays.
+
+    Parameters
+    ----------
+    catalog : Catalog or a catalog path
+    version : catalog version or tag; None pins the latest at construction
+    unit : "frames" (one item per frame row) or "sessions"
+    status, objects, participants, intents : keep only sessions with these values (None = all)
+    """
+
+    def __init__(self, catalog: Catalog | str | Path, version: int | str | None = None,
+                 unit: str = "frames", status: tuple[str, ...] = ("ok",),
+                 objects: list[str] | None = None, participants: list[str] | None = None,
+                 intents: list[str] | None = None):
+        self._catalog = catalog if isinstance(catalog, Catalog) else open_catalog(catalog)
+        self.version = self._catalog.resolve(version)
+        self.unit = Unit(unit)
+        sessions = self._catalog.table("sessions", self.version)
+        for col, allowed in (("status", status), ("object_id", objects),
+                             ("participant", participants), ("intent", intents)):
+            if allowed is not None:
+                sessions = sessions.filter(pc.is_in(sessions[col],
+                                                    pa.array(list(allowed), pa.string())))
+        self._session_meta = {r["session_id"]: r for r in sessions.select(
+            ["session_id", "participant", "object_id", "intent"]).to_pylist()}
+        self.session_ids = sorted(self._session_meta)
+        self._keys = self._item_keys()
+        self._state: dict | None = None
+
+    def _item_keys(self) -> list[tuple[str, int]]:
+        if self.unit is Unit.SESSIONS:
+            return [(s, -1) for s in self.session_ids]
+        frames = self._frames_table(["session_id", "frame"])
+        return list(zip(frames["session_id"].to_pylist(), frames["frame"].to_pylist(),
+                        strict=True))
+
+    def _frames_table(self, columns: list[str] | None = None) -> pa.Table:
+        frames = self._catalog.table("frames", self.version, columns=columns)
+        frames = frames.filter(pc.is_in(frames["session_id"],
+                                        pa.array(self.session_ids, pa.string())))
+        return frames.sort_by([("session_id", "ascending"), ("frame", "ascending")])
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_state"] = None
+        return state
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def _load(self) -> dict:
+        """Open tables in this process (first use, or first use in a worker)."""
+        if self._state is None:
+            sessions = self._catalog.table("sessions", self.version)
+            sessions = sessions.filter(pc.is_in(sessions["session_id"],
+                                                pa.array(self.session_ids, pa.string())))
+            scols = _columns(sessions.select(_SESSION_FIELDS), SESSIONS_SCHEMA)
+            srow = {s: i for i, s in enumerate(scols["session_id"])}
+            state = {"sessions": scols, "srow": srow, "arrays": OrderedDict(), "objects": {}}
+            if self.unit is Unit.FRAMES:
+                frames = self._frames_table()
+                state["frames"] = _columns(frames.drop_columns(["build_id"]), FRAMES_SCHEMA)
+            self._state = state
+        return self._state
+
+    def _session_arrays(self, session_id: str) -> dict[str, np.ndarray]:
+        cache = self._load()["arrays"]
+        if session_id in cache:
+            cache.move_to_end(session_id)
+            return cache[session_id]
+        cat, v = self._catalog, self.version
+        contact, observed = cat.contactmap(session_id, v)
+        hand_v, hand_f = cat.hand_mesh(session_id, v)
+        object_id = self._session_meta[session_id]["object_id"]
+        objects = self._load()["objects"]
+        if object_id not in objects:
+            objects[object_id] = cat.object_mesh(object_id, v)
+        obj_v, obj_f = objects[object_id]
+        arrays = {"contact": contact, "contact_observed": observed, "hand_vertices": hand_v,
+                  "hand_faces": hand_f, "hand_joints_o": cat.hand_joints(session_id, v),
+                  "object_vertices": obj_v, "object_faces": obj_f}
+        cache[session_id] = arrays
+        if len(cache) > _CACHE_SESSIONS:
+            cache.popitem(last=False)
+        return arrays
+
+    def __getitem__(self, index: int) -> dict[str, np.ndarray]:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"index {index} out of range for {len(self)} items")
+        index %= len(self)
+        state = self._load()
+        session_id, _ = self._keys[index]
+        i = state["srow"][session_id]
+        item = {name: col[i] for name, col in state["sessions"].items()}
+        if self.unit is Unit.FRAMES:
+            item.update({name: col[index] for name, col in state["frames"].items()})
+        item.update(self._session_arrays(session_id))
+        return item
+
+    def _subset(self, session_ids: list[str]) -> GraspDataset:
+        keep = set(session_ids)
+        sub = object.__new__(GraspDataset)
+        sub.__dict__.update(self.__getstate__())
+        sub.session_ids = [s for s in self.session_ids if s in keep]
+        sub._session_meta = {s: self._session_meta[s] for s in sub.session_ids}
+        sub._keys = [k for k in self._keys if k[0] in keep]
+        return sub
+
+    def split_by(self, key: str = "participant", holdout: list[str] = ()
+                 ) -> tuple[GraspDataset, GraspDataset]:
+        """(rest, held out): sessions whose ``key`` value is in ``holdout`` go to the second."""
+        key = SplitKey(key)
+        held = [s for s, m in self._session_meta.items() if m[key] in set(holdout)]
+        rest = [s for s in self.session_ids if s not in set(held)]
+        return self._subset(rest), self._subset(held)

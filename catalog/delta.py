@@ -1,0 +1,75 @@
+"""The Delta tables underneath a catalog: create them, and read one at a pinned Delta version.
+
+Reads go through the version's file list (``DeltaTable(uri, version=k).file_uris()``) and
+``pyarrow.parquet.read_table``: the same bytes deltalake would read, at the speed of plain
+Parquet. Delta stores fixed-size lists as plain lists, so what comes back is cast to the
+catalog schema (a metadata-only change) and gets the schema's field metadata back.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+from deltalake import DeltaTable
+
+from graspcap.catalog.errors import CatalogError
+from graspcap.catalog.layout import CatalogLayout
+from graspcap.schemas.tables import DATA_TABLES, TABLE_SCHEMAS
+
+
+def create_tables(layout: CatalogLayout) -> None:
+    """Create every table that does not exist yet (each at Delta version 0, empty)."""
+    for name, schema in TABLE_SCHEMAS.items():
+        uri = str(layout.table(name))
+        if not DeltaTable.is_deltatable(uri):
+            layout.table(name).mkdir(parents=True, exist_ok=True)
+            DeltaTable.create(uri, schema, name=name)
+
+
+def delta_version(layout: CatalogLayout, name: str) -> int:
+    """The newest Delta version of table ``name``."""
+    return DeltaTable(str(layout.table(name))).version()
+
+
+def table_files(layout: CatalogLayout, name: str, delta_version: int) -> list[str]:
+    """The Parquet files that make up ``name`` at ``delta_version``."""
+    return DeltaTable(str(layout.table(name)), version=delta_version).file_uris()
+
+
+def read_files(name: str, files: list[str], columns: list[str] | None = None) -> pa.Table:
+    """Read Parquet ``files`` of table ``name`` as its catalog schema."""
+    schema = TABLE_SCHEMAS[name]
+    if columns is not None:
+        schema = pa.schema([schema.field(c) for c in columns], metadata=schema.metadata)
+    if not files:
+        return schema.empty_table()
+    try:
+        table = pq.read_table(files, columns=columns)
+    except FileNotFoundError as exc:
+        raise CatalogError(
+            f"table {name!r}: a file of this version is gone ({exc.filename}); the version "
+            "was removed by vacuum (read a kept version, see Catalog.versions())") from exc
+    return table.select(schema.names).cast(schema)
+
+
+def read_table(layout: CatalogLayout, name: str, delta_version: int,
+               columns: list[str] | None = None) -> pa.Table:
+    """Table ``name`` as it was at ``delta_version``."""
+    return read_files(name, table_files(layout, name, delta_version), columns)
+
+
+def read_latest(layout: CatalogLayout, name: str) -> pa.Table:
+    """The bookkeeping tables (versions, tags) at their newest Delta version."""
+    return read_table(layout, name, delta_version(layout, name))
+
+
+def table_versions_of(row: dict) -> dict[str, int]:
+    """``{table: Delta version}`` of a ``versions`` row."""
+    pinned = json.loads(row["table_versions"])
+    return {name: int(pinned[name]) for name in DATA_TABLES}
+
+
+INITIAL_TABLE_VERSIONS = dict.fromkeys(DATA_TABLES, 0)
+"""Delta versions of the empty data tables right after ``create_tables``."""

@@ -1,0 +1,209 @@
+"""``Catalog``: list, read (by version number or tag), compare, commit to and vacuum a catalog.
+
+A catalog version is a row of the ``versions`` table pinning a Delta version of each data table;
+everything a version shows is read at those pins, so versions are immutable and reads are cached
+per version. ``Catalog`` holds only its root and settings: it pickles cheaply into DataLoader
+workers and reopens lazily there.
+"""
+
+from __future__ import annotations
+
+import re
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.compute as pc
+from deltalake import write_deltalake
+
+from graspcap.catalog.arrays import read_group
+from graspcap.catalog.commit import BuildCommit, commit_build, writer_lock
+from graspcap.catalog.delta import create_tables, read_latest, read_table, table_versions_of
+from graspcap.catalog.diff import diff_sessions
+from graspcap.catalog.errors import CatalogError, VersionNotFound
+from graspcap.catalog.layout import CatalogLayout, check_format, write_format_file
+from graspcap.catalog.vacuum import VacuumReport, vacuum_catalog
+from graspcap.catalog.validate import to_table
+from graspcap.schemas.tables import DATA_TABLES
+
+_TAG = re.compile(r"[A-Za-z][A-Za-z0-9._-]*")
+
+
+def open(uri: str | Path, *, create: bool = False, lock_timeout_s: float = 60.0) -> Catalog:  # noqa: A001
+    """Open the catalog at ``uri`` (a local folder); ``create`` makes it when absent.
+
+    Fails with ``CatalogFormatError`` naming the way forward when the folder holds a catalog of
+    another format version.
+    """
+    layout = CatalogLayout(Path(uri).expanduser().resolve())
+    if create and not layout.format_file.exists():
+        layout.root.mkdir(parents=True, exist_ok=True)
+        create_tables(layout)
+        write_format_file(layout)  # last: a half-created catalog has no stamp
+    check_format(layout)
+    return Catalog(layout, lock_timeout_s=lock_timeout_s)
+
+
+class Catalog:
+    """A versioned Parquet + Zarr catalog (see ``docs/architecture.md``, "Catalog")."""
+
+    def __init__(self, layout: CatalogLayout, *, lock_timeout_s: float = 60.0):
+        self.layout = layout
+        self.lock_timeout_s = lock_timeout_s
+        self._pins: dict[int, dict[str, int]] = {}
+        self._tables: dict[tuple[str, int], pa.Table] = {}
+        self._index: dict[int, dict[str, dict]] = {}
+
+    def __repr__(self) -> str:
+        return f"Catalog({str(self.layout.root)!r})"
+
+    def __getstate__(self) -> dict:
+        return {"layout": self.layout, "lock_timeout_s": self.lock_timeout_s}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["layout"], lock_timeout_s=state["lock_timeout_s"])
+
+    # versions and tags ------------------------------------------------------------------
+    def _versions_raw(self) -> pa.Table:
+        return read_latest(self.layout, "versions").sort_by("version")
+
+    def tags(self) -> dict[str, int]:
+        """``{tag: version}``; the latest row of each tag wins."""
+        rows = read_latest(self.layout, "tags").sort_by("time_utc").to_pylist()
+        return {r["tag"]: r["version"] for r in rows}
+
+    def versions(self) -> pa.Table:
+        """One row per version: version, time_utc, build_id, tags, row counts, table pins."""
+        table = self._versions_raw()
+        by_version: dict[int, list[str]] = {}
+        for tag, v in sorted(self.tags().items()):
+            by_version.setdefault(v, []).append(tag)
+        tags = pa.array([by_version.get(v, []) for v in table["version"].to_pylist()],
+                        pa.list_(pa.string()))
+        return table.add_column(3, "tags", tags)
+
+    def latest_version(self) -> int | None:
+        """The newest committed version, None for an empty catalog."""
+        versions = read_latest(self.layout, "versions")
+        return None if versions.num_rows == 0 else int(pc.max(versions["version"]).as_py())
+
+    def resolve(self, version: int | str | None = None) -> int:
+        """The version number of ``version`` (None = latest, str = tag)."""
+        if version is None:
+            latest = self.latest_version()
+            if latest is None:
+                raise VersionNotFound(f"catalog {self.layout.root} has no version yet")
+            return latest
+        if isinstance(version, str):
+            tags = self.tags()
+            if version not in tags:
+                raise VersionNotFound(f"no tag {version!r} (tags: {sorted(tags)})")
+            return tags[version]
+        version = int(version)
+        self._pinned(version)
+        return version
+
+    def _pinned(self, version: int) -> dict[str, int]:
+        if version not in self._pins:
+            rows = self._versions_raw().filter(pc.equal(pc.field("version"), version))
+            if rows.num_rows == 0:
+                raise VersionNotFound(f"catalog {self.layout.root} has no version {version} "
+                                      f"(latest: {self.latest_version()})")
+            self._pins[version] = table_versions_of(rows.to_pylist()[0])
+        return self._pins[version]
+
+    def tag(self, version: int, name: str) -> None:
+        """Point tag ``name`` at ``version`` (moving it if it exists)."""
+        if not _TAG.fullmatch(name):
+            raise ValueError(f"tag {name!r}: use a letter then letters, digits, '.', '_', '-'")
+        self._pinned(int(version))
+        row = {"tag": name, "version": int(version), "time_utc": datetime.now(UTC)}
+        with writer_lock(self.layout, self.lock_timeout_s):
+            write_deltalake(str(self.layout.table("tags")), to_table("tags", [row]),
+                            mode="append")
+
+    # tables -----------------------------------------------------------------------------
+    def table(self, name: str, version: int | str | None = None,
+              columns: list[str] | None = None) -> pa.Table:
+        """Table ``name`` (sessions, frames, builds) as of ``version``."""
+        if name not in DATA_TABLES:
+            raise ValueError(f"table {name!r}: one of {DATA_TABLES} (versions(): the versions)")
+        v = self.resolve(version)
+        key = (name, v)
+        if columns is None and key in self._tables:
+            return self._tables[key]
+        table = read_table(self.layout, name, self._pinned(v)[name], columns)
+        if columns is None and name != "frames":
+            self._tables[key] = table
+        return table
+
+    def to_pandas(self, name: str, version: int | str | None = None) -> pd.DataFrame:
+        """``table(name, version)`` as a DataFrame (list columns become numpy arrays)."""
+        return self.table(name, version).to_pandas()
+
+    def diff(self, a: int | str, b: int | str) -> dict:
+        """Sessions added, removed and changed (with the changed columns) from ``a`` to ``b``."""
+        return diff_sessions(self.table("sessions", a), self.table("sessions", b)).as_dict()
+
+    # arrays -----------------------------------------------------------------------------
+    def _sessions_index(self, v: int) -> dict[str, dict]:
+        if v not in self._index:
+            cols = ["session_id", "object_id", "status", "contact_digest", "hand_mesh_digest",
+                    "object_mesh_digest"]
+            rows = self.table("sessions", v).select(cols).to_pylist()
+            self._index[v] = {r["session_id"]: r for r in rows}
+        return self._index[v]
+
+    def _session_row(self, session_id: str, version: int | str | None) -> dict:
+        v = self.resolve(version)
+        row = self._sessions_index(v).get(session_id)
+        if row is None:
+            raise KeyError(f"session {session_id!r} is not in catalog version {v}")
+        return row
+
+    def _digest(self, session_id: str, version, column: str) -> str:
+        row = self._session_row(session_id, version)
+        if row[column] is None:
+            raise CatalogError(f"session {session_id!r} has no arrays (status "
+                               f"{row['status']!r})")
+        return row[column]
+
+    def contactmap(self, session_id: str, version: int | str | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """values : (n,) float32 in [0, 1] per object vertex; observed : (n,) bool."""
+        g = read_group(self.layout, self._digest(session_id, version, "contact_digest"),
+                       ("values", "observed"))
+        return g["values"], g["observed"]
+
+    def hand_mesh(self, session_id: str, version: int | str | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """vertices : (n, 3) float32 (object frame, m); faces : (m, 3) int32."""
+        g = read_group(self.layout, self._digest(session_id, version, "hand_mesh_digest"),
+                       ("vertices", "faces"))
+        return g["vertices"], g["faces"]
+
+    def hand_joints(self, session_id: str, version: int | str | None = None) -> np.ndarray:
+        """(21, 3) float64: the refined hand's joints in the object frame (m)."""
+        digest = self._digest(session_id, version, "hand_mesh_digest")
+        return read_group(self.layout, digest, ("joints",))["joints"]
+
+    def object_mesh(self, object_id: str, version: int | str | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """vertices : (n, 3) float32 (object frame, m); faces : (m, 3) int32."""
+        v = self.resolve(version)
+        for row in self._sessions_index(v).values():
+            if row["object_id"] == object_id and row["object_mesh_digest"]:
+                g = read_group(self.layout, row["object_mesh_digest"], ("vertices", "faces"))
+                return g["vertices"], g["faces"]
+        raise KeyError(f"object {object_id!r} has no mesh in catalog version {v}")
+
+    # writing ----------------------------------------------------------------------------
+    def commit(self, build: BuildCommit) -> int:
+        """Commit ``build`` as the next version, atomically; return its number."""
+        return commit_build(self.layout, build, lock_timeout_s=self.lock_timeout_s)
+
+    def vacuum(self, keep: int) -> VacuumReport:
+        """Delete files and arrays that neither the last ``keep`` versions nor a tag need."""
+        return vacuum_catalog(self, keep)

@@ -1,0 +1,90 @@
+"""Free space: delete Parquet files and array groups that no kept catalog version needs.
+
+Kept versions are the newest ``keep`` ones plus every tagged one. A file survives when any kept
+version's pinned Delta version lists it, or the newest Delta version of its table does (so the
+tables stay writable); an array group survives when a kept version's sessions reference it.
+Everything else under the tables' folders (files of older versions, of crashed or rolled-back
+commits) and under ``arrays/`` (groups of dropped versions, half-written temp groups) goes.
+Runs under the writer lock. Delta logs are kept: the versions stay listed, and reading one
+that was not kept fails with a message saying it was vacuumed.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from graspcap.catalog.arrays import all_digests
+from graspcap.catalog.commit import recover, writer_lock
+from graspcap.catalog.delta import delta_version, table_files
+from graspcap.schemas.tables import DATA_TABLES, TABLE_SCHEMAS, ZARR_LAYOUT
+
+if TYPE_CHECKING:
+    from graspcap.catalog.store import Catalog
+
+
+@dataclass(frozen=True)
+class VacuumReport:
+    """What vacuum kept and removed."""
+
+    kept_versions: list[int]
+    dropped_versions: list[int]
+    """Versions that are still listed but can no longer be read."""
+    removed_files: int
+    removed_arrays: int
+    freed_bytes: int
+
+
+def _size(path: Path) -> int:
+    if path.is_file():
+        return path.stat().st_size
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def vacuum_catalog(catalog: Catalog, keep: int) -> VacuumReport:
+    """See the module docstring; ``keep`` >= 1."""
+    if keep < 1:
+        raise ValueError("keep must be >= 1: the newest version is always kept")
+    layout = catalog.layout
+    with writer_lock(layout, catalog.lock_timeout_s):
+        recover(layout)
+        all_versions = catalog.versions()["version"].to_pylist()
+        kept = sorted(set(all_versions[-keep:]) | set(catalog.tags().values()))
+        needed: set[str] = set()
+        for name in DATA_TABLES:
+            needed.update(table_files(layout, name, delta_version(layout, name)))
+            for v in kept:
+                needed.update(table_files(layout, name, catalog._pinned(v)[name]))
+        for name in TABLE_SCHEMAS:
+            if name not in DATA_TABLES:
+                needed.update(table_files(layout, name, delta_version(layout, name)))
+        needed = {str(Path(f).resolve()) for f in needed}
+        digest_cols = [g.digest_column for g in ZARR_LAYOUT.values()]
+        live: set[str] = set()
+        for v in kept:
+            sessions = catalog.table("sessions", v, columns=digest_cols)
+            for col in digest_cols:
+                live.update(sessions[col].drop_null().to_pylist())
+
+        removed_files = freed = 0
+        for name in TABLE_SCHEMAS:
+            for path in layout.table(name).rglob("*.parquet"):
+                if "_delta_log" in path.parts or str(path.resolve()) in needed:
+                    continue
+                freed += _size(path)
+                path.unlink()
+                removed_files += 1
+        removed_arrays = 0
+        for digest in all_digests(layout) - live:
+            group = layout.array_group(digest)
+            freed += _size(group)
+            shutil.rmtree(group)
+            removed_arrays += 1
+        if layout.arrays_tmp.is_dir():
+            freed += _size(layout.arrays_tmp)
+            shutil.rmtree(layout.arrays_tmp)
+    catalog._tables.clear()
+    return VacuumReport(kept, sorted(set(all_versions) - set(kept)), removed_files,
+                        removed_arrays, freed)

@@ -1,0 +1,221 @@
+"""The catalog's contract: Arrow schemas of its tables, the Zarr layout of its arrays, its format.
+
+This module is the single source of truth for what a catalog holds. Writers validate every batch
+against these schemas (``graspcap.catalog.validate``); readers cast what they read back to them and
+check ``CATALOG_FORMAT_VERSION`` on open. The column names and encodings below are the contract of
+``pipeline.md`` ("Columns every version must have"); changing one is a format change and goes into
+``docs/data_changelog.md``.
+
+Encodings: a pose ``T_a_b`` is ``fixed_size_list<float64>[16]``, the 4x4 matrix in row-major order
+(``p_a = T_a_b @ p_b``); 3D joints are ``[63]`` (21 x 3, metres), 2D joints ``[42]`` (21 x 2,
+pixels), both in the 21-keypoint OpenPose/MediaPipe order. Field metadata carries ``unit``,
+``shape`` and ``doc``; ``required`` = ``unless_failed`` marks columns that may be null only on a
+row whose ``status`` is ``failed``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+import pyarrow as pa
+
+CATALOG_FORMAT_VERSION = 1
+"""Bumped on any change of the tables' columns, their encodings or the Zarr layout."""
+
+CATALOG_FORMAT_NAME = "graspcap-catalog"
+
+
+class Status(StrEnum):
+    """A session's verdict in the ``sessions`` table."""
+
+    OK = "ok"
+    FLAGGED = "flagged"
+    FAILED = "failed"
+
+
+def _f(name: str, type_: pa.DataType, doc: str, *, nullable: bool = False, unit: str = "",
+       shape: str = "", required: str = "") -> pa.Field:
+    meta = {"doc": doc}
+    if unit:
+        meta["unit"] = unit
+    if shape:
+        meta["shape"] = shape
+    if required:
+        meta["required"] = required
+    return pa.field(name, type_, nullable=nullable, metadata=meta)
+
+
+def _pose(name: str, doc: str, **kw) -> pa.Field:
+    return _f(name, pa.list_(pa.float64(), 16), doc, unit="m", shape="4x4 row-major", **kw)
+
+
+def _result(field: pa.Field) -> pa.Field:
+    """A result column: null allowed only when the session failed."""
+    meta = dict(field.metadata or {})
+    meta[b"required"] = b"unless_failed"
+    return field.with_nullable(True).with_metadata(meta)
+
+
+_STR = pa.string()
+_F64 = pa.float64()
+_TIME = pa.timestamp("us", tz="UTC")
+
+
+def _qa(name: str, doc: str, unit: str) -> pa.Field:
+    return _f(name, _F64, doc + " Null when not computed.", nullable=True, unit=unit)
+
+
+SESSIONS_SCHEMA = pa.schema([
+    _f("session_id", _STR, "Capture session id, unique within a catalog version."),
+    _f("participant", _STR, "Participant id."),
+    _f("object_id", _STR, "Object id; its mesh is the group `object_mesh_digest`."),
+    _f("intent", _STR, "Grasp intent (e.g. use, handoff)."),
+    _f("hand", _STR, "right or left."),
+    _f("status", _STR, "ok, flagged or failed."),
+    _f("error", _STR, "Null unless failed: the reason a person can act on.", nullable=True),
+    _result(_f("steady_from", pa.int64(), "First steady video frame index.")),
+    _result(_pose("T_w_o_stage1", "Object in the world (colour camera) frame, stage 1.")),
+    _result(_pose("T_adj", "Object motion during grasp adjustment, world frame.")),
+    _result(_pose("T_w_p", "Palm of the refined hand model in the world frame.")),
+    _result(_pose("T_turntable_o_scan", "Object on the platter at angle 0 during the scan.")),
+    _result(_f("hand_scale", _F64, "Scale of the kinematic hand model.", unit="1")),
+    _result(_f("joint_angles_rad", pa.list_(_F64, 20), "20 joint angles of the hand model.",
+               unit="rad", shape="20")),
+    _result(_f("joints_w", pa.list_(_F64, 63), "Structure-from-motion joints, before any fit.",
+               unit="m", shape="21x3")),
+    _result(_f("joints_fit_w", pa.list_(_F64, 63), "Joints of the fitted and refined hand model.",
+               unit="m", shape="21x3")),
+    _qa("qa_reproj_rmse_px", "SfM reprojection RMSE.", "px"),
+    _qa("qa_inlier_ratio", "Share of keypoint observations kept as inliers.", "1"),
+    _qa("qa_crosscheck_mm", "GTSAM vs COLMAP joint discrepancy.", "mm"),
+    _qa("qa_registration_rmse_mm", "Object registration inlier RMSE.", "mm"),
+    _qa("qa_fit_residual_mm", "Hand model fit residual.", "mm"),
+    _qa("qa_penetration_max_mm", "Maximum hand-object penetration.", "mm"),
+    _qa("qa_penetration_mean_mm", "Mean hand-object penetration.", "mm"),
+    _qa("qa_contact_agreement", "Contacted vertices within 5 mm of the hand (share).", "1"),
+    _qa("qa_contact_coverage", "Share of object vertices seen by a thermal view.", "1"),
+    _f("input_digest", _STR, "sha256 of the session's input bytes."),
+    _f("code_version", _STR, "graspcap version (and git revision) that built the row."),
+    _f("build_id", _STR, "Build that wrote the row (see the builds table)."),
+    _f("config_digest", _STR, "sha256 of the canonical configs of every stage."),
+    _result(_f("contact_digest", _STR, "Zarr group `contact` (values, observed).")),
+    _result(_f("hand_mesh_digest", _STR, "Zarr group `hand_mesh` (vertices, faces, joints).")),
+    _result(_f("object_mesh_digest", _STR, "Zarr group `object_mesh` (vertices, faces).")),
+], metadata={"table": "sessions", "key": "session_id"})
+
+FRAMES_SCHEMA = pa.schema([
+    _f("session_id", _STR, "Capture session id."),
+    _f("frame", pa.int64(), "Video frame index, from steady_from on."),
+    _pose("T_w_c", "Virtual camera of the frame in the world frame."),
+    _pose("T_c_o", "Object in the frame's camera."),
+    _pose("T_c_p", "Palm in the frame's camera."),
+    _f("joints_2d_px", pa.list_(_F64, 42), "Observed 2D keypoints.", unit="px", shape="21x2"),
+    _f("keypoint_conf", pa.list_(_F64, 21), "Detection confidence, 0 = not detected.",
+       unit="1", shape="21"),
+    _f("joints_c", pa.list_(_F64, 63), "3D joints in the frame's camera.", unit="m",
+       shape="21x3"),
+    _f("reproj_err_px", pa.list_(_F64, 21), "Reprojection error per keypoint (NaN if unseen).",
+       unit="px", shape="21"),
+    _f("build_id", _STR, "Build that wrote the row."),
+], metadata={"table": "frames", "key": "session_id,frame"})
+
+_FAILED = pa.struct([pa.field("session_id", _STR, nullable=False),
+                     pa.field("error", _STR, nullable=False)])
+
+BUILDS_SCHEMA = pa.schema([
+    _f("build_id", _STR, "Build id."),
+    _f("catalog_version", pa.int64(), "Catalog version this build committed."),
+    _f("time_utc", _TIME, "Commit time."),
+    _f("code_version", _STR, "graspcap version (and git revision)."),
+    _f("config_digest", _STR, "sha256 of the canonical configs of every stage."),
+    _f("parameters_json", _STR, "The build's parameters as canonical JSON."),
+    _f("sessions_added", pa.list_(_STR), "Sessions new in this version."),
+    _f("sessions_changed", pa.list_(_STR), "Sessions rewritten with different values."),
+    _f("sessions_unchanged", pa.list_(_STR), "Sessions the build found up to date."),
+    _f("sessions_removed", pa.list_(_STR), "Sessions removed from the catalog."),
+    _f("sessions_failed", pa.list_(_FAILED), "Failed sessions with their errors."),
+], metadata={"table": "builds", "key": "build_id"})
+
+VERSIONS_SCHEMA = pa.schema([
+    _f("version", pa.int64(), "Catalog version, 1, 2, ..."),
+    _f("time_utc", _TIME, "Commit time: the row's write is the version's linearisation point."),
+    _f("build_id", _STR, "Build that made the version."),
+    _f("format_version", pa.int32(), "CATALOG_FORMAT_VERSION of the writer."),
+    _f("table_versions", _STR, "JSON {table: Delta version} to read the version at."),
+    _f("rows_sessions", pa.int64(), "Rows of the sessions table at this version."),
+    _f("rows_frames", pa.int64(), "Rows of the frames table at this version."),
+    _f("rows_builds", pa.int64(), "Rows of the builds table at this version."),
+], metadata={"table": "versions", "key": "version"})
+
+TAGS_SCHEMA = pa.schema([
+    _f("tag", _STR, "Tag name; the latest row of a tag wins."),
+    _f("version", pa.int64(), "Catalog version the tag points to."),
+    _f("time_utc", _TIME, "When the tag was set."),
+], metadata={"table": "tags", "key": "tag"})
+
+TABLE_SCHEMAS: dict[str, pa.Schema] = {
+    "sessions": SESSIONS_SCHEMA,
+    "frames": FRAMES_SCHEMA,
+    "builds": BUILDS_SCHEMA,
+    "versions": VERSIONS_SCHEMA,
+    "tags": TAGS_SCHEMA,
+}
+"""Every Delta table of a catalog, by its folder name under ``tables/``."""
+
+DATA_TABLES = ("sessions", "frames", "builds")
+"""Tables whose Delta versions a catalog version pins (the rest are bookkeeping)."""
+
+
+@dataclass(frozen=True)
+class ZarrArraySpec:
+    """One array of a Zarr group: dtype, symbolic shape, chunk rows along axis 0, unit."""
+
+    dtype: np.dtype
+    shape: tuple[int | str, ...]
+    """Symbolic shape: ints are fixed, a name (``n``, ``m``) must agree within the group."""
+    chunk_rows: int
+    unit: str
+    doc: str
+
+
+@dataclass(frozen=True)
+class ZarrGroupSpec:
+    """A content-addressed Zarr v3 group, referenced from ``sessions`` by ``digest_column``."""
+
+    digest_column: str
+    arrays: dict[str, ZarrArraySpec]
+    doc: str
+
+
+_ROWS = 65536
+
+ZARR_LAYOUT: dict[str, ZarrGroupSpec] = {
+    "contact": ZarrGroupSpec("contact_digest", {
+        "values": ZarrArraySpec(np.dtype("float32"), ("n",), _ROWS, "1",
+                                "Contact in [0, 1] per object vertex, mesh file order."),
+        "observed": ZarrArraySpec(np.dtype("bool"), ("n",), _ROWS, "",
+                                  "True where a thermal view saw the vertex."),
+    }, "Per session: the contact map on the object mesh."),
+    "hand_mesh": ZarrGroupSpec("hand_mesh_digest", {
+        "vertices": ZarrArraySpec(np.dtype("float32"), ("n", 3), _ROWS, "m",
+                                  "Refined hand surface vertices, object frame."),
+        "faces": ZarrArraySpec(np.dtype("int32"), ("m", 3), _ROWS, "",
+                               "Triangles, indices into vertices."),
+        "joints": ZarrArraySpec(np.dtype("float64"), (21, 3), 21, "m",
+                                "Refined hand joints, object frame, 21-keypoint order."),
+    }, "Per session: the refined hand (vertices and joints in the object's frame)."),
+    "object_mesh": ZarrGroupSpec("object_mesh_digest", {
+        "vertices": ZarrArraySpec(np.dtype("float32"), ("n", 3), _ROWS, "m",
+                                  "Object mesh vertices, object frame, file order."),
+        "faces": ZarrArraySpec(np.dtype("int32"), ("m", 3), _ROWS, "",
+                               "Triangles, indices into vertices."),
+    }, "Per object: its mesh."),
+}
+"""Array groups by kind. Group path: ``arrays/<digest[:2]>/<digest>.zarr``."""
+
+
+def required_unless_failed(schema: pa.Schema) -> list[str]:
+    """Names of the columns that may be null only on a failed row."""
+    return [f.name for f in schema if (f.metadata or {}).get(b"required") == b"unless_failed"]

@@ -1,0 +1,95 @@
+"""Valid fake stage outputs for catalog tests: rows and arrays made with numpy, fixed seeds."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from graspcap.catalog import BuildCommit, BuildInfo, ObjectMesh, SessionArrays
+from graspcap.schemas.tables import FRAMES_SCHEMA
+from graspcap.tasks.geometry import from_rotvec
+
+OBJECT_VERTICES = {"mug": 40, "drill": 60, "bowl": 30}
+
+
+def _pose(rng: np.random.Generator) -> np.ndarray:
+    return from_rotvec(rng.normal(size=3) * 0.5, rng.normal(size=3) * 0.2)
+
+
+def object_mesh(object_id: str) -> ObjectMesh:
+    """A deterministic mesh per object id (vertex count from OBJECT_VERTICES)."""
+    rng = np.random.default_rng(sum(object_id.encode()))
+    n = OBJECT_VERTICES[object_id]
+    return ObjectMesh(rng.normal(size=(n, 3)).astype(np.float32) * 0.05,
+                      rng.integers(0, n, size=(2 * n, 3)).astype(np.int32))
+
+
+def session_row(session_id: str, rng: np.random.Generator, *, status: str = "ok",
+                build_id: str = "b1") -> dict:
+    """One sessions row; ids look like ``p01-mug-use-00`` (participant-object-intent-n)."""
+    participant, object_id, intent, _ = session_id.split("-")
+    failed = status == "failed"
+    row = {
+        "session_id": session_id, "participant": participant, "object_id": object_id,
+        "intent": intent, "hand": "right", "status": status,
+        "error": "register_object: no platter plane in stage1/depth.png" if failed else None,
+        "steady_from": None if failed else int(rng.integers(0, 30)),
+        "hand_scale": None if failed else float(rng.uniform(0.9, 1.1)),
+        "joint_angles_rad": None if failed else rng.uniform(-1, 1, 20),
+        "joints_w": None if failed else rng.normal(size=(21, 3)) * 0.05,
+        "joints_fit_w": None if failed else rng.normal(size=(21, 3)) * 0.05,
+        "input_digest": f"{rng.integers(2**62):x}", "code_version": "0.1.0",
+        "build_id": build_id, "config_digest": "c" * 64,
+    }
+    for name in ("T_w_o_stage1", "T_adj", "T_w_p", "T_turntable_o_scan"):
+        row[name] = None if failed else _pose(rng)
+    for name in ("qa_reproj_rmse_px", "qa_inlier_ratio", "qa_crosscheck_mm",
+                 "qa_registration_rmse_mm", "qa_fit_residual_mm", "qa_penetration_max_mm",
+                 "qa_penetration_mean_mm", "qa_contact_agreement", "qa_contact_coverage"):
+        row[name] = None if failed else float(rng.uniform(0, 2))
+    return row
+
+
+def frame_rows(session_id: str, rng: np.random.Generator, count: int, *,
+               build_id: str = "b1") -> dict[str, np.ndarray | list]:
+    """``count`` frames as columns (poses (count, 4, 4), joints (count, 21, 3), ...)."""
+    return {
+        "session_id": [session_id] * count, "frame": np.arange(count, dtype=np.int64) + 5,
+        "T_w_c": np.stack([_pose(rng) for _ in range(count)]),
+        "T_c_o": np.stack([_pose(rng) for _ in range(count)]),
+        "T_c_p": np.stack([_pose(rng) for _ in range(count)]),
+        "joints_2d_px": rng.uniform(0, 640, (count, 21, 2)),
+        "keypoint_conf": rng.uniform(0, 1, (count, 21)),
+        "joints_c": rng.normal(size=(count, 21, 3)),
+        "reproj_err_px": rng.uniform(0, 3, (count, 21)),
+        "build_id": [build_id] * count,
+    }
+
+
+def session_arrays(object_id: str, rng: np.random.Generator) -> SessionArrays:
+    n = OBJECT_VERTICES[object_id]
+    return SessionArrays(
+        contact=rng.uniform(0, 1, n).astype(np.float32), observed=rng.uniform(size=n) > 0.2,
+        hand_vertices=rng.normal(size=(25, 3)).astype(np.float32) * 0.05,
+        hand_faces=rng.integers(0, 25, size=(40, 3)).astype(np.int32),
+        joints=rng.normal(size=(21, 3)) * 0.05)
+
+
+def make_build(session_ids: list[str], *, seed: int, build_id: str = "b1", frames: int = 3,
+               failed: tuple[str, ...] = (), remove: tuple[str, ...] = ()) -> BuildCommit:
+    """A valid BuildCommit for ``session_ids`` (those in ``failed`` fail, without arrays)."""
+    rng = np.random.default_rng(seed)
+    rows, cols, arrays = [], [], {}
+    for sid in session_ids:
+        status = "failed" if sid in failed else "ok"
+        rows.append(session_row(sid, rng, status=status, build_id=build_id))
+        if status != "failed":
+            cols.append(frame_rows(sid, rng, frames, build_id=build_id))
+            arrays[sid] = session_arrays(rows[-1]["object_id"], rng)
+    frame_cols = {k: np.concatenate([c[k] for c in cols]) if cols else []
+                  for k in FRAMES_SCHEMA.names}
+    objects = {r["object_id"]: object_mesh(r["object_id"]) for r in rows
+               if r["status"] != "failed"}
+    info = BuildInfo(build_id=build_id, code_version="0.1.0", config_digest="c" * 64,
+                     parameters={"seed": seed})
+    return BuildCommit(build=info, sessions=rows, frames=frame_cols, session_arrays=arrays,
+                       object_meshes=objects, remove=remove)
