@@ -20,7 +20,6 @@ from importlib import resources
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from graspcap.tasks.geometry import rigidity_problems
 from pydantic import (
     AllowInfNan,
     BaseModel,
@@ -32,6 +31,8 @@ from pydantic import (
     field_validator,
     model_validator,
 )
+
+from graspcap.tasks.geometry import rigidity_problems
 
 FORMAT = "grasp-capture-session/1"
 """The only manifest format this module reads."""
@@ -265,8 +266,16 @@ class ScanView(_Model):
 class Scan(_Model):
     """The post-grasp turntable scan: thermal and depth views at known platter angles."""
 
-    views: Annotated[tuple[ScanView, ...], Field(min_length=1)]
+    views: tuple[ScanView, ...]
     """The views, at least one."""
+
+    @field_validator("views")
+    @classmethod
+    def _at_least_one(cls, views: tuple[ScanView, ...]) -> tuple[ScanView, ...]:
+        # Not Field(min_length=1): pydantic would add a bogus "0 items" error to item errors.
+        if not views:
+            raise ValueError("needs at least one view")
+        return views
 
     def angles_rad(self) -> np.ndarray:
         """The platter angle of every view, ``(n,) float64`` radians."""

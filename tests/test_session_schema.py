@@ -10,10 +10,11 @@ from pathlib import Path
 import jsonschema
 import numpy as np
 import pytest
+from pydantic import BaseModel, ValidationError
+
 from graspcap.schemas import session as schema_module
 from graspcap.schemas.session import FORMAT, SessionManifest, json_schema
-from pydantic import BaseModel, ValidationError
-from session_factory import DELETE, base_manifest, merge
+from tests.session_factory import DELETE, base_manifest, merge
 
 DESIGN = Path(__file__).resolve().parents[2] / "shared" / "design" / "session-format.md"
 NAN = float("nan")
