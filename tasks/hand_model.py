@@ -14,8 +14,8 @@ metacarpal placement was chosen so that wrist-to-middle-fingertip is about
 
 Palm frame ``p``: origin at the wrist (keypoint 0), +y towards the middle MCP
 (keypoint 9), +z the palmar normal, x = y cross z (towards the thumb for a
-right hand). Keypoints 0, 1, 5, 9, 13, 17 are fixed in the palm. Flexion
-positive bends towards the palm (+z); abduction positive turns a finger
+right hand, away from it for a left hand). Keypoints 0, 1, 5, 9, 13, 17 are
+fixed in the palm. Flexion positive bends towards the palm (+z); abduction positive turns a finger
 towards the thumb side (radial) and the thumb's metacarpal away from the palm
 (palmar abduction). The left hand is the mirror image (x -> -x) with the same
 angle meaning. One global ``scale`` multiplies every length, radii included.
@@ -138,7 +138,7 @@ _LIMITS_DEG = np.array(
     dtype=float,
 )
 
-PART_NAMES_: tuple[str, ...] = ("palm",) + tuple(
+_PART_NAMES: tuple[str, ...] = ("palm",) + tuple(
     f"{finger}_{bone}"
     for finger, bones in zip(
         FINGERS,
@@ -159,6 +159,8 @@ SURFACE_OFFSET_M.setflags(write=False)
 
 
 class HandSide(StrEnum):
+    """Which hand; the left is the right mirrored in the palm frame's x."""
+
     RIGHT = "right"
     LEFT = "left"
 
@@ -252,7 +254,7 @@ class HandModel:
     palm frame into the world; ``scale`` multiplies every length.
     """
 
-    PART_NAMES: tuple[str, ...] = PART_NAMES_
+    PART_NAMES: tuple[str, ...] = _PART_NAMES
     __slots__ = ("side", "lower_rad", "upper_rad", "_mirror", "_template")
 
     def __init__(self, side: HandSide = HandSide.RIGHT):
