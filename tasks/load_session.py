@@ -24,12 +24,10 @@ from graspcap.schemas.session import (
     FORMAT,
     MESH_PATH_RE,
     RELATIVE_PATH_RE,
-    ColorCamera,
     Grasp,
-    Scan,
+    ScanView,
     SessionManifest,
     Stage1,
-    ThermalCamera,
 )
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.session_files import (
@@ -222,11 +220,39 @@ def _message(error: dict[str, Any]) -> str:
 
 
 def _section(model: type[BaseModel], raw: Any) -> Any:
-    """``raw`` validated as ``model``, or None; used to keep checking files of a bad manifest."""
+    """``raw`` validated as ``model``, or None; used to keep checking files of a bad manifest.
+
+    Keys with errors are dropped and validation retried once, so that e.g. a bad
+    ``steady_from`` does not stop the checks of the frames.
+    """
     try:
         return model.model_validate(raw)
+    except ValidationError as exc:
+        if not isinstance(raw, dict) or any(not e["loc"] for e in exc.errors()):
+            return None
+        bad = {e["loc"][0] for e in exc.errors()}
+    try:
+        return model.model_validate({k: v for k, v in raw.items() if k not in bad})
     except ValidationError:
         return None
+
+
+def _size(camera: Any) -> tuple[int, int] | None:
+    """``(width, height)`` of a raw camera section when both are positive ints, else None."""
+    if isinstance(camera, dict):
+        size = camera.get("width"), camera.get("height")
+        if all(type(v) is int and v >= 1 for v in size):
+            return size  # type: ignore[return-value]
+    return None
+
+
+def _views(raw_scan: Any) -> list[tuple[int, ScanView]]:
+    """The scan views that are valid by themselves, with their index."""
+    views = raw_scan.get("views") if isinstance(raw_scan, dict) else None
+    if not isinstance(views, list):
+        return []
+    valid = ((j, _section(ScanView, view)) for j, view in enumerate(views))
+    return [(j, view) for j, view in valid if view is not None]
 
 
 class _Checker:
@@ -315,11 +341,9 @@ def _validate(directory: Path, check_images: bool) -> tuple[SessionManifest | No
             checker.add(MANIFEST, _field(error["loc"]), _message(error))
 
     # File checks run on every section that is valid by itself, even when others are not.
-    color = _section(ColorCamera, raw.get("color_camera"))
-    thermal = _section(ThermalCamera, raw.get("thermal_camera"))
-    stage1, grasp, scan = (_section(m, raw.get(k)) for m, k in
-                           ((Stage1, "stage1"), (Grasp, "grasp"), (Scan, "scan")))
-    color_size = color.size if color else None
+    stage1, grasp = _section(Stage1, raw.get("stage1")), _section(Grasp, raw.get("grasp"))
+    color_size = _size(raw.get("color_camera"))
+    thermal_size = _size(raw.get("thermal_camera"))
     mesh = raw.get("object_mesh")
     if isinstance(mesh, str) and re.search(MESH_PATH_RE, mesh):
         if (path := checker.existing(mesh, "object_mesh")) is not None:
@@ -332,13 +356,11 @@ def _validate(directory: Path, check_images: bool) -> tuple[SessionManifest | No
         for kind in ("color", "depth", "keypoints"):
             if getattr(grasp, kind) is not None:
                 checker.grasp_frames(grasp, kind, color_size, check_images)
-    if scan:
-        thermal_size = thermal.size if thermal else None
-        for j, view in enumerate(scan.views):
-            field = f"scan.views[{j}]"
-            checker.image(view.thermal, f"{field}.thermal", ImageKind.THERMAL, thermal_size,
-                          check_images)
-            checker.image(view.depth, f"{field}.depth", ImageKind.DEPTH, color_size, check_images)
+    for j, view in _views(raw.get("scan")):
+        field = f"scan.views[{j}]"
+        checker.image(view.thermal, f"{field}.thermal", ImageKind.THERMAL, thermal_size,
+                      check_images)
+        checker.image(view.depth, f"{field}.depth", ImageKind.DEPTH, color_size, check_images)
     return manifest, checker.problems
 
 

@@ -207,8 +207,12 @@ def test_enough_distinct_cases():
 
 
 def test_all_problems_of_a_session_are_reported_together(session_dir):
-    _manifest(session_dir, operator="ann", **{"color_camera.K": [[NAN, 0, 40], [0, 70, 30],
-                                                                 [0, 0, 1]]})
+    _manifest(session_dir, operator="ann", **{
+        "color_camera.K": [[NAN, 0, 40], [0, 70, 30], [0, 0, 1]], "grasp.steady_from": 99,
+        "scan.views": [{"thermal": "scan/thermal/000.png", "depth": "/abs/d.png", "angle_deg": 0},
+                       {"thermal": "scan/thermal/001.png", "depth": "scan/depth/001.png",
+                        "angle_deg": 180}]})
+    _png(session_dir / "grasp/depth/000002.png", np.zeros((COLOR_W, COLOR_H), np.uint16))
     (session_dir / "grasp/depth/000001.png").unlink()
     _truncate(session_dir / "grasp/color/000002.jpg")
     _keypoints(session_dir, 3, {"people": [{"hand_right_keypoints_2d": [1.0] * 60}]})
@@ -220,10 +224,13 @@ def test_all_problems_of_a_session_are_reported_together(session_dir):
             ("grasp/depth/000001.png", "grasp.depth"), ("grasp/color/000002.jpg", "grasp.color"),
             ("grasp/keypoints/000003_keypoints.json", "people[0].hand_right_keypoints_2d"),
             ("object.ply", "object_mesh"), ("scan/thermal/001.png", "scan.views[1].thermal"),
+            ("session.json", "grasp.steady_from"), ("session.json", "scan.views[0].depth"),
             } <= located
     assert all(p.session == "p01-box-use-01" for p in problems)
-    # The thermal camera is valid, so the wrong thermal size is found even though K is not.
-    assert any("expected 40x32" in p.message for p in problems)
+    # Sections are checked on their own: a bad K, steady_from or view 0 hides nothing else.
+    messages = {(p.file, p.message) for p in problems}
+    assert ("scan/thermal/001.png", "size 5x5, expected 40x32 (width x height)") in messages
+    assert ("grasp/depth/000002.png", "size 60x80, expected 80x60 (width x height)") in messages
 
 
 def test_check_images_false_skips_decoding_but_not_existence(session_dir):
@@ -327,3 +334,13 @@ def test_one_bad_path_gives_one_problem(session_dir):
     problems = validate_session(session_dir)
     assert [(p.file, p.field) for p in problems] == [
         ("session.json", "scan.views[0].thermal"), ("session.json", "scan.views[0].depth")]
+
+
+def test_long_lists_of_missing_frames_are_capped(tmp_path):
+    d = write_session(tmp_path / "s", frames=30)
+    for i in range(29):  # all but the last frame: holes, not a short count
+        (d / f"grasp/color/{i:06d}.jpg").unlink()
+    problems = [p for p in validate_session(d, check_images=False) if p.field == "grasp.color"]
+    assert len(problems) == 21
+    assert problems[-1].file == "grasp/color/{index:06d}.jpg"
+    assert problems[-1].message == "9 more frames missing"
