@@ -29,6 +29,7 @@ from graspcap.schemas.session import (
     SessionManifest,
     Stage1,
 )
+from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.session_files import (
     ImageKind,
@@ -41,6 +42,14 @@ from graspcap.tasks.session_files import (
 )
 
 STAGE_VERSION = "load_session/1"
+
+
+class LoadSessionConfig(StageConfig):
+    check_images: bool = True
+    """Decode every image to check its size and dtype (False: only that the files exist)."""
+
+
+PRESETS = {"default": LoadSessionConfig(), "fast": LoadSessionConfig(check_images=False)}
 MANIFEST = "session.json"
 WHOLE_FILE = "(file)"
 """The ``field`` of a problem that concerns a whole file (missing manifest, JSON syntax)."""
