@@ -42,7 +42,7 @@ from graspcap.catalog.delta import (
 from graspcap.catalog.diff import diff_sessions
 from graspcap.catalog.errors import CatalogLockTimeout, CatalogSchemaError
 from graspcap.catalog.layout import CatalogLayout
-from graspcap.catalog.validate import Batch, to_table
+from graspcap.catalog.validate import Batch, rows_to_columns, to_table
 from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DATA_TABLES, ZARR_LAYOUT, Status
 
 PAUSE_ENV = "GRASPCAP_CATALOG_TEST_PAUSE_AT"
@@ -191,9 +191,7 @@ def _prepare(commit: BuildCommit) -> tuple[pa.Table, pa.Table, dict[str, tuple[s
     if isinstance(sessions, pa.Table):
         sessions = {c: sessions[c] for c in sessions.column_names}
     elif not isinstance(sessions, Mapping):
-        rows = list(sessions)
-        keys = set().union(*(r.keys() for r in rows)) if rows else set()
-        sessions = {k: [r.get(k) for r in rows] for k in keys}
+        sessions = rows_to_columns("sessions", sessions)
     sessions = dict(sessions)
     ids = [str(s) for s in _as_list(sessions.get("session_id"))]
     objects = _as_list(sessions.get("object_id"))

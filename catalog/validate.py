@@ -68,17 +68,27 @@ def _plain(field: pa.Field, values: Any, fail) -> pa.Array:
         fail(None, f"cannot convert to {field.type}: {exc}")
 
 
+def rows_to_columns(name: str, rows: Sequence[Mapping[str, Any]]) -> dict[str, list]:
+    """Row dicts as columns; every row must have the same keys."""
+    rows = list(rows)
+    if not rows:
+        return {k: [] for k in TABLE_SCHEMAS[name].names}
+    keys = list(rows[0])
+    for r in rows:
+        if set(r) != set(keys):
+            odd = sorted(set(r) ^ set(keys))[0]
+            raise CatalogSchemaError(name, odd, [str(r.get("session_id"))],
+                                     "row keys differ from the batch's first row "
+                                     f"({'missing' if odd not in r else 'unexpected'} here)")
+    return {k: [r[k] for r in rows] for k in keys}
+
+
 def to_table(name: str, batch: Batch) -> pa.Table:
     """A validated table of ``TABLE_SCHEMAS[name]`` (field metadata attached) from ``batch``."""
     schema = TABLE_SCHEMAS[name]
     if isinstance(batch, pa.Table):
         return validate_table(name, batch)
-    if isinstance(batch, Mapping):
-        columns = dict(batch)
-    else:
-        rows = list(batch)
-        keys = set().union(*(r.keys() for r in rows)) if rows else set(schema.names)
-        columns = {k: [r.get(k) for r in rows] for k in keys}
+    columns = dict(batch) if isinstance(batch, Mapping) else rows_to_columns(name, batch)
     _check_names(name, schema, list(columns), columns)
     lengths = {len(v) for v in columns.values()}
     if len(lengths) > 1:
