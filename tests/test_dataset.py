@@ -1,0 +1,111 @@
+"""GraspDataset over a catalog version, and the one-liners users read the tables with."""
+
+from __future__ import annotations
+
+import json
+import pickle
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from deltalake import DeltaTable
+
+import graspcap.catalog as gc
+from tests.catalog_factory import OBJECT_VERTICES, make_build
+
+IDS = ["p01-mug-use-00", "p01-drill-handoff-00", "p02-mug-handoff-00", "p02-bowl-use-00",
+       "p03-drill-use-00", "p03-mug-use-00"]
+FRAMES = 4
+
+
+@pytest.fixture(scope="module")
+def catalog(tmp_path_factory):
+    cat = gc.open(tmp_path_factory.mktemp("ds"), create=True)
+    build = make_build(IDS, seed=7, frames=FRAMES, failed=("p03-mug-use-00",))
+    cat.commit(build)
+    return cat, build
+
+
+def test_frames_items_join_frame_row_with_session_arrays(catalog):
+    cat, build = catalog
+    ds = gc.GraspDataset(cat)
+    assert len(ds) == 5 * FRAMES  # the failed session has no frames and is filtered out
+    item = ds[FRAMES + 1]
+    sid = item["session_id"]
+    assert sid == ds.session_ids[1]
+    n = OBJECT_VERTICES[item["object_id"]]
+    shapes = {"T_c_o": (4, 4), "T_w_p": (4, 4), "joints_c": (21, 3), "joints_2d_px": (21, 2),
+              "keypoint_conf": (21,), "reproj_err_px": (21,), "joint_angles_rad": (20,),
+              "contact": (n,), "contact_observed": (n,), "object_vertices": (n, 3),
+              "hand_vertices": (25, 3), "hand_joints_o": (21, 3)}
+    assert {k: item[k].shape for k in shapes} == shapes
+    assert item["contact"].dtype == np.float32 and item["contact_observed"].dtype == bool
+    i = list(build.frames["session_id"]).index(sid) + 1  # frames of a session are contiguous
+    np.testing.assert_array_equal(item["T_c_o"], build.frames["T_c_o"][i])
+    assert item["frame"] == build.frames["frame"][i]
+    np.testing.assert_array_equal(item["contact"], build.session_arrays[sid].contact)
+    np.testing.assert_array_equal(item["object_vertices"],
+                                  build.object_meshes[item["object_id"]].vertices)
+    assert ds[-1]["session_id"] == ds.session_ids[-1]
+    with pytest.raises(IndexError):
+        ds[len(ds)]
+
+
+def test_filters_and_session_unit(catalog):
+    cat, _ = catalog
+    assert len(gc.GraspDataset(cat, unit="sessions")) == 5
+    assert len(gc.GraspDataset(cat, unit="sessions", status=("ok", "failed"))) == 6
+    mugs = gc.GraspDataset(cat, objects=["mug"])
+    assert {mugs[i]["object_id"] for i in range(len(mugs))} == {"mug"}
+    assert len(mugs) == 2 * FRAMES
+    handoff = gc.GraspDataset(cat, unit="sessions", intents=["handoff"], participants=["p02"])
+    assert handoff.session_ids == ["p02-mug-handoff-00"]
+    assert "frame" not in handoff[0] and handoff[0]["T_adj"].shape == (4, 4)
+
+
+@pytest.mark.parametrize("key, holdout", [("participant", ["p02"]),
+                                          ("object_id", ["drill", "bowl"])])
+def test_splits_are_disjoint_and_complete(catalog, key, holdout):
+    cat, _ = catalog
+    ds = gc.GraspDataset(cat)
+    rest, held = ds.split_by(key, holdout)
+    held_values = {held[i][key] for i in range(len(held))}
+    rest_values = {rest[i][key] for i in range(len(rest))}
+    assert held_values == set(holdout) and not held_values & rest_values
+    assert len(rest) + len(held) == len(ds)
+    assert set(rest.session_ids).isdisjoint(held.session_ids)
+
+
+def test_pickles_for_dataloader_workers(catalog):
+    cat, _ = catalog
+    ds = gc.GraspDataset(cat.layout.root)
+    ds[0]  # loaded state must not travel
+    clone = pickle.loads(pickle.dumps(ds))
+    assert clone._state is None and len(clone) == len(ds)
+    a, b = ds[3], clone[3]
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_one_liners_pandas_and_pyarrow(catalog):
+    cat, _ = catalog
+    df = cat.to_pandas("frames", 1)
+    assert len(df) == 5 * FRAMES and np.asarray(df["T_c_o"].iloc[0]).shape == (16,)
+    pins = cat.versions().to_pylist()[0]["table_versions"]
+    files = DeltaTable(str(cat.layout.table("frames")),
+                       version=json.loads(pins)["frames"]).file_uris()
+    assert pq.read_table(files).num_rows == 5 * FRAMES
+
+
+@pytest.mark.parametrize("module", ["duckdb", "polars"])
+def test_duckdb_and_polars_read_the_parquet(catalog, module):
+    pytest.importorskip(module, reason=f"{module} is not installed in this environment")
+    cat, _ = catalog
+    frames = cat.table("frames", 1)
+    if module == "polars":
+        import polars as pl
+        assert pl.from_arrow(frames).height == 5 * FRAMES
+    else:
+        import duckdb
+        assert duckdb.sql("select count(*) from frames").fetchone()[0] == 5 * FRAMES
