@@ -109,7 +109,7 @@ def _per_frame_object_errors(
 ) -> dict[str, float]:
     steady_true = int(truth["steady_from"])
     prop = results["propagate_poses"]
-    frames = np.asarray(prop.frames)
+    frames = np.asarray(prop.frame_indices)
     T_obj_true = truth["T_adj"] @ truth["T_w_o_stage1"]
     errs = []
     for f, T_c_o in zip(frames, prop.T_c_o, strict=True):
