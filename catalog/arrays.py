@@ -78,16 +78,13 @@ def write_group(layout: CatalogLayout, kind: str, arrays: Mapping[str, np.ndarra
         return False
     layout.arrays_tmp.mkdir(parents=True, exist_ok=True)
     tmp = layout.arrays_tmp / f"{digest}.{uuid.uuid4().hex}.zarr"
-    group = zarr.open_group(str(tmp), mode="w", zarr_format=3)
-    group.attrs.update({"kind": kind, "digest": digest,
-                        "format_version": CATALOG_FORMAT_VERSION})
+    group = zarr.open_group(str(tmp), mode="w", zarr_format=3, attributes={
+        "kind": kind, "digest": digest, "format_version": CATALOG_FORMAT_VERSION})
     for name, a_spec in ZARR_LAYOUT[kind].arrays.items():
         a = arrays[name]
         chunks = (max(1, min(a.shape[0], a_spec.chunk_rows)), *a.shape[1:])
-        arr = group.create_array(name, shape=a.shape, dtype=a.dtype, chunks=chunks,
-                                 attributes={"unit": a_spec.unit, "doc": a_spec.doc})
-        if a.size:
-            arr[...] = a
+        group.create_array(name, data=a, chunks=chunks,
+                           attributes={"unit": a_spec.unit, "doc": a_spec.doc})
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=_CONSOLIDATED_WARNING)
         zarr.consolidate_metadata(str(tmp))

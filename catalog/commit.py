@@ -20,6 +20,7 @@ import json
 import os
 import time
 from collections.abc import Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -49,6 +50,8 @@ PAUSE_ENV = "GRASPCAP_CATALOG_TEST_PAUSE_AT"
 """Test hook: name of a commit step at which the writer stops (sleeps) so a test can kill it."""
 PAUSE_SIGNAL_ENV = "GRASPCAP_CATALOG_TEST_PAUSE_SIGNAL"
 """Test hook: file the paused writer creates once it has reached the step."""
+ARRAY_WRITERS = 4
+"""Threads writing Zarr groups at once (each mostly waits on zarr's event loop and the disk)."""
 PAUSE_POINTS = ("after_lock", "after_arrays", "after_sessions", "after_frames", "after_builds")
 
 
@@ -250,8 +253,9 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
         if absent:
             raise CatalogSchemaError("sessions", "*_digest", [], f"no array group {absent[0]} "
                                      "in this build or the catalog")
-        for digest, (kind, arrays) in groups.items():
-            write_group(layout, kind, arrays, digest)
+        with ThreadPoolExecutor(max_workers=ARRAY_WRITERS) as pool:  # zarr waits on I/O
+            list(pool.map(lambda item: write_group(layout, item[1][0], item[1][1], item[0]),
+                          groups.items()))
         _pause("after_arrays")
 
         old = read_table(layout, "sessions", previous["sessions"])
