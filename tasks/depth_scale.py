@@ -1,0 +1,94 @@
+"""Metric scale of an up-to-scale reconstruction from the aligned depth at the keypoints.
+
+For an inlier observation of joint j in frame i the camera sees the skin above the joint
+centre, so ``depth(uv) + surface_offset_m[j]`` should equal ``s * z_ij`` where ``z_ij`` is
+the reconstructed depth of the joint in that camera (reconstruction units). The scale ``s``
+is the robust median of those ratios; ratios far from it (the object in front of a finger,
+background at a silhouette edge) are rejected.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+DepthLookup = Callable[[int, np.ndarray], np.ndarray]
+"""``depth_at(frame, uv_px (k, 2)) -> depth_m (k,)``: aligned depth in metres at the pixels of
+video frame ``frame``; 0 (or NaN) where the sensor has no valid depth."""
+
+
+def depth_lookup_from_frames(depth_m: np.ndarray, window_px: int = 2) -> DepthLookup:
+    """A :data:`DepthLookup` over depth images (n, h, w) in metres.
+
+    Each value is the median of the non-zero depths in the (2 * window_px + 1)^2 square
+    around the rounded pixel; 0 when the window holds none or lies outside the image.
+    """
+    depth_m = np.asarray(depth_m, dtype=float)
+    _, h, w = depth_m.shape
+
+    def depth_at(frame: int, uv_px: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(uv_px))
+        for k, (u, v) in enumerate(np.round(np.asarray(uv_px, dtype=float)).astype(int)):
+            if not (0 <= u < w and 0 <= v < h):
+                continue
+            patch = depth_m[
+                frame,
+                max(v - window_px, 0) : v + window_px + 1,
+                max(u - window_px, 0) : u + window_px + 1,
+            ]
+            valid = patch[(patch > 0) & np.isfinite(patch)]
+            if valid.size:
+                out[k] = float(np.median(valid))
+        return out
+
+    return depth_at
+
+
+@dataclass(frozen=True)
+class ScaleEstimate:
+    """Result of :func:`estimate_scale`.
+
+    scale_m_per_unit : metres per reconstruction unit.
+    n_samples : observations with valid depth; n_inliers : those kept.
+    spread : median absolute relative deviation of the kept ratios.
+    inlier : (k,) bool, the input samples kept.
+    """
+
+    scale_m_per_unit: float
+    n_samples: int
+    n_inliers: int
+    spread: float
+    inlier: np.ndarray
+
+
+def estimate_scale(
+    z_units: np.ndarray,
+    depth_m: np.ndarray,
+    offset_m: np.ndarray,
+    *,
+    rel_tol: float,
+    min_samples: int,
+) -> ScaleEstimate | None:
+    """Robust ratio ``(depth_m + offset_m) / z_units`` over k samples, all arrays (k,).
+
+    Returns None when fewer than ``min_samples`` samples survive.
+    """
+    z = np.asarray(z_units, dtype=float)
+    d = np.asarray(depth_m, dtype=float)
+    valid = np.isfinite(z) & np.isfinite(d) & (z > 0) & (d > 0)
+    ratio = (d[valid] + np.asarray(offset_m, dtype=float)[valid]) / z[valid]
+    if len(ratio) < min_samples:
+        return None
+    keep = np.ones(len(ratio), bool)
+    s = float(np.median(ratio))
+    for _ in range(3):
+        keep = np.abs(ratio / s - 1.0) < rel_tol
+        if keep.sum() < min_samples:
+            return None
+        s = float(np.median(ratio[keep]))
+    spread = float(np.median(np.abs(ratio[keep] / s - 1.0)))
+    inlier = np.zeros(len(z), bool)
+    inlier[np.flatnonzero(valid)[keep]] = True
+    return ScaleEstimate(s, int(len(ratio)), int(keep.sum()), spread, inlier)

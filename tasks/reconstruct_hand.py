@@ -1,0 +1,401 @@
+"""Stage 2: structure from motion of the static hand seen by virtual cameras (GTSAM).
+
+From the first steady frame on, the 2D keypoints are observations of one fixed set of 21
+joints by a moving virtual camera. Two-view geometry with RANSAC starts it, PnP poses the
+other frames, a GTSAM factor graph (projection factors, sigma scaled by confidence, Huber
+loss) refines everything; observations with large residuals are rejected and the graph
+re-solved. The metric scale comes from the aligned depth at the keypoints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from graspcap.tasks.config import StageConfig
+from graspcap.tasks.depth_scale import DepthLookup, depth_lookup_from_frames, estimate_scale
+from graspcap.tasks.errors import StageError
+from graspcap.tasks.geometry import inv_T
+from graspcap.tasks.sfm_graph import bundle_adjust, reprojection_residuals
+from graspcap.tasks.sfm_init import initialise, normalise
+
+STAGE = "reconstruct_hand"
+STAGE_VERSION = "reconstruct_hand/1"
+
+
+class DepthUse(StrEnum):
+    """How the aligned depth enters the solve."""
+
+    SCALE = "scale"
+    """Only the metric scale (the paper's reprojection-only SfM, then scaled)."""
+    FACTORS = "factors"
+    """Also one range factor per inlier keypoint with valid depth (RGB-D bundle adjustment);
+    per-frame poses of a small, distant hand are ill-conditioned from pixels alone."""
+
+
+class ReconstructConfig(StageConfig):
+    min_confidence: float = 0.2
+    """Detections with a lower confidence are treated as missing."""
+    sigma_px: float = 2.5
+    """Pixel sigma of a detection with confidence 1; a detection's sigma is sigma_px / conf."""
+    min_sigma_confidence: float = 0.3
+    """Confidences are clipped below at this value before scaling the sigma."""
+    huber_k: float = 2.0
+    """Huber threshold in sigmas for the robust first solve."""
+    outlier_px: float = 10.0
+    """Observations whose residual exceeds this (pixels) are rejected before the re-solve."""
+    outlier_rounds: int = 3
+    """At most this many reject-and-re-solve rounds (stops early when the inliers settle)."""
+    ransac_px: float = 8.0
+    """RANSAC threshold (pixels) of the two-view and PnP initialisation."""
+    pair_candidates: int = 12
+    """Evenly spaced frames among which the initial pair is chosen by parallax."""
+    min_parallax_deg: float = 2.0
+    """Median triangulation angle the best initial pair must reach."""
+    min_points_per_frame: int = 6
+    """A frame needs this many detected joints to be posed."""
+    min_frames: int = 5
+    """At least this many usable frames from the steady frame on."""
+    max_iterations: int = 100
+    """Levenberg-Marquardt iterations per solve."""
+    visual_max_iterations: int = 30
+    """Iterations of each reprojection-only solve when depth factors follow; pixels alone
+    leave each camera's tilt weakly determined, so LM crawls and only the inliers and the
+    scale are taken from these solves."""
+    depth_min_confidence: float = 0.5
+    """Only inlier detections at least this confident sample the depth for the scale."""
+    scale_rel_tol: float = 0.05
+    """Depth ratios further than this (relative) from the median are rejected."""
+    min_scale_samples: int = 10
+    """Fewest depth samples that may fix the scale."""
+    depth_use: DepthUse = DepthUse.FACTORS
+    """Depth for the scale only, or also as range factors in the final solve."""
+    depth_sigma_m: float = 0.002
+    """Sigma of a range factor (depth noise plus the skin-to-joint-centre model error)."""
+    depth_gate_rel: float = 0.15
+    """Readings further than this (relative) from the scaled visual solve get no range factor."""
+
+
+PRESETS: dict[str, ReconstructConfig] = {
+    "default": ReconstructConfig(),
+    "openpose": ReconstructConfig(sigma_px=4.0, outlier_px=15.0, ransac_px=12.0),
+    "strict": ReconstructConfig(outlier_px=6.0, min_parallax_deg=5.0, min_frames=20),
+    "paper": ReconstructConfig(depth_use=DepthUse.SCALE),
+}
+
+
+@dataclass(frozen=True)
+class SfmDiagnostics:
+    """How the solve went.
+
+    pair_frames : video frame indices of the initial pair; parallax_deg its median angle.
+    rounds : solves run; lm_iterations : iterations of the last; error_* : graph errors.
+    scale_samples / scale_inliers / scale_spread : see ``depth_scale.ScaleEstimate``.
+    T_w_c_init : (m, 4, 4) and joints_w_init : (21, 3), the initialisation in the output frame.
+    T_w_c_visual, joints_w_visual, inlier_visual : the reprojection-only solve (scaled, output
+        frame) and its inliers, the problem ``crosscheck_sfm`` hands to pycolmap.
+    depth_inlier : (m, 21) bool, observations whose depth reading fixed the scale.
+    """
+
+    pair_frames: tuple[int, int]
+    parallax_deg: float
+    rounds: int
+    lm_iterations: int
+    error_initial: float
+    error_final: float
+    scale_samples: int
+    scale_inliers: int
+    scale_spread: float
+    T_w_c_init: np.ndarray
+    joints_w_init: np.ndarray
+    T_w_c_visual: np.ndarray
+    joints_w_visual: np.ndarray
+    inlier_visual: np.ndarray
+    depth_inlier: np.ndarray
+
+
+@dataclass(frozen=True)
+class HandReconstruction:
+    """Virtual cameras and the static hand, metric, ``T_w_c[0] = I``.
+
+    steady_from : first steady frame; frames : (m,) video frame indices.
+    T_w_c : (m, 4, 4); pose_valid : (m,) bool, False where the pose is interpolated.
+    joints_w : (21, 3) metres; joint_valid : (21,) bool, False (and NaN) if unreconstructed.
+    residuals_px : (m, 21), NaN for missing detections; inlier : (m, 21) bool.
+    reproj_rmse_px : RMS residual over inliers; inlier_ratio : inliers / detections.
+    scale_m_per_unit : metres per unit of the up-to-scale solve.
+    """
+
+    steady_from: int
+    frames: np.ndarray
+    T_w_c: np.ndarray
+    pose_valid: np.ndarray
+    joints_w: np.ndarray
+    joint_valid: np.ndarray
+    residuals_px: np.ndarray
+    inlier: np.ndarray
+    reproj_rmse_px: float
+    inlier_ratio: float
+    scale_m_per_unit: float
+    diagnostics: SfmDiagnostics
+
+
+def _fill_poses(T_c_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Interpolate missing poses (NaN) from their neighbours (slerp); hold at the ends."""
+    m = len(T_c_w)
+    valid = np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)
+    if valid.all():
+        return T_c_w, valid
+    idx = np.flatnonzero(valid)
+    T_w_c = np.stack([inv_T(T) for T in T_c_w[idx]])
+    t = np.clip(np.arange(m), idx[0], idx[-1])
+    rot = Slerp(idx, Rotation.from_matrix(T_w_c[:, :3, :3]))(t).as_matrix()
+    out = np.tile(np.eye(4), (m, 1, 1))
+    out[:, :3, :3] = rot
+    out[:, :3, 3] = np.stack([np.interp(t, idx, T_w_c[:, k, 3]) for k in range(3)], axis=1)
+    return np.stack([inv_T(T) for T in out]), valid
+
+
+def _sample_depth(cfg, uv, conf, inlier, T_c_w, X, depth_at, offset, steady_from):
+    """Depth readings (m, 21) (NaN where not sampled) and camera-frame joint z (m, 21)."""
+    m = len(uv)
+    sample = inlier & (conf >= cfg.depth_min_confidence)
+    depth = np.full((m, 21), np.nan)
+    for i in np.flatnonzero(sample.any(1)):
+        j = np.flatnonzero(sample[i])
+        depth[i, j] = np.asarray(depth_at(steady_from + int(i), uv[i, j]), dtype=float)
+    z = np.einsum("mb,jb->mj", T_c_w[:, 2, :3], X) + T_c_w[:, 2, 3][:, None]
+    return depth, z
+
+
+def _solve_visual(cfg, uv, ok, sigma, K, T_c_w, X, pair):
+    """Robust reprojection-only solve, then reject-and-re-solve rounds -> (ba, res, inlier, n)."""
+    use, huber = ok.copy(), cfg.huber_k
+    for rounds in range(1, cfg.outlier_rounds + 2):  # noqa: B007 (returned)
+        ba = bundle_adjust(
+            uv,
+            use,
+            sigma,
+            K,
+            T_c_w,
+            X,
+            anchor=pair.a,
+            scale_ref=pair.b,
+            huber_k=huber,
+            min_observations=cfg.min_points_per_frame // 2 + 1,
+            max_iterations=(
+                cfg.visual_max_iterations
+                if cfg.depth_use is DepthUse.FACTORS
+                else cfg.max_iterations
+            ),
+        )
+        T_c_w, X = ba.T_c_w, ba.points_w
+        res = reprojection_residuals(K, T_c_w, X, uv)
+        inlier = ok & (res < cfg.outlier_px)
+        if not inlier.any():
+            raise StageError(
+                STAGE,
+                f"every detection is an outlier (residual >= {cfg.outlier_px} px "
+                "after the robust solve): the keypoints are not those of one static hand",
+            )
+        if np.array_equal(inlier, use) and huber is None:
+            break
+        use, huber = inlier, None
+    return ba, res, inlier, rounds
+
+
+def _solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor):
+    """Reprojection + range factors, metric; range readings off by > 3 sigma dropped once."""
+    m = len(uv)
+    rays = np.concatenate(
+        [normalise(K, uv.reshape(-1, 2)).reshape(m, 21, 2), np.ones((m, 21, 1))], 2
+    )
+    range_m = np.where(
+        np.isfinite(depth) & (depth > 0), (depth + offset) * np.linalg.norm(rays, axis=2), np.nan
+    )
+    pred = np.linalg.norm(
+        np.einsum("mab,jb->mja", T_c_w[:, :3, :3], X) + T_c_w[:, None, :3, 3], axis=2
+    )
+    range_m[np.abs(range_m / pred - 1.0) > cfg.depth_gate_rel] = np.nan
+    for rounds in (1, 2):
+        ba = bundle_adjust(
+            uv,
+            inlier,
+            sigma,
+            K,
+            T_c_w,
+            X,
+            anchor=anchor,
+            scale_ref=None,
+            huber_k=None,
+            range_m=range_m,
+            range_sigma_m=cfg.depth_sigma_m,
+            min_observations=cfg.min_points_per_frame // 2 + 1,
+            max_iterations=cfg.max_iterations,
+        )
+        T_c_w, X = ba.T_c_w, ba.points_w
+        pred = np.linalg.norm(
+            np.einsum("mab,jb->mja", T_c_w[:, :3, :3], X) + T_c_w[:, None, :3, 3], axis=2
+        )
+        far = np.abs(range_m - pred) > 3 * cfg.depth_sigma_m
+        if rounds == 2 or not far.any():
+            break
+        range_m[far] = np.nan
+    res = reprojection_residuals(K, T_c_w, X, uv)
+    return T_c_w, X, res, ok & (res < cfg.outlier_px), rounds
+
+
+def reconstruct_hand(
+    keypoints: np.ndarray,
+    K: np.ndarray,
+    steady_from: int,
+    depth_at: DepthLookup | np.ndarray,
+    surface_offset_m: np.ndarray,
+    config: ReconstructConfig = PRESETS["default"],
+) -> HandReconstruction:
+    """Structure from motion of the hand from ``steady_from`` on.
+
+    Parameters
+    ----------
+    keypoints : (n, 21, 3) float, x, y pixels and confidence per video frame (0 = missed).
+    K : (3, 3) colour intrinsics.
+    steady_from : first steady video frame.
+    depth_at : a :data:`~graspcap.tasks.depth_scale.DepthLookup` (video frame index, pixels
+        -> metres) or the aligned depth frames (n, h, w) in metres.
+    surface_offset_m : (21,) depth of each joint centre below the skin the camera sees.
+    """
+    cfg = config
+    K = np.asarray(K, dtype=float)
+    if not callable(depth_at):
+        depth_at = depth_lookup_from_frames(depth_at)
+    offset = np.broadcast_to(np.asarray(surface_offset_m, dtype=float), (21,))
+    kp = np.asarray(keypoints, dtype=float)[steady_from:]
+    m = len(kp)
+    uv, conf = kp[..., :2], kp[..., 2]
+    ok = (conf >= cfg.min_confidence) & np.all(np.isfinite(kp), axis=2)
+    if not ok.any():
+        raise StageError(
+            STAGE,
+            f"no keypoint detected with confidence >= {cfg.min_confidence} "
+            f"in frames {steady_from}..{steady_from + m - 1}",
+        )
+    usable = int((ok.sum(1) >= cfg.min_points_per_frame).sum())
+    if usable < cfg.min_frames:
+        raise StageError(
+            STAGE,
+            f"too few usable frames: {usable} of {m} frames from {steady_from} on have "
+            f">= {cfg.min_points_per_frame} detected joints, need {cfg.min_frames}",
+        )
+    init, best_parallax = initialise(
+        uv,
+        ok,
+        K,
+        n_candidates=cfg.pair_candidates,
+        ransac_px=cfg.ransac_px,
+        min_points=cfg.min_points_per_frame,
+        min_parallax_deg=cfg.min_parallax_deg,
+    )
+    if init is None:
+        raise StageError(
+            STAGE,
+            "insufficient parallax, no motion to triangulate from: the best of the "
+            f"candidate frame pairs has a median triangulation angle of {best_parallax:.2f} deg "
+            f"< {cfg.min_parallax_deg} deg; the hand must turn relative to the camera "
+            "during the steady phase",
+        )
+    pair = init.pair
+
+    sigma = cfg.sigma_px / np.maximum(conf, cfg.min_sigma_confidence)
+    ba, res, inlier, rounds = _solve_visual(cfg, uv, ok, sigma, K, init.T_c_w, init.points_w, pair)
+    T_c_w, X = ba.T_c_w, ba.points_w
+    posed_frames = int(np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1).sum())
+    if posed_frames < cfg.min_frames:
+        raise StageError(
+            STAGE,
+            f"too few usable frames: only {posed_frames} frames could be posed "
+            f"with >= {cfg.min_points_per_frame // 2 + 1} inlier joints, need {cfg.min_frames}",
+        )
+
+    depth, z = _sample_depth(cfg, uv, conf, inlier, T_c_w, X, depth_at, offset, steady_from)
+    sampled = np.isfinite(depth)
+    scale = estimate_scale(
+        z[sampled],
+        depth[sampled],
+        np.broadcast_to(offset, depth.shape)[sampled],
+        rel_tol=cfg.scale_rel_tol,
+        min_samples=cfg.min_scale_samples,
+    )
+    if scale is None:
+        raise StageError(
+            STAGE,
+            f"no valid depth for the scale: fewer than {cfg.min_scale_samples} inlier "
+            "keypoints have a depth reading consistent with the others",
+        )
+    s = scale.scale_m_per_unit
+    depth_inlier = np.zeros_like(sampled)
+    depth_inlier[sampled] = scale.inlier
+    T_vis, X_vis, inlier_vis = T_c_w.copy(), X * s, inlier.copy()
+    T_vis[:, :3, 3] *= s
+
+    if cfg.depth_use is DepthUse.FACTORS:
+        T_c_w, X, res, inlier, n = _solve_rgbd(
+            cfg, K, uv, ok, inlier, sigma, T_vis, X_vis, depth, offset, pair.a
+        )
+        rounds += n
+    else:
+        T_c_w, X = T_vis, X_vis
+
+    T_c_w, pose_valid = _fill_poses(T_c_w)
+    T_0_w = T_c_w[0].copy()
+
+    def to_output(T_c_w_any: np.ndarray, X_any: np.ndarray, factor: float = 1.0):
+        """Into the frame of the final camera 0 (so T_w_c[0] = I), metres."""
+        T_c_0 = T_c_w_any.copy()
+        T_c_0[:, :3, 3] *= factor
+        T_c_0 = T_c_0 @ inv_T(T_0_w)
+        return np.stack([inv_T(T) for T in T_c_0]), (factor * X_any) @ T_0_w[:3, :3].T + T_0_w[
+            :3, 3
+        ]
+
+    T_w_c, joints_w = to_output(T_c_w, X)
+    T_w_c[0] = np.eye(4)
+    T_w_c_init, joints_w_init = to_output(_fill_poses(init.T_c_w)[0], init.points_w, s)
+    T_w_c_vis, joints_w_vis = to_output(_fill_poses(T_vis)[0], X_vis)
+
+    residuals = np.where(ok, res, np.nan)
+    residuals[~pose_valid] = np.nan
+    inlier &= pose_valid[:, None]
+    n_inl = int(inlier.sum())
+    return HandReconstruction(
+        steady_from=int(steady_from),
+        frames=np.arange(steady_from, steady_from + m),
+        T_w_c=T_w_c,
+        pose_valid=pose_valid,
+        joints_w=joints_w,
+        joint_valid=np.all(np.isfinite(joints_w), axis=1),
+        residuals_px=residuals,
+        inlier=inlier,
+        reproj_rmse_px=float(np.sqrt(np.mean(res[inlier] ** 2))) if n_inl else float("nan"),
+        inlier_ratio=n_inl / int(ok.sum()),
+        scale_m_per_unit=s,
+        diagnostics=SfmDiagnostics(
+            pair_frames=(steady_from + pair.a, steady_from + pair.b),
+            parallax_deg=pair.parallax_deg,
+            rounds=rounds,
+            lm_iterations=ba.iterations,
+            error_initial=ba.error_initial,
+            error_final=ba.error_final,
+            scale_samples=scale.n_samples,
+            scale_inliers=scale.n_inliers,
+            scale_spread=scale.spread,
+            T_w_c_init=T_w_c_init,
+            joints_w_init=joints_w_init,
+            T_w_c_visual=T_w_c_vis,
+            joints_w_visual=joints_w_vis,
+            inlier_visual=inlier_vis,
+            depth_inlier=depth_inlier,
+        ),
+    )

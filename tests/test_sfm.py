@@ -1,0 +1,207 @@
+"""Stage 2 (structure from motion of the static hand), steady-frame selection, pycolmap check.
+
+Synthetic scenes from ``graspcap.synth.hand_video``: a half-closed hand (~0.15-0.18 m) held
+0.35-0.6 m from the camera, turned by up to ~60 deg, keypoints with 2.5 px noise, 5 %
+confident outliers of 20-80 px, 3 % misses, depth with 1.5 mm noise and 5 % samples on the
+object in front of a finger.
+
+Pose tolerances: with 2.5 px noise a hand ~130 px across pins each single camera's tilt
+only to about 1 deg even when its 3D structure is known exactly (measured: PnP on the true
+joints, median 1.6-2.6 deg; depth-only Kabsch on the true joints, median 0.8 deg), so the
+0.5 deg / 5 mm per-camera target is checked on a low-noise scene and the realistic scene
+gets a median bound that matches that limit.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from graspcap.synth.hand_video import make_hand_video
+from graspcap.tasks.crosscheck_sfm import PRESETS as CROSSCHECK_PRESETS
+from graspcap.tasks.crosscheck_sfm import crosscheck_sfm
+from graspcap.tasks.depth_scale import depth_lookup_from_frames, estimate_scale
+from graspcap.tasks.errors import StageError
+from graspcap.tasks.geometry import pose_error
+from graspcap.tasks.reconstruct_hand import PRESETS, reconstruct_hand
+from graspcap.tasks.select_steady import SteadyMethod, select_steady
+
+
+def _pose_errors(rec, video):
+    truth = video.T_w_c[video.steady_from :]
+    return np.array([pose_error(a, b) for a, b in zip(rec.T_w_c, truth, strict=True)])
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """50 steady frames (after 20 closing ones) and their reconstruction."""
+    video = make_hand_video(n_frames=70, steady_from=20, seed=0)
+    rec = reconstruct_hand(
+        video.keypoints, video.K, video.steady_from, video.depth_at, video.surface_offset_m
+    )
+    return video, rec
+
+
+def test_gtsam_bundle_adjustment_on_bal_dubrovnik(shared_data):
+    """GTSAM LM on the BAL problem dubrovnik-3-7 reaches the reference of SOURCE.txt."""
+    db = gtsam.SfmData.FromBalFile(str(shared_data / "gtsam_ba" / "dubrovnik-3-7-pre.txt"))
+    graph = gtsam.NonlinearFactorGraph()
+    unit = gtsam.noiseModel.Unit.Create(2)
+    for j in range(db.numberTracks()):
+        track = db.track(j)
+        for k in range(track.numberMeasurements()):
+            i, uv = track.measurement(k)
+            graph.add(gtsam.GeneralSFMFactorCal3Bundler(uv, unit, i, gtsam.symbol("p", j)))
+    values = gtsam.initialCamerasAndPointsEstimate(db)
+    assert graph.size() == 19
+    assert graph.error(values) == pytest.approx(2764.22, abs=0.01)
+    result = gtsam.LevenbergMarquardtOptimizer(
+        graph, values, gtsam.LevenbergMarquardtParams()
+    ).optimize()
+    # Reference: 0.0199833 (C++ test, tighter params), 0.0203345 with default params.
+    assert 0.0199833 - 1e-5 <= graph.error(result) <= 0.0203345 + 5e-4
+
+
+def test_reconstruct_hand_metric_joints_and_cameras(scene):
+    video, rec = scene
+    assert rec.T_w_c.shape == (50, 4, 4) and rec.joints_w.shape == (21, 3)
+    np.testing.assert_allclose(rec.T_w_c[0], np.eye(4), atol=1e-9)
+    assert rec.joint_valid.all() and rec.pose_valid.all()
+    mpjpe = np.linalg.norm(rec.joints_w - video.joints_w, axis=1).mean()
+    assert mpjpe < 0.003  # metric, no alignment
+    errs = _pose_errors(rec, video)
+    assert np.median(errs[:, 0]) < 2.0 and np.median(errs[:, 1]) < 0.015
+    assert errs[:, 0].max() < 5.0 and errs[:, 1].max() < 0.040
+
+
+def test_reconstruct_hand_flags_outliers(scene):
+    video, rec = scene
+    s = video.steady_from
+    outlier = video.outlier[s:]
+    detected = video.keypoints[s:, :, 2] >= 0.2
+    assert (~rec.inlier[outlier]).mean() >= 0.9  # recall of the injected gross errors
+    assert (~rec.inlier[detected & ~outlier]).mean() < 0.03  # few good detections rejected
+    assert 2.5 < rec.reproj_rmse_px < 4.5  # sqrt(2) * 2.5 px, less the fitted dof
+    assert np.isnan(rec.residuals_px[~detected]).all()
+    assert 0.9 < rec.inlier_ratio < 0.97
+
+
+def test_reconstruct_hand_low_noise_cameras_within_half_degree():
+    video = make_hand_video(
+        n_frames=50, steady_from=10, seed=3, noise_px=0.5, depth_noise_m=0.0003, outlier_rate=0.0
+    )
+    rec = reconstruct_hand(
+        video.keypoints, video.K, video.steady_from, video.depth_at, video.surface_offset_m
+    )
+    errs = _pose_errors(rec, video)
+    assert errs[:, 0].max() < 0.5 and errs[:, 1].max() < 0.005
+    assert np.linalg.norm(rec.joints_w - video.joints_w, axis=1).mean() < 0.001
+
+
+def test_crosscheck_sfm_agrees_with_gtsam(scene):
+    video, rec = scene
+    check = crosscheck_sfm(video.keypoints, video.K, rec)
+    assert check.median_joint_discrepancy_m < 0.001
+    assert check.max_joint_discrepancy_m < 0.004
+    assert not check.flagged and check.reason == ""
+    assert 2.5 < check.colmap_reproj_rmse_px < 4.5
+    # Another perturbation converges to the same pycolmap optimum.
+    other = CROSSCHECK_PRESETS["default"].model_copy(update={"seed": 7})
+    again = crosscheck_sfm(video.keypoints, video.K, rec, other)
+    np.testing.assert_allclose(again.joint_discrepancy_m, check.joint_discrepancy_m, atol=1e-4)
+
+
+def test_crosscheck_flags_a_corrupted_reconstruction(scene):
+    video, rec = scene
+    import dataclasses
+
+    bent = rec.joints_w.copy()
+    bent[8] += [0.0, 0.0, 0.01]  # index tip 10 mm off: no longer what the pixels say
+    check = crosscheck_sfm(video.keypoints, video.K, dataclasses.replace(rec, joints_w=bent))
+    assert check.flagged and "joint 8" in check.reason
+
+
+def test_select_steady_detects_closing_fingers():
+    video = make_hand_video(n_frames=90, steady_from=30, seed=5, closing_deg_per_frame=3.0)
+    sel = select_steady(video.keypoints, video.K, None)
+    assert sel.method is SteadyMethod.DETECTED
+    assert abs(sel.steady_from - 30) <= 3
+    assert np.nanmedian(sel.scores_px[:20]) > sel.threshold_px > np.nanmedian(sel.scores_px[40:])
+
+
+def test_select_steady_uses_the_manifest():
+    video = make_hand_video(n_frames=20, steady_from=5, seed=1)
+    sel = select_steady(video.keypoints, video.K, 7)
+    assert sel.steady_from == 7 and sel.method is SteadyMethod.MANIFEST
+    with pytest.raises(StageError, match="outside"):
+        select_steady(video.keypoints, video.K, 20)
+
+
+def test_bad_inputs_raise_stage_errors():
+    video = make_hand_video(n_frames=30, steady_from=0, seed=2)
+    blind = video.keypoints.copy()
+    blind[..., 2] = 0.0
+    with pytest.raises(StageError, match="no keypoint detected"):
+        reconstruct_hand(blind, video.K, 0, video.depth_at, video.surface_offset_m)
+    with pytest.raises(StageError, match="too few usable frames"):
+        reconstruct_hand(video.keypoints[:2], video.K, 0, video.depth_at, video.surface_offset_m)
+    static = make_hand_video(n_frames=30, steady_from=0, seed=2, static_camera=True)
+    with pytest.raises(StageError, match="insufficient parallax"):
+        reconstruct_hand(static.keypoints, static.K, 0, static.depth_at, static.surface_offset_m)
+
+    def no_depth(frame, uv):
+        return np.zeros(len(uv))
+
+    with pytest.raises(StageError, match="no valid depth for the scale"):
+        reconstruct_hand(video.keypoints, video.K, 0, no_depth, video.surface_offset_m)
+
+
+def test_scale_rejects_the_object_in_front():
+    rng = np.random.default_rng(0)
+    z_units = rng.uniform(2.0, 3.0, 400)
+    depth = 0.2 * z_units - 0.009 + rng.normal(0, 0.0015, 400)
+    front = rng.random(400) < 0.3  # 30 % of readings hit the object 2-10 cm closer
+    depth[front] -= rng.uniform(0.02, 0.1, front.sum())
+    est = estimate_scale(z_units, depth, np.full(400, 0.009), rel_tol=0.05, min_samples=10)
+    assert est.scale_m_per_unit == pytest.approx(0.2, rel=0.003)
+    assert est.inlier[front].mean() < 0.1 and est.inlier[~front].mean() > 0.95
+
+
+def test_depth_lookup_median_ignores_holes():
+    depth = np.zeros((1, 10, 10))
+    depth[0, 3:8, 3:8] = 0.5
+    depth[0, 5, 5] = 0.9  # a single spike
+    depth[0, 4, 4] = 0.0  # a hole
+    look = depth_lookup_from_frames(depth, window_px=2)
+    np.testing.assert_allclose(
+        look(0, np.array([[5.2, 4.8], [0.0, 0.0], [20.0, 5.0]])), [0.5, 0, 0]
+    )
+
+
+def test_paper_preset_is_reprojection_only(scene):
+    video, _ = scene
+    rec = reconstruct_hand(
+        video.keypoints,
+        video.K,
+        video.steady_from,
+        video.depth_at,
+        video.surface_offset_m,
+        PRESETS["paper"],
+    )
+    np.testing.assert_allclose(rec.joints_w, rec.diagnostics.joints_w_visual, atol=1e-12)
+    np.testing.assert_allclose(rec.T_w_c, rec.diagnostics.T_w_c_visual, atol=1e-12)
+    assert rec.reproj_rmse_px < 4.5  # it explains the pixels (its 3D accuracy is in the report)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(6))
+def test_reconstruct_hand_120_frames(seed):
+    video = make_hand_video(n_frames=120, steady_from=30, seed=seed)
+    rec = reconstruct_hand(
+        video.keypoints, video.K, video.steady_from, video.depth_at, video.surface_offset_m
+    )
+    assert np.linalg.norm(rec.joints_w - video.joints_w, axis=1).mean() < 0.003
+    errs = _pose_errors(rec, video)
+    assert np.median(errs[:, 0]) < 2.0 and np.median(errs[:, 1]) < 0.015
+    assert not crosscheck_sfm(video.keypoints, video.K, rec).flagged
