@@ -1,0 +1,140 @@
+"""The capture rig's geometry: cameras, turntable, object placement and hand-object motion."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import trimesh
+from scipy.spatial.transform import Rotation, Slerp
+
+from graspcap.synth.config import SynthConfig
+from graspcap.synth.objects import ObjectMesh
+from graspcap.tasks.geometry import from_rotvec, inv_T, make_T, rot_z
+
+TABLE_HALF_M = 0.6
+TABLE_THICKNESS_M = 0.03
+
+
+def color_K(cfg: SynthConfig) -> np.ndarray:
+    """(3, 3) colour-camera intrinsics, principal point at the image centre."""
+    return np.array([[cfg.f_px, 0, cfg.width / 2], [0, cfg.f_px, cfg.height / 2], [0, 0, 1.0]])
+
+
+def thermal_K(cfg: SynthConfig) -> np.ndarray:
+    """(3, 3) thermal-camera intrinsics, principal point at the image centre."""
+    return np.array([[cfg.thermal_f_px, 0, cfg.thermal_width / 2],
+                     [0, cfg.thermal_f_px, cfg.thermal_height / 2], [0, 0, 1.0]])
+
+
+def thermal_extrinsics(cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
+    """``T_color_thermal``: a few centimetres beside the colour camera, nearly parallel."""
+    direction = rng.uniform(0, 2 * np.pi)
+    offset = rng.uniform(*cfg.thermal_offset_m)
+    t = [offset * np.cos(direction), offset * np.sin(direction), rng.uniform(-0.005, 0.005)]
+    return from_rotvec(rng.normal(0, np.radians(1.0), 3), t)
+
+
+def turntable_pose(cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
+    """``T_color_turntable``: camera 0.6-0.8 m from the platter centre, looking down 30-45 deg."""
+    dist = rng.uniform(*cfg.camera_distance_m)
+    elev = np.radians(rng.uniform(*cfg.camera_elevation_deg))
+    yaw = rng.uniform(0, 2 * np.pi)
+    forward = np.array([0.0, np.cos(elev), -np.sin(elev)])
+    centre = -dist * forward
+    x = np.cross(forward, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    R_tt_c = np.stack([x, np.cross(forward, x), forward], axis=1)
+    # Aim a little off the platter centre so the object is not always dead centre.
+    T_tt_c = rot_z(yaw) @ make_T(R_tt_c, centre) @ from_rotvec(rng.normal(0, 0.02, 3), [0, 0, 0])
+    return inv_T(T_tt_c)
+
+
+def platter_mesh(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Platter disk in the turntable frame, top face at z = 0."""
+    disk = trimesh.creation.cylinder(cfg.platter_radius_m, cfg.platter_thickness_m, sections=96)
+    return np.asarray(disk.vertices) - [0, 0, cfg.platter_thickness_m / 2], np.asarray(disk.faces)
+
+
+def table_mesh(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Table slab in the turntable frame, top face under the platter."""
+    box = trimesh.creation.box([2 * TABLE_HALF_M, 2 * TABLE_HALF_M, TABLE_THICKNESS_M])
+    shift = [0, 0, -cfg.platter_thickness_m - TABLE_THICKNESS_M / 2]
+    return np.asarray(box.vertices) + shift, np.asarray(box.faces)
+
+
+@lru_cache(maxsize=16)
+def _stable_poses(key: str, vertices: bytes, faces: bytes) -> tuple[np.ndarray, np.ndarray]:
+    v = np.frombuffer(vertices).reshape(-1, 3)
+    f = np.frombuffer(faces, dtype=np.int64).reshape(-1, 3)
+    poses, prob = trimesh.poses.compute_stable_poses(trimesh.Trimesh(v, f, process=False))
+    keep = prob >= 0.03
+    return poses[keep], prob[keep] / prob[keep].sum()
+
+
+def rest_on_platter(obj: ObjectMesh, cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
+    """``T_turntable_o``: a stable resting pose, random yaw, small offset from the centre."""
+    poses, prob = _stable_poses(obj.name, obj.vertices.tobytes(), obj.faces.tobytes())
+    T_stable = poses[rng.choice(len(poses), p=prob)]
+    r, a = cfg.object_offset_m * np.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
+    T = make_T(np.eye(3), [r * np.cos(a), r * np.sin(a), 0.0]) @ rot_z(rng.uniform(0, 2 * np.pi))
+    T = T @ T_stable
+    # compute_stable_poses rests the hull on z = 0; settle exactly onto the mesh's lowest point
+    T[2, 3] -= (obj.vertices @ T[:3, :3].T + T[:3, 3])[:, 2].min()
+    return T
+
+
+def smoothstep(x: np.ndarray | float) -> np.ndarray:
+    """0 -> 1 with zero slope at both ends; clipped outside [0, 1]."""
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def interpolate_pose(T_a: np.ndarray, T_b: np.ndarray, s: float) -> np.ndarray:
+    """Pose between ``T_a`` (s = 0) and ``T_b`` (s = 1): slerp rotation, linear translation."""
+    slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T_a[:3, :3], T_b[:3, :3]])))
+    return make_T(slerp([s]).as_matrix()[0], (1 - s) * T_a[:3, 3] + s * T_b[:3, 3])
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Smooth rigid motion of the hand and object in the camera frame after the steady frame.
+
+    ``rotvec(tau)`` and ``shift(tau)`` are sums of sines (zero at tau = 0), so
+    the motion starts at the steady pose; ``centre`` is the rotation centre (m).
+    """
+
+    axes: np.ndarray  # (3, 3) unit rotation axes
+    amplitudes_rad: np.ndarray  # (3,)
+    freq: np.ndarray  # (3,) cycles over the video
+    shift_dirs: np.ndarray  # (2, 3) unit translation directions
+    shift_m: np.ndarray  # (2,)
+    shift_freq: np.ndarray  # (2,)
+    centre: np.ndarray  # (3,)
+
+    def M(self, tau: float) -> np.ndarray:
+        """(4, 4) motion at normalised time ``tau`` in [0, 1]; identity at 0."""
+        rotvec = (self.amplitudes_rad * np.sin(2 * np.pi * self.freq * tau)) @ self.axes
+        shift = (self.shift_m * np.sin(2 * np.pi * self.shift_freq * tau)) @ self.shift_dirs
+        R = Rotation.from_rotvec(rotvec).as_matrix()
+        return make_T(R, self.centre + shift - R @ self.centre)
+
+    def scaled(self, factor: float) -> Motion:
+        """The same motion with rotation and translation amplitudes times ``factor``."""
+        return Motion(self.axes, self.amplitudes_rad * factor, self.freq, self.shift_dirs,
+                      self.shift_m * factor, self.shift_freq, self.centre)
+
+
+def random_motion(centre: np.ndarray, cfg: SynthConfig, rng: np.random.Generator) -> Motion:
+    """A motion reaching up to ``cfg.motion_rotation_deg`` about varied axes, a few cm of shift."""
+    axes = rng.normal(size=(3, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    total = np.radians(cfg.motion_rotation_deg) * rng.uniform(0.6, 1.0)
+    amplitudes = total * rng.dirichlet(np.ones(3) * 2.0) * 1.6
+    dirs = rng.normal(size=(2, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    return Motion(axes, np.minimum(amplitudes, np.radians(cfg.motion_rotation_deg)),
+                  rng.uniform(0.4, 1.2, 3), dirs,
+                  cfg.motion_translation_m * rng.uniform(0.3, 0.6, 2), rng.uniform(0.3, 1.0, 2),
+                  np.asarray(centre, float))

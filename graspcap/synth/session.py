@@ -1,0 +1,319 @@
+"""One synthetic session end to end: place, grasp, move, render, write to the contract."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from graspcap.schemas.session import SessionManifest
+from graspcap.synth.config import STAGE_VERSION, SynthConfig
+from graspcap.synth.grasp import Grasp, hand_contact, plan_grasp
+from graspcap.synth.objects import (
+    OBJECT_NAMES,
+    ObjectMesh,
+    load_object,
+    procedural_object,
+    write_object,
+)
+from graspcap.synth.raycast import Hits, StaticCamera
+from graspcap.synth.rig import (
+    color_K,
+    interpolate_pose,
+    platter_mesh,
+    random_motion,
+    rest_on_platter,
+    smoothstep,
+    table_mesh,
+    thermal_extrinsics,
+    thermal_K,
+    turntable_pose,
+)
+from graspcap.synth.sensors import (
+    ALBEDO,
+    detect_keypoints,
+    noisy_depth_mm,
+    openpose_json,
+    shaded_rgb,
+    thermal_centikelvin,
+)
+from graspcap.tasks.errors import StageError
+from graspcap.tasks.geometry import backproject, inv_T, make_T, project, transform_points
+from graspcap.tasks.hand_model import RIGID_PALM_POINTS, HandModel, HandSide
+
+COLOR_PATTERN = "grasp/color/{index:06d}.jpg"
+DEPTH_PATTERN = "grasp/depth/{index:06d}.png"
+KEYPOINTS_PATTERN = "grasp/keypoints/{index:06d}_keypoints.json"
+_APPROACH_M = 0.04  # the open hand starts this far back along its palmar normal
+_LIFT_M = 0.05  # extra height of the object's path while it is picked up
+
+
+def participant_scale(participant: int, spread: float) -> float:
+    """A participant's stable hand scale in ``1 +- spread``."""
+    return float(1.0 + spread * (2.0 * np.random.default_rng([7919, participant]).uniform() - 1))
+
+
+def _seed_label(seed: Sequence[int]) -> str:
+    head, *rest = seed
+    return f"s{head}" + "".join(f"-{r:03d}" for r in rest)
+
+
+def _write(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(data)
+
+
+def _png(path: Path, image: np.ndarray) -> None:
+    ok, buf = cv2.imencode(".png", image)
+    assert ok, path
+    _write(path, buf.tobytes())
+
+
+def _jpg(path: Path, rgb: np.ndarray, quality: int) -> None:
+    ok, buf = cv2.imencode(".jpg", rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, quality])
+    assert ok, path
+    _write(path, buf.tobytes())
+
+
+def _matrix(T: np.ndarray) -> list[list[float]]:
+    return [[float(x) for x in row] for row in np.asarray(T)]
+
+
+class _Scene:
+    """The colour and thermal cameras over the static platter and table."""
+
+    def __init__(self, cfg: SynthConfig, T_color_tt: np.ndarray, T_color_thermal: np.ndarray):
+        static = [platter_mesh(cfg), table_mesh(cfg)]
+        self.color = StaticCamera(color_K(cfg), cfg.width, cfg.height, static, [T_color_tt] * 2)
+        self.T_thermal_color = inv_T(T_color_thermal)
+        self.thermal = StaticCamera(thermal_K(cfg), cfg.thermal_width, cfg.thermal_height, static,
+                                    [self.T_thermal_color @ T_color_tt] * 2)
+
+    def render(self, parts: list[tuple[tuple[np.ndarray, np.ndarray], np.ndarray]]) -> Hits:
+        """Colour-camera hits of ``parts`` (mesh, T_color_mesh), then platter, then table."""
+        return self.color.render([m for m, _ in parts], [T for _, T in parts])
+
+    def render_thermal(self, parts: list[tuple[tuple[np.ndarray, np.ndarray], np.ndarray]]) -> Hits:
+        """Thermal-camera hits of ``parts`` given in the colour frame."""
+        return self.thermal.render([m for m, _ in parts],
+                                   [self.T_thermal_color @ T for _, T in parts])
+
+
+def _above_table(points_w: np.ndarray, T_color_tt: np.ndarray, margin_m: float = 0.008) -> bool:
+    return bool(transform_points(inv_T(T_color_tt), points_w)[:, 2].min() > margin_m)
+
+
+def _in_image(uv: np.ndarray, cfg: SynthConfig, margin_px: float) -> bool:
+    return bool(np.all((uv >= margin_px) & (uv <= [cfg.width - margin_px, cfg.height - margin_px])))
+
+
+def _steady_pose(obj: ObjectMesh, hand_o: np.ndarray, joints_o: np.ndarray, T_w_o1: np.ndarray,
+                 T_color_tt: np.ndarray, cfg: SynthConfig, rng: np.random.Generator):
+    """Object pose at the first steady frame: lifted towards the camera, a bounded turn."""
+    K = color_K(cfg)
+    centre_o = joints_o[list(RIGID_PALM_POINTS)].mean(axis=0)
+    sample = np.concatenate([obj.vertices[::7], hand_o[::5]])
+    for _ in range(60):
+        axis = rng.normal(size=3)
+        angle = np.radians(rng.uniform(0.3, 1.0) * cfg.adjust_rotation_deg)
+        R = make_T(cv2.Rodrigues(axis / np.linalg.norm(axis) * angle)[0], [0, 0, 0])[:3, :3]
+        R_w_o = R @ T_w_o1[:3, :3]
+        uv = rng.uniform([0.35 * cfg.width, 0.3 * cfg.height], [0.65 * cfg.width, 0.6 * cfg.height])
+        c_w = backproject(K, uv[None], np.array([rng.uniform(*cfg.hand_distance_m)]))[0]
+        T = make_T(R_w_o, c_w - R_w_o @ centre_o)
+        if _in_image(project(K, transform_points(T, joints_o)), cfg, 25) and _above_table(
+                transform_points(T, sample), T_color_tt, 0.02):
+            return T
+    raise StageError("synth", f"object {obj.name}: no steady pose keeps the hand in view")
+
+
+def generate_session(out: Path, session_seed: int | Sequence[int], config: SynthConfig,
+                     object_mesh: Path | None = None) -> Path:
+    """Write one synthetic session (and its ground truth) under ``out``; returns its directory.
+
+    Deterministic: the same ``session_seed`` and ``config`` give byte-identical files.
+    """
+    cfg = config
+    seed = [int(session_seed)] if np.isscalar(session_seed) else [int(s) for s in session_seed]
+    rng = np.random.default_rng(seed)
+    obj = (load_object(object_mesh) if object_mesh is not None
+           else procedural_object(str(rng.choice(OBJECT_NAMES)), cfg.object_faces))
+    pid = int(rng.integers(1, cfg.participants + 1))
+    participant, scale = f"p{pid:02d}", participant_scale(pid, cfg.hand_scale_spread)
+    intent = str(rng.choice(["use", "handoff"]))
+    session_id = f"synth-{_seed_label(seed)}-{obj.name}"
+    root = Path(out) / session_id
+    hm = HandModel(HandSide.RIGHT)
+
+    K, K_th = color_K(cfg), thermal_K(cfg)
+    T_color_thermal = thermal_extrinsics(cfg, rng)
+    T_color_tt = turntable_pose(cfg, rng)
+    scene = _Scene(cfg, T_color_tt, T_color_thermal)
+    obj_mesh = (obj.vertices, obj.faces)
+
+    # Stage 1: the object alone on the platter.
+    T_tt_o1 = rest_on_platter(obj, cfg, rng)
+    T_w_o1 = T_color_tt @ T_tt_o1
+    hits = scene.render([(obj_mesh, T_w_o1)])
+    _png(root / "stage1/depth.png", noisy_depth_mm(hits.depth_m, hits.cos_incidence, cfg, rng))
+    albedo = [ALBEDO["object"], ALBEDO["platter"], ALBEDO["table"]]
+    _png(root / "stage1/color.png", shaded_rgb(hits, albedo, rng)[..., ::-1])
+
+    # The grasp, planned on the object as it rests on the platter.
+    grasp = plan_grasp(obj, hm, scale, T_tt_o1[:3, :3].T @ [0.0, 0.0, 1.0], cfg, rng)
+    hand_p = hm.mesh(grasp.angles_rad, np.eye(4), scale)
+    hand_o = transform_points(grasp.T_o_p, hand_p.vertices)
+    joints_o = hm.keypoints(grasp.angles_rad, grasp.T_o_p, scale)
+    T_w_o_steady = _steady_pose(obj, hand_o, joints_o, T_w_o1, T_color_tt, cfg, rng)
+    T_adj = T_w_o_steady @ inv_T(T_w_o1)
+    T_w_p = T_w_o_steady @ grasp.T_o_p
+    joints_w = hm.keypoints(grasp.angles_rad, T_w_p, scale)
+
+    count = cfg.frames
+    steady = int(np.clip(round(count * rng.uniform(*cfg.adjust_fraction)), 2, count - 2))
+    motions = _video_motion(obj, hand_o, joints_o, T_w_o_steady, T_color_tt, steady, cfg, rng)
+
+    # The grasp video.
+    clean = np.zeros((count, 21, 2))
+    albedo = [ALBEDO["object"], ALBEDO["hand"], ALBEDO["platter"], ALBEDO["table"]]
+    for i in range(count):
+        if i >= steady:
+            M = motions[i - steady]
+            T_w_o, T_w_p_i, angles = M @ T_w_o_steady, M @ T_w_p, grasp.angles_rad
+            hand_v = transform_points(T_w_p_i, hand_p.vertices)
+        else:
+            T_w_o, T_w_p_i, angles = _adjustment(grasp, T_w_o1, T_w_o_steady, T_color_tt,
+                                                 i / steady)
+            hand_v = hm.mesh(angles, T_w_p_i, scale).vertices
+        joints = hm.keypoints(angles, T_w_p_i, scale)
+        clean[i] = project(K, joints)
+        hits = scene.render([(obj_mesh, T_w_o), ((hand_v, hand_p.faces), np.eye(4))])
+        _png(root / DEPTH_PATTERN.format(index=i),
+             noisy_depth_mm(hits.depth_m, hits.cos_incidence, cfg, rng))
+        _jpg(root / COLOR_PATTERN.format(index=i), shaded_rgb(hits, albedo, rng), cfg.jpeg_quality)
+        kp = detect_keypoints(clean[i], _occluded(hits, clean[i], joints[:, 2]),
+                              cfg.width, cfg.height, cfg, rng)
+        _write(root / KEYPOINTS_PATTERN.format(index=i), json.dumps(openpose_json(kp)).encode())
+
+    # The scan: the object back on the platter in a new pose, rotated through 360 deg.
+    T_tt_o_scan = rest_on_platter(obj, cfg, rng)
+    contact = hand_contact(obj, hand_o, hand_p.faces, hand_p.part)
+    n_views = int(rng.integers(cfg.scan_views[0], cfg.scan_views[1] + 1))
+    views = []
+    for k in range(n_views):
+        angle_deg = 360.0 * k / n_views
+        T_c_o = T_color_tt @ _rot_z_deg(angle_deg) @ T_tt_o_scan
+        hits = scene.render([(obj_mesh, T_c_o)])
+        depth_rel, thermal_rel = f"scan/depth/{k:03d}.png", f"scan/thermal/{k:03d}.png"
+        _png(root / depth_rel, noisy_depth_mm(hits.depth_m, hits.cos_incidence, cfg, rng))
+        th = scene.render_thermal([(obj_mesh, T_c_o)])
+        _png(root / thermal_rel, thermal_centikelvin(th, obj.faces, contact, cfg, rng))
+        views.append({"thermal": thermal_rel, "depth": depth_rel, "angle_deg": angle_deg})
+
+    write_object(obj, root / "object.ply")
+    manifest = {
+        "format": "grasp-capture-session/1",
+        "session_id": session_id,
+        "participant": participant,
+        "object_id": obj.name,
+        "intent": intent,
+        "hand": "right",
+        "object_mesh": "object.ply",
+        "color_camera": {"K": _matrix(K), "dist": [0.0] * 5, "width": cfg.width,
+                         "height": cfg.height},
+        "depth_scale_m": 0.001,
+        "thermal_camera": {"K": _matrix(K_th), "dist": [0.0] * 5, "width": cfg.thermal_width,
+                           "height": cfg.thermal_height,
+                           "T_color_thermal": _matrix(T_color_thermal)},
+        "turntable": {"T_color_turntable": _matrix(T_color_tt)},
+        "stage1": {"depth": "stage1/depth.png", "color": "stage1/color.png"},
+        "grasp": {"fps": cfg.fps, "count": count, "color": COLOR_PATTERN, "depth": DEPTH_PATTERN,
+                  "keypoints": KEYPOINTS_PATTERN,
+                  "steady_from": steady if cfg.write_steady_from else None},
+        "scan": {"views": views},
+    }
+    SessionManifest.model_validate(manifest)  # the writer honours the contract
+    _write(root / "session.json", (json.dumps(manifest, indent=2) + "\n").encode())
+
+    truth = {
+        "generator": STAGE_VERSION,
+        "config_digest": cfg.digest(),
+        "difficulty": cfg.difficulty.value,
+        "seed": seed,
+        "object_id": obj.name,
+        "T_w_o_stage1": _matrix(T_w_o1),
+        "T_adj": _matrix(T_adj),
+        "steady_from": steady,
+        "T_w_c": [_matrix(inv_T(M)) for M in motions],
+        "joints_w": _matrix(joints_w),
+        "T_turntable_o_scan": _matrix(T_tt_o_scan),
+        "T_w_p": _matrix(T_w_p),
+        "T_o_p": _matrix(grasp.T_o_p),
+        "hand_scale": scale,
+        "joint_angles_rad": [float(a) for a in grasp.angles_rad],
+        "touching_fingers": [bool(t) for t in grasp.touching],
+        "penetration_mm": grasp.penetration_m * 1000.0,
+    }
+    _write(root / "ground_truth/truth.json", (json.dumps(truth, indent=1) + "\n").encode())
+    np.save(root / "ground_truth/contact.npy", contact.astype(np.float32))
+    np.save(root / "ground_truth/keypoints_clean.npy", clean)
+    return root
+
+
+def _rot_z_deg(angle_deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    return np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+
+
+def _adjustment(grasp: Grasp, T_w_o1: np.ndarray, T_w_o_steady: np.ndarray,
+                T_color_tt: np.ndarray, x: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Object pose, palm pose and angles at fraction ``x`` in [0, 1) of grasp adjustment.
+
+    The open hand approaches and closes while the object still rests on the
+    platter, then the object is lifted (with a small arc) to its steady pose
+    while the fingers settle.
+    """
+    s_hand = float(smoothstep(x))
+    s_obj = float(smoothstep((x - 0.35) / 0.65))
+    T_w_o = interpolate_pose(T_w_o1, T_w_o_steady, s_obj)
+    T_w_o[:3, 3] += T_color_tt[:3, 2] * _LIFT_M * np.sin(np.pi * s_obj)
+    back = make_T(np.eye(3), [0.0, 0.0, -_APPROACH_M * (1.0 - min(1.0, s_hand / 0.6))])
+    angles = grasp.open_angles_rad + s_hand * (grasp.angles_rad - grasp.open_angles_rad)
+    return T_w_o, T_w_o @ grasp.T_o_p @ back, angles
+
+
+def _occluded(hits: Hits, uv: np.ndarray, z_m: np.ndarray, margin_m: float = 0.003) -> np.ndarray:
+    """(21,) joints whose pixel shows the object (mesh 0) in front of them."""
+    h, w = hits.depth_m.shape
+    px = np.round(uv).astype(int)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    out = np.zeros(len(uv), bool)
+    u, v = px[inside, 0], px[inside, 1]
+    out[inside] = (hits.mesh_index[v, u] == 0) & (hits.depth_m[v, u] < z_m[inside] - margin_m)
+    return out
+
+
+def _video_motion(obj: ObjectMesh, hand_o: np.ndarray, joints_o: np.ndarray,
+                  T_w_o_steady: np.ndarray, T_color_tt: np.ndarray, steady: int,
+                  cfg: SynthConfig, rng: np.random.Generator) -> list[np.ndarray]:
+    """Rigid motions M_i (camera frame) of hand and object for frames ``steady`` .. count-1."""
+    K = color_K(cfg)
+    joints_w = transform_points(T_w_o_steady, joints_o)
+    sample = transform_points(T_w_o_steady, np.concatenate([obj.vertices[::11], hand_o[::7]]))
+    centre = transform_points(T_w_o_steady, joints_o[list(RIGID_PALM_POINTS)]).mean(axis=0)
+    motion = random_motion(centre, cfg, rng)
+    n = cfg.frames - steady
+    taus = np.arange(n) / max(n - 1, 1)
+    for _ in range(12):
+        Ms = [motion.M(t) for t in taus]
+        worst = max(np.degrees(np.linalg.norm(cv2.Rodrigues(M[:3, :3])[0])) for M in Ms)
+        ok = worst <= cfg.motion_rotation_deg + 1e-6 and all(
+            _in_image(project(K, transform_points(M, joints_w)), cfg, 5)
+            and _above_table(transform_points(M, sample), T_color_tt) for M in Ms)
+        if ok:
+            return Ms
+        motion = motion.scaled(0.75)
+    raise StageError("synth", f"object {obj.name}: no motion keeps the hand in view")
