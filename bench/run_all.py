@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-BENCHES = ["synth_speed.py", "hand_model_speed.py", "validate_speed.py", "fit_hand_speed.py"]
+BENCHES = ["synth_speed.py", "hand_model_speed.py", "validate_speed.py", "fit_hand_speed.py", "catalog_bench.py"]
 
 
 def main() -> int:
