@@ -1,0 +1,83 @@
+"""Stage 2 benchmark: per-stage time for 120 frames, accuracy over synthetic sessions.
+
+Run: OMP_NUM_THREADS=1 .venv/bin/python bench/bench_sfm.py [n_sessions]
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from graspcap.synth.hand_video import make_hand_video
+from graspcap.tasks.crosscheck_sfm import crosscheck_sfm
+from graspcap.tasks.errors import StageError
+from graspcap.tasks.geometry import pose_error
+from graspcap.tasks.reconstruct_hand import reconstruct_hand
+from graspcap.tasks.select_steady import select_steady
+
+
+def main(n_sessions: int = 10) -> None:
+    rows, onset_err = [], []
+    for seed in range(n_sessions):
+        rng = np.random.default_rng(100 + seed)
+        steady = int(rng.integers(15, 45))
+        video = make_hand_video(
+            n_frames=120,
+            steady_from=steady,
+            seed=seed,
+            closing_deg_per_frame=float(rng.uniform(1.0, 3.0)),
+        )
+        t0 = time.perf_counter()
+        try:
+            found = select_steady(video.keypoints, video.K, None).steady_from
+            onset_err.append(found - steady)
+        except StageError:
+            onset_err.append(np.nan)
+        t1 = time.perf_counter()
+        rec = reconstruct_hand(
+            video.keypoints, video.K, steady, video.depth_at, video.surface_offset_m
+        )
+        t2 = time.perf_counter()
+        check = crosscheck_sfm(video.keypoints, video.K, rec)
+        t3 = time.perf_counter()
+        errs = np.array(
+            [pose_error(a, b) for a, b in zip(rec.T_w_c, video.T_w_c[steady:], strict=True)]
+        )
+        mpjpe = np.linalg.norm(rec.joints_w - video.joints_w, axis=1).mean()
+        rows.append(
+            (
+                t1 - t0,
+                t2 - t1,
+                t3 - t2,
+                mpjpe * 1e3,
+                np.median(errs[:, 0]),
+                np.median(errs[:, 1]) * 1e3,
+                check.median_joint_discrepancy_m * 1e3,
+                check.max_joint_discrepancy_m * 1e3,
+            )
+        )
+        print(
+            f"seed {seed}: steady {steady} found {onset_err[-1] + steady}; times "
+            f"{t1 - t0:.2f}/{t2 - t1:.2f}/{t3 - t2:.2f} s; mpjpe {mpjpe * 1e3:.2f} mm; "
+            f"cam median {np.median(errs[:, 0]):.2f} deg {np.median(errs[:, 1]) * 1e3:.1f} mm; "
+            f"crosscheck median/max {rows[-1][6]:.2f}/{rows[-1][7]:.2f} mm",
+            flush=True,
+        )
+    r = np.array(rows)
+    e = np.abs(np.array(onset_err, dtype=float))
+    print(
+        f"median time select_steady {np.median(r[:, 0]):.2f} s, reconstruct_hand "
+        f"{np.median(r[:, 1]):.2f} s, crosscheck_sfm {np.median(r[:, 2]):.2f} s"
+    )
+    print(
+        f"mpjpe mean {r[:, 3].mean():.2f} mm max {r[:, 3].max():.2f}; camera median rot "
+        f"{np.median(r[:, 4]):.2f} deg, trans {np.median(r[:, 5]):.1f} mm; crosscheck max "
+        f"{r[:, 7].max():.2f} mm"
+    )
+    print(f"steady onset within 3 frames: {np.mean(e <= 3):.0%} (errors {onset_err})")
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 10)
