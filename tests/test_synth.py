@@ -273,3 +273,18 @@ def test_workers_give_the_same_sessions(tmp_path):
         assert a.name == b.name
         for rel in ("session.json", "ground_truth/truth.json", "grasp/depth/000009.png"):
             assert (a / rel).read_bytes() == (b / rel).read_bytes()
+
+
+def test_config_for_overrides_frames_and_validates():
+    from pydantic import ValidationError
+
+    from graspcap.synth import config_for
+
+    cfg = config_for("hard", 30)
+    assert cfg.frames == 30 and cfg.kp_sigma_px == PRESETS["hard"].kp_sigma_px
+    with pytest.raises(ValidationError):
+        config_for("easy", 2)
+    with pytest.raises(ValidationError):
+        PRESETS["easy"].model_validate({"no_such_field": 1})
+    sigmas = [PRESETS[d].depth_sigma_m for d in ("easy", "realistic", "hard")]
+    assert sigmas == sorted(sigmas) and len(set(sigmas)) == 3

@@ -20,7 +20,9 @@ def config_for(difficulty: Difficulty | str = "realistic",
                frames: int | None = None) -> SynthConfig:
     """The preset of ``difficulty``, with ``frames`` overriding the video length when given."""
     cfg = PRESETS[Difficulty(difficulty).value]
-    return cfg if frames is None else cfg.model_copy(update={"frames": int(frames)})
+    if frames is None:
+        return cfg
+    return SynthConfig.model_validate({**cfg.model_dump(), "frames": int(frames)})  # validated
 
 
 def generate(out: Path, *, sessions: int, seed: int, difficulty: Difficulty | str = "realistic",

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from enum import StrEnum
 
+from pydantic import Field
+
 from graspcap.tasks.config import StageConfig
 
 STAGE_VERSION = "synth/1"
@@ -23,8 +25,8 @@ class SynthConfig(StageConfig):
     difficulty: Difficulty = Difficulty.REALISTIC
     """Recorded in the ground truth; the noise fields below carry the actual effect."""
 
-    frames: int = 120
-    """Number of grasp-video frames."""
+    frames: int = Field(120, ge=4)
+    """Number of grasp-video frames (at least 4: adjustment, then steady frames)."""
     fps: float = 30.0
     """Grasp-video frame rate."""
     width: int = 640
