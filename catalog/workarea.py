@@ -4,7 +4,13 @@ Stage results can hold big arrays, so they never travel through Prefect's
 result store: a stage's result is pickled (protocol 5, numpy buffers written
 as they are) into ``<root>/results/<stage>/<key>.pkl`` and tasks hand each
 other a small :class:`ResultRef` (path + content digest). Writes are atomic
-(temporary file, then rename), so a killed build never leaves a half result.
+(temporary file, then rename) and the result's small JSON record
+(``<key>.json``: digest, build, seconds) is written after the pickle, so a
+killed build never leaves a half result that a later lookup would trust.
+
+``executions.jsonl`` is the side channel of stage-body executions: one JSON line per
+attempt (stage, session, key, build, seconds, ok, error), appended with ``O_APPEND`` in
+one ``write``, so lines from concurrent workers never interleave.
 """
 
 from __future__ import annotations
@@ -14,11 +20,14 @@ import json
 import os
 import pickle
 import tempfile
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 _CHUNK = 1 << 20
+EXECUTIONS = "executions.jsonl"
 
 
 @dataclass(frozen=True)
@@ -31,6 +40,10 @@ class ResultRef:
     digest: str
     build_id: str
     """The build whose run produced the result (differs from the current build on a cache hit)."""
+    cached: bool = False
+    """True when the task found the result in the work area and ran no stage body."""
+    seconds: float = 0.0
+    """Wall time of the stage body that produced the result."""
 
 
 def sha256_file(path: Path) -> str:
@@ -42,13 +55,32 @@ def sha256_file(path: Path) -> str:
 
 
 class WorkArea:
-    """Results and digests under one root folder (default: the catalog's ``work/``)."""
+    """Results and digests under one root folder (default: the catalog's ``work/``).
+
+    Every worker of a build must be able to read and write ``root`` (a local folder, or a
+    shared file system mounted at the same path on every machine).
+    """
+
+    _loaded: OrderedDict[str, Any] = OrderedDict()
+    _loaded_lock = threading.Lock()
+    _LOADED_MAX = 32
 
     def __init__(self, root: Path | str):
-        self.root = Path(root)
+        self.root = Path(root).expanduser().resolve()
         (self.root / "results").mkdir(parents=True, exist_ok=True)
         self._digest_index = self.root / "digests"
         self._digest_index.mkdir(exist_ok=True)
+        self._memo: dict[str, str] = {}
+
+    def __getstate__(self) -> dict:
+        return {"root": str(self.root)}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["root"])
+
+    @property
+    def executions_file(self) -> Path:
+        return self.root / EXECUTIONS
 
     # --- file digests -----------------------------------------------------------------------
     def file_digest(self, path: Path) -> str:
@@ -56,15 +88,20 @@ class WorkArea:
         not hashed again on every build."""
         st = os.stat(path)
         ident = f"{Path(path).resolve()}|{st.st_size}|{st.st_mtime_ns}"
-        memo = self._digest_index / hashlib.sha256(ident.encode()).hexdigest()[:32]
+        name = hashlib.sha256(ident.encode()).hexdigest()[:32]
+        if name in self._memo:
+            return self._memo[name]
+        memo = self._digest_index / name
         if memo.exists():
-            return memo.read_text()
-        digest = sha256_file(Path(path))
-        _atomic_write(memo, digest.encode())
+            digest = memo.read_text()
+        else:
+            digest = sha256_file(Path(path))
+            _atomic_write(memo, digest.encode())
+        self._memo[name] = digest
         return digest
 
     def files_digest(self, paths: list[Path]) -> str:
-        """One digest over many files (names relative order kept)."""
+        """One digest over many files (names and their order kept)."""
         h = hashlib.sha256()
         for p in paths:
             h.update(str(p).encode())
@@ -75,20 +112,70 @@ class WorkArea:
     def result_path(self, stage: str, key: str) -> Path:
         return self.root / "results" / stage / f"{key}.pkl"
 
-    def save(self, stage: str, key: str, result: Any, build_id: str) -> ResultRef:
+    def save(self, stage: str, key: str, result: Any, build_id: str,
+             seconds: float = 0.0) -> ResultRef:
+        """Store ``result`` under ``(stage, key)``; the record is written last."""
         data = pickle.dumps(result, protocol=5)
         path = self.result_path(stage, key)
         _atomic_write(path, data)
-        return ResultRef(stage, key, str(path), hashlib.sha256(data).hexdigest(), build_id)
+        ref = ResultRef(stage, key, str(path), hashlib.sha256(data).hexdigest(), build_id,
+                        cached=False, seconds=seconds)
+        record = {"digest": ref.digest, "build_id": build_id, "seconds": seconds}
+        _atomic_write(path.with_suffix(".json"), canonical_json(record).encode())
+        return ref
 
-    def lookup(self, stage: str, key: str) -> Path | None:
+    def lookup(self, stage: str, key: str) -> ResultRef | None:
+        """The stored result of ``(stage, key)`` as a cached ref, or None."""
         path = self.result_path(stage, key)
-        return path if path.exists() else None
+        try:
+            record = json.loads(path.with_suffix(".json").read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            return None
+        if not path.exists():
+            return None
+        return ResultRef(stage, key, str(path), record["digest"], record["build_id"],
+                         cached=True, seconds=float(record.get("seconds", 0.0)))
 
-    @staticmethod
-    def load(ref: ResultRef) -> Any:
+    @classmethod
+    def load(cls, ref: ResultRef) -> Any:
+        """The result ``ref`` points to (a few recent ones are kept in memory, by digest)."""
+        with cls._loaded_lock:
+            if ref.digest in cls._loaded:
+                cls._loaded.move_to_end(ref.digest)
+                return cls._loaded[ref.digest]
         with open(ref.path, "rb") as f:
-            return pickle.load(f)
+            result = pickle.load(f)
+        with cls._loaded_lock:
+            cls._loaded[ref.digest] = result
+            while len(cls._loaded) > cls._LOADED_MAX:
+                cls._loaded.popitem(last=False)
+        return result
+
+    # --- the side channel of executions -----------------------------------------------------
+    def record_execution(self, **fields: Any) -> None:
+        """Append one JSON line to ``executions.jsonl`` (one ``write`` on an O_APPEND fd)."""
+        line = (canonical_json(fields) + "\n").encode()
+        fd = os.open(self.executions_file, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            os.write(fd, line)
+        finally:
+            os.close(fd)
+
+    def executions(self, build_id: str | None = None) -> list[dict]:
+        """The recorded executions, all or of one build (a torn last line is skipped)."""
+        try:
+            lines = self.executions_file.read_text().splitlines()
+        except FileNotFoundError:
+            return []
+        out = []
+        for line in lines:
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if build_id is None or rec.get("build_id") == build_id:
+                out.append(rec)
+        return out
 
 
 def _atomic_write(path: Path, data: bytes) -> None:

@@ -1,0 +1,273 @@
+"""A dataset build: every session's DAG in ONE Prefect flow run, one catalog version.
+
+    report = build_dataset(["captures/"], "catalog/")
+
+1. discover the sessions under the roots (``load_session.discover_sessions``);
+2. submit every session's stage tasks into this one flow run (not a subflow per session:
+   measured in ``docs/architecture.md``), so sessions run concurrently on the task runner;
+3. wait for each task; a failed session never stops the others, and its downstream tasks
+   do not run;
+4. turn the results into catalog rows (``flows/rows.py``); a session whose stages all hit the
+   cache and whose catalog row has the same input and config digests is ``unchanged``;
+5. commit added, changed and failed sessions as one catalog version, with the build record
+   (which stages ran or hit the cache, retries, failures, parameters, timings) in the
+   ``builds`` table; with nothing to commit there is no new version, and the report says so.
+
+A session that fails keeps its previous good rows (the failure is in the build record);
+without previous good rows it gets a ``status="failed"`` row with the reason.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import time
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from prefect import flow
+
+import graspcap
+import graspcap.catalog as gc
+from graspcap.catalog.workarea import WorkArea
+from graspcap.flows.cached import reads_digest, session_files, session_id_of
+from graspcap.flows.report import BuildReport, Outcome, SessionReport
+from graspcap.flows.rows import failed_row, session_rows
+from graspcap.flows.runtime import build_settings, task_runner, worker_api
+from graspcap.flows.session import submit_session
+from graspcap.schemas.tables import Status
+from graspcap.tasks.config import StageConfig
+from graspcap.tasks.load_session import discover_sessions
+
+BUILDS_LOG = "builds.jsonl"
+ProgressFn = Callable[[int, int, str, str, str], None]
+"""``progress(done, total, session_id, stage, state)`` after each task."""
+_progress: ProgressFn | None = None
+
+
+def code_version() -> str:
+    """graspcap's version and, in a git checkout, its revision."""
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                             text=True, timeout=5, cwd=Path(graspcap.__file__).parent)
+        if rev.returncode == 0 and rev.stdout.strip():
+            return f"{graspcap.__version__}+g{rev.stdout.strip()}"
+    except OSError:
+        pass
+    return graspcap.__version__
+
+
+def resolve_configs(preset: str, overrides: Mapping[str, Any] | None) -> dict[str, StageConfig]:
+    """Every stage's config for ``preset``; ``overrides`` per stage: a config, or a dict of
+    fields applied over the preset (validated: unknown fields are rejected)."""
+    from graspcap.tasks.pipeline import STAGES, configs_for
+
+    base = configs_for(preset)
+    out = dict(base)
+    for name, value in (overrides or {}).items():
+        if name not in STAGES:
+            raise KeyError(f"no such stage {name!r}; stages are {list(STAGES)}")
+        out[name] = value if isinstance(value, StageConfig) else STAGES[name].config_type(
+            **{**base[name].model_dump(), **dict(value)})
+    return out
+
+
+def configs_digest(configs: Mapping[str, StageConfig]) -> str:
+    from graspcap.tasks.pipeline import STAGES
+
+    text = json.dumps({n: [STAGES[n].version, c.canonical_json()] for n, c in configs.items()},
+                      sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def last_build_failures(cat: gc.Catalog, work: WorkArea) -> set[str]:
+    """Sessions that failed in the last build (the work area's log, else the catalog)."""
+    log = work.root / BUILDS_LOG
+    if log.exists():
+        lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
+        if lines:
+            return set(json.loads(lines[-1])["summary"]["failed"])
+    if cat.latest_version() is None:
+        return set()
+    builds = cat.table("builds").sort_by("catalog_version").to_pylist()
+    last = builds[-1]
+    failed = {f["session_id"] for f in last["sessions_failed"]}
+    record = json.loads(last["parameters_json"]).get("report", {})
+    return failed | set(record.get("summary", {}).get("failed", {}))
+
+
+def _input_digest(work: WorkArea, session_dir: Path) -> str:
+    from graspcap.tasks.pipeline import ALL_FILES
+
+    files = session_files(session_dir)
+    if files is None:
+        return hashlib.sha256(b"unreadable manifest").hexdigest()
+    try:
+        return reads_digest(work, files, ALL_FILES)
+    except OSError:
+        return hashlib.sha256(b"missing files").hexdigest()
+
+
+def _stage_outcomes(futures: Mapping[str, Any], done: list[int], total: int, sid: str):
+    refs, ran, cached, not_run = {}, [], [], []
+    error = failed_stage = None
+    for name, fut in futures.items():
+        fut.wait()
+        state = fut.state
+        if state.is_completed():
+            ref = state.result()
+            refs[name] = ref
+            (cached if ref.cached else ran).append(name)
+        elif state.is_failed() or state.is_crashed():
+            exc = state.result(raise_on_failure=False)
+            failed_stage = failed_stage or name
+            if error is None:
+                error = f"{name}: {exc}" if isinstance(exc, BaseException) else str(state.message)
+        else:
+            not_run.append(name)
+        done[0] += 1
+        if _progress is not None:
+            _progress(done[0], total, sid, name, state.name or state.type.value)
+    return refs, ran, cached, not_run, error, failed_stage
+
+
+@flow(name="graspcap-build", persist_result=False, log_prints=False)
+def build_flow(roots: list[str], catalog: str, preset: str = "default",
+               overrides: dict[str, Any] | None = None, retry_failed: bool = False,
+               work_root: str | None = None, build_id: str | None = None) -> BuildReport:
+    """The whole build as one flow run (module docstring)."""
+    from graspcap.tasks.pipeline import STAGES
+
+    t0 = time.perf_counter()
+    build_id = build_id or time.strftime("%Y%m%dT%H%M%S") + "-" + uuid.uuid4().hex[:8]
+    cat = gc.open(catalog, create=True)
+    work = WorkArea(work_root or cat.layout.root / "work")
+    configs = resolve_configs(preset, overrides)
+    cdigest = configs_digest(configs)
+    version = code_version()
+    dirs = discover_sessions([Path(r) for r in roots])
+    ids = [session_id_of(d) for d in dirs]
+    if retry_failed:
+        wanted = last_build_failures(cat, work)
+        keep = [i for i, sid in enumerate(ids) if sid in wanted]
+        dirs, ids = [dirs[i] for i in keep], [ids[i] for i in keep]
+    seen: dict[str, Path] = {}
+    duplicate: dict[str, str] = {}
+    for d, sid in zip(dirs, ids, strict=True):
+        if sid in seen:
+            duplicate[str(d)] = f"session_id {sid!r} is also used by {seen[sid]}"
+        seen.setdefault(sid, d)
+    t_discover = time.perf_counter()
+
+    submitted = {str(d): submit_session(d, configs, work, build_id, session_id=sid)
+                 for d, sid in zip(dirs, ids, strict=True) if str(d) not in duplicate}
+    done, total = [0], len(submitted) * len(STAGES)
+    outcomes = {d: _stage_outcomes(f, done, total, session_id_of(Path(d)))
+                for d, f in submitted.items()}
+    t_run = time.perf_counter()
+
+    previous = cat.latest_version()
+    prev_rows = ({r["session_id"]: r for r in cat.table("sessions").select(
+        ["session_id", "status", "input_digest", "config_digest"]).to_pylist()}
+        if previous is not None else {})
+    attempts: dict[tuple[str, str], int] = {}
+    for rec in work.executions(build_id):
+        k = (rec["session_id"], rec["stage"])
+        attempts[k] = attempts.get(k, 0) + 1
+    reports, rows, frames, arrays, meshes = [], [], [], {}, {}
+    for d, sid in zip(dirs, ids, strict=True):
+        common = {"input_digest": _input_digest(work, d), "code_version": version,
+                  "build_id": build_id, "config_digest": cdigest}
+        prev = prev_rows.get(sid)
+        good_prev = prev is not None and prev["status"] != Status.FAILED
+        if str(d) in duplicate:
+            refs, ran, cached, not_run, error, stage = {}, [], [], list(STAGES), \
+                duplicate[str(d)], None
+        else:
+            refs, ran, cached, not_run, error, stage = outcomes[str(d)]
+        retries = {st: n - 1 for (s, st), n in attempts.items() if s == sid and n > 1}
+        info = dict(session_id=sid, session_dir=str(d), ran=tuple(ran), cached=tuple(cached),
+                    not_run=tuple(not_run), retries=retries)
+        if error is not None:
+            if not good_prev:
+                rows.append(failed_row(d, sid, error, **common))
+            reports.append(SessionReport(outcome=Outcome.FAILED, status=Status.FAILED.value,
+                                         error=error, failed_stage=stage,
+                                         kept_previous=good_prev, **info))
+            continue
+        if (not ran and good_prev and prev["input_digest"] == common["input_digest"]
+                and prev["config_digest"] == cdigest):
+            reports.append(SessionReport(outcome=Outcome.UNCHANGED, status=prev["status"],
+                                         **info))
+            continue
+        sr = session_rows({k: WorkArea.load(r) for k, r in refs.items()}, **common)
+        rows.append(sr.session)
+        frames.extend(sr.frames)
+        arrays[sid] = sr.arrays
+        meshes[sr.object_id] = sr.object_mesh
+        reports.append(SessionReport(outcome=Outcome.CHANGED if prev else Outcome.ADDED,
+                                     status=sr.session["status"], **info))
+    t_rows = time.perf_counter()
+
+    params = {"roots": [str(r) for r in roots], "catalog": str(cat.layout.root),
+              "preset": preset, "retry_failed": retry_failed, "work": str(work.root),
+              "configs": {n: json.loads(c.canonical_json()) for n, c in configs.items()}}
+    seconds = {"discover": t_discover - t0, "run": t_run - t_discover, "rows": t_rows - t_run}
+    draft = BuildReport(build_id, None, previous, tuple(reports), seconds, params)
+    new_version = None
+    if rows or draft.failed:
+        new_version = cat.commit(gc.BuildCommit(
+            build=gc.BuildInfo(build_id, version, cdigest,
+                               parameters={**params, "report": draft.record()},
+                               sessions_unchanged=tuple(draft.unchanged)),
+            sessions=rows, frames=frames, session_arrays=arrays, object_meshes=meshes))
+    seconds["commit"] = time.perf_counter() - t_rows
+    seconds["total"] = time.perf_counter() - t0
+    report = BuildReport(build_id, new_version, previous, tuple(reports), seconds, params)
+    with open(work.root / BUILDS_LOG, "a") as log:
+        log.write(json.dumps(report.record(), sort_keys=True) + "\n")
+    _qa_artifact(report, rows)
+    return report
+
+
+def _qa_artifact(report: BuildReport, rows: list[dict]) -> None:
+    """The build's QA summary as a Prefect table artifact (shows in the UI with a server)."""
+    try:
+        from prefect.artifacts import create_table_artifact
+
+        by_id = {r["session_id"]: r for r in rows}
+        table = [{"session": s.session_id, "outcome": str(s.outcome), "status": s.status,
+                  "ran": len(s.ran), "cached": len(s.cached), "error": s.error or "",
+                  **{k: v for k, v in by_id.get(s.session_id, {}).items()
+                     if k.startswith("qa_")}} for s in report.sessions]
+        create_table_artifact(table, key="graspcap-build-qa",
+                              description=report.summary().replace("\n", "  \n"))
+    except Exception:  # noqa: BLE001 - an artifact is feedback, never a reason to fail
+        pass
+
+
+def build_dataset(roots: Sequence[Path | str], catalog: Path | str, preset: str = "default", *,
+                  overrides: Mapping[str, Any] | None = None, retry_failed: bool = False,
+                  task_runner_=None, dask: str | None = None, workers: int = 2,
+                  work: Path | str | None = None, build_id: str | None = None,
+                  progress: ProgressFn | None = None) -> BuildReport:
+    """Build (or update) the catalog at ``catalog`` from the sessions under ``roots``.
+
+    ``dask``: None (threads in this process, ``workers`` of them), ``"local:N"`` (a Dask
+    LocalCluster of N single-threaded processes) or a scheduler address; ``task_runner_``
+    overrides both. ``work``: the work area every worker can reach (default
+    ``<catalog>/work``). ``overrides``: per stage a config or a dict of fields.
+    """
+    global _progress
+    runner = task_runner_ or task_runner(dask, workers)
+    _progress = progress
+    try:
+        with worker_api(dask) as api_url, build_settings(api_url):
+            return build_flow.with_options(task_runner=runner)(
+                [str(r) for r in roots], str(catalog), preset, dict(overrides or {}),
+                retry_failed, None if work is None else str(work), build_id)
+    finally:
+        _progress = None

@@ -1,0 +1,107 @@
+"""One stage run through the work area's cache (no Prefect here; the ``@task`` wraps this).
+
+The cache key of a stage run is ours, not Prefect's::
+
+    key = sha256(stage.version, config.digest(),
+                 digests of the bytes of the session files in ``stage.reads``,
+                 content digests of the upstream results)
+
+so a changed algorithm (its ``STAGE_VERSION``), a changed parameter, a changed input file or a
+changed upstream result each give a new key, and nothing else does. On a hit the stored
+:class:`ResultRef` is returned and no stage body runs; on a miss the stage runs, its result is
+stored and every attempt is appended to ``executions.jsonl``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+from graspcap.catalog.workarea import ResultRef, WorkArea
+from graspcap.schemas.session import SessionManifest
+from graspcap.tasks.config import StageConfig
+from graspcap.tasks.load_session import MANIFEST, Session
+
+
+def session_files(session_dir: Path) -> dict[str, list[Path]] | None:
+    """The files of a session by role, read from its manifest without validating the session;
+    None when the manifest cannot say (then ``load_session`` runs and reports why)."""
+    try:
+        raw = (Path(session_dir) / MANIFEST).read_text()
+        manifest = SessionManifest.model_validate_json(raw)
+        return Session(Path(session_dir).resolve(), manifest).input_files()
+    except Exception:  # noqa: BLE001 - anything wrong here is load_session's to report
+        return None
+
+
+def session_id_of(session_dir: Path) -> str:
+    """The manifest's ``session_id``, or the folder name when the manifest cannot be read."""
+    try:
+        sid = json.loads((Path(session_dir) / MANIFEST).read_text()).get("session_id")
+        if isinstance(sid, str) and sid:
+            return sid
+    except (OSError, ValueError, AttributeError):
+        pass
+    return Path(session_dir).name
+
+
+def stage_key(version: str, config: StageConfig, reads_digest: str,
+              upstream: Mapping[str, ResultRef]) -> str:
+    """The cache key of one stage run (module docstring)."""
+    h = hashlib.sha256()
+    for part in (version, config.digest(), reads_digest):
+        h.update(part.encode())
+        h.update(b"\0")
+    for name in sorted(upstream):
+        h.update(f"{name}={upstream[name].digest}\0".encode())
+    return h.hexdigest()
+
+
+def reads_digest(work: WorkArea, files: Mapping[str, list[Path]], roles: tuple[str, ...]
+                 ) -> str:
+    """Digest of the bytes of every file of ``roles`` (role names and file order kept)."""
+    h = hashlib.sha256()
+    for role in roles:
+        h.update(f"{role}:{work.files_digest(list(files.get(role, [])))}\0".encode())
+    return h.hexdigest()
+
+
+def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config: StageConfig,
+               upstream: Mapping[str, ResultRef], work: WorkArea, build_id: str) -> ResultRef:
+    """The result of ``stage_name`` for one session: from the work area, or run and stored."""
+    from graspcap.tasks.pipeline import STAGES, run_stage  # heavy: stage modules
+
+    stage = STAGES[stage_name]
+    missing = set(stage.upstream) - set(upstream)
+    if missing:
+        raise ValueError(f"{stage_name}: upstream results missing: {sorted(missing)}")
+    if stage_name == "load_session":
+        files = session_files(Path(session_dir))
+    else:
+        files = WorkArea.load(upstream["load_session"]).input_files()
+    key = None
+    if files is not None:
+        try:
+            key = stage_key(stage.version, config, reads_digest(work, files, stage.reads),
+                            {k: upstream[k] for k in stage.upstream})
+        except (FileNotFoundError, NotADirectoryError):
+            key = None  # a listed file is missing: load_session says which
+    if key is not None and (ref := work.lookup(stage_name, key)) is not None:
+        return ref
+    results = {k: WorkArea.load(upstream[k]) for k in stage.upstream}
+    t0 = time.perf_counter()
+    record = {"stage": stage_name, "session_id": session_id, "key": key, "build_id": build_id}
+    try:
+        result = run_stage(stage, session_dir, config, results)
+    except BaseException as exc:
+        work.record_execution(**record, seconds=round(time.perf_counter() - t0, 4), ok=False,
+                              error=f"{type(exc).__name__}: {exc}"[:2000])
+        raise
+    seconds = round(time.perf_counter() - t0, 4)
+    work.record_execution(**record, seconds=seconds, ok=True, error=None)
+    if key is None:  # no trustworthy key: never stored, but handed on
+        key = "uncached-" + hashlib.sha256(f"{session_dir}{time.time_ns()}".encode()).hexdigest()
+    return work.save(stage_name, key, result, build_id, seconds=seconds)

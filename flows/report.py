@@ -1,0 +1,98 @@
+"""What a build did, per session and in total (no Prefect here)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from enum import StrEnum
+
+
+class Outcome(StrEnum):
+    """What a build did to a session's rows in the catalog."""
+
+    ADDED = "added"
+    CHANGED = "changed"
+    UNCHANGED = "unchanged"
+    FAILED = "failed"
+    """Failed; its previous good rows (if any) stay in the catalog."""
+
+
+@dataclass(frozen=True)
+class SessionReport:
+    """One session of a build."""
+
+    session_id: str
+    session_dir: str
+    outcome: Outcome
+    status: str
+    """The row's status: ok, flagged or failed."""
+    error: str | None = None
+    failed_stage: str | None = None
+    ran: tuple[str, ...] = ()
+    """Stages whose body ran in this build."""
+    cached: tuple[str, ...] = ()
+    """Stages whose result came from the work area."""
+    not_run: tuple[str, ...] = ()
+    """Stages that did not run because an upstream stage failed."""
+    retries: dict[str, int] = field(default_factory=dict)
+    """Extra attempts per stage after transient faults."""
+    kept_previous: bool = False
+    """Failed, and the catalog keeps the session's previous good rows."""
+
+
+@dataclass(frozen=True)
+class BuildReport:
+    """A build: its id, the catalog version it made (None: nothing to commit), sessions."""
+
+    build_id: str
+    catalog_version: int | None
+    previous_version: int | None
+    sessions: tuple[SessionReport, ...]
+    seconds: dict[str, float]
+    parameters: dict
+
+    def _ids(self, outcome: Outcome) -> list[str]:
+        return [s.session_id for s in self.sessions if s.outcome == outcome]
+
+    @property
+    def added(self) -> list[str]:
+        return self._ids(Outcome.ADDED)
+
+    @property
+    def changed(self) -> list[str]:
+        return self._ids(Outcome.CHANGED)
+
+    @property
+    def unchanged(self) -> list[str]:
+        return self._ids(Outcome.UNCHANGED)
+
+    @property
+    def failed(self) -> dict[str, str]:
+        return {s.session_id: s.error or "" for s in self.sessions if s.outcome == Outcome.FAILED}
+
+    @property
+    def executed(self) -> int:
+        """Stage bodies that ran (retried attempts not counted)."""
+        return sum(len(s.ran) for s in self.sessions)
+
+    def summary(self) -> str:
+        head = (f"build {self.build_id}: " + (
+            f"catalog version {self.catalog_version}" if self.catalog_version is not None
+            else f"nothing changed, no new catalog version (still {self.previous_version})"))
+        lines = [head, f"  {len(self.added)} added, {len(self.changed)} changed, "
+                       f"{len(self.unchanged)} unchanged, {len(self.failed)} failed; "
+                       f"{self.executed} stage run(s), "
+                       f"{sum(len(s.cached) for s in self.sessions)} cache hit(s); "
+                       f"{self.seconds.get('total', 0.0):.1f} s"]
+        for s in self.sessions:
+            if s.outcome == Outcome.FAILED:
+                kept = " (previous rows kept)" if s.kept_previous else ""
+                lines.append(f"  FAILED {s.session_id}{kept}: {s.error}")
+        return "\n".join(lines)
+
+    def record(self) -> dict:
+        """The JSON-able record kept in the catalog's builds table and the work area."""
+        d = asdict(self)
+        d["summary"] = {"added": self.added, "changed": self.changed,
+                        "unchanged": self.unchanged, "failed": self.failed}
+        return json.loads(json.dumps(d, default=str))

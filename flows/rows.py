@@ -1,0 +1,143 @@
+"""Stage results of one session -> catalog rows and arrays (no Prefect here).
+
+Maps the results of ``tasks.pipeline.STAGES`` onto the contract columns of
+``graspcap.schemas.tables``. Columns whose stage does not exist yet stay null (QA of
+penetration and contact); the contact map, whose stage (``build_contactmap``) does not exist
+yet either, is written as "not observed" everywhere (values 0, ``observed`` all False), because
+the catalog requires the group on every session that did not fail. See
+``docs/architecture.md``, "Orchestration".
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from graspcap.catalog.commit import ObjectMesh, SessionArrays
+from graspcap.schemas.tables import Status
+from graspcap.tasks.geometry import inv_T, transform_points
+
+IDENTITY_COLUMNS = ("participant", "object_id", "intent", "hand")
+
+
+@dataclass(frozen=True)
+class SessionRows:
+    """One session's catalog content: its ``sessions`` row, ``frames`` rows and arrays."""
+
+    session: dict[str, Any]
+    frames: list[dict[str, Any]]
+    arrays: SessionArrays | None
+    object_id: str
+    object_mesh: ObjectMesh | None
+
+
+def _flat(a: Any) -> list[float] | None:
+    return None if a is None else np.asarray(a, dtype=float).reshape(-1).tolist()
+
+
+def _mm(value_m: float | None) -> float | None:
+    return None if value_m is None else float(value_m) * 1000.0
+
+
+def _get(results: Mapping[str, Any], stage: str, attr: str) -> Any:
+    result = results.get(stage)
+    return None if result is None else getattr(result, attr, None)
+
+
+def flag_reasons(results: Mapping[str, Any]) -> list[str]:
+    """Why a session that did not fail is ``flagged`` (empty: ``ok``)."""
+    reasons = []
+    if _get(results, "crosscheck_sfm", "flagged"):
+        reasons.append(f"crosscheck_sfm: {_get(results, 'crosscheck_sfm', 'reason')}")
+    if _get(results, "register_object", "ambiguous"):
+        reasons.append("register_object: symmetric object, registration ambiguous")
+    if _get(results, "estimate_adjustment", "ambiguous"):
+        reasons.append("estimate_adjustment: ambiguous")
+    return reasons
+
+
+def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version: str,
+                 build_id: str, config_digest: str) -> SessionRows:
+    """Rows and arrays of a session whose stages all completed (``results`` by stage name)."""
+    from graspcap.tasks.pipeline import read_mesh
+
+    session = results["load_session"]
+    m = session.manifest
+    kp = results["detect_keypoints"].keypoints  # (n_frames, 21, 3)
+    sfm = results["reconstruct_hand"]
+    fit = results["fit_hand"]
+    T_w_o1 = results["register_object"].T_w_o
+    T_adj = results["estimate_adjustment"].T_adj
+    scan = results.get("register_scan")
+    T_tt_o = getattr(scan, "T_turntable_o", getattr(scan, "T_turntable_o_scan", None))
+    cross = results.get("crosscheck_sfm")
+    row = {
+        "session_id": m.session_id, "participant": m.participant, "object_id": m.object_id,
+        "intent": m.intent, "hand": str(m.hand),
+        "status": Status.FLAGGED.value if flag_reasons(results) else Status.OK.value,
+        "error": None,
+        "steady_from": int(results["select_steady"].steady_from),
+        "T_w_o_stage1": _flat(T_w_o1), "T_adj": _flat(T_adj), "T_w_p": _flat(fit.T_w_p),
+        "T_turntable_o_scan": _flat(T_tt_o),
+        "hand_scale": float(fit.scale), "joint_angles_rad": _flat(fit.angles_rad),
+        "joints_w": _flat(sfm.joints_w), "joints_fit_w": _flat(fit.joints_fit_w),
+        "qa_reproj_rmse_px": float(sfm.reproj_rmse_px),
+        "qa_inlier_ratio": float(sfm.inlier_ratio),
+        "qa_crosscheck_mm": None if cross is None else _mm(cross.max_joint_discrepancy_m),
+        "qa_registration_rmse_mm": _mm(results["register_object"].inlier_rmse_m),
+        "qa_fit_residual_mm": float(fit.rmse_mm),
+        "qa_penetration_max_mm": None, "qa_penetration_mean_mm": None,
+        "qa_contact_agreement": None, "qa_contact_coverage": None,
+        "input_digest": input_digest, "code_version": code_version, "build_id": build_id,
+        "config_digest": config_digest,
+    }
+    prop = results["propagate_poses"]
+    cam_index = {int(f): i for i, f in enumerate(sfm.frames)}
+    frames = []
+    for j, f in enumerate(np.asarray(prop.frame_indices, dtype=int)):
+        i = cam_index.get(int(f))
+        frames.append({
+            "session_id": m.session_id, "frame": int(f),
+            "T_w_c": _flat(sfm.T_w_c[i]) if i is not None else [float("nan")] * 16,
+            "T_c_o": _flat(prop.T_c_o[j]), "T_c_p": _flat(prop.T_c_p[j]),
+            "joints_2d_px": _flat(kp[f, :, :2]), "keypoint_conf": _flat(kp[f, :, 2]),
+            "joints_c": _flat(prop.joints_c[j]), "reproj_err_px": _flat(prop.reproj_err_px[j]),
+            "build_id": build_id,
+        })
+    V, F = read_mesh(session)
+    T_o_w = inv_T(results["estimate_adjustment"].T_w_o)  # object at the first steady frame
+    hand = fit.mesh()
+    arrays = SessionArrays(
+        contact=np.zeros(len(V), np.float32), observed=np.zeros(len(V), bool),
+        hand_vertices=transform_points(T_o_w, hand.vertices).astype(np.float32),
+        hand_faces=np.asarray(hand.faces, np.int32),
+        joints=transform_points(T_o_w, fit.joints_fit_w).astype(np.float64),
+    )
+    mesh = ObjectMesh(V.astype(np.float32), F.astype(np.int32))
+    return SessionRows(row, frames, arrays, m.object_id, mesh)
+
+
+def failed_row(session_dir: Path, session_id: str, error: str, *, input_digest: str,
+               code_version: str, build_id: str, config_digest: str) -> dict[str, Any]:
+    """The ``sessions`` row of a session that failed: identity from its manifest as far as it
+    can be read, every result column null, ``error`` the reason."""
+    try:
+        raw = json.loads((Path(session_dir) / "session.json").read_text())
+        raw = raw if isinstance(raw, dict) else {}
+    except (OSError, ValueError):
+        raw = {}
+    from graspcap.schemas.tables import SESSIONS_SCHEMA
+
+    row: dict[str, Any] = {name: None for name in SESSIONS_SCHEMA.names}
+    row.update({c: str(raw.get(c) or "unknown") for c in IDENTITY_COLUMNS})
+    row.update(session_id=session_id, status=Status.FAILED.value, error=error,
+               input_digest=input_digest, code_version=code_version, build_id=build_id,
+               config_digest=config_digest)
+    for col in ("contact_digest", "hand_mesh_digest", "object_mesh_digest"):
+        row.pop(col)
+    return row

@@ -1,0 +1,150 @@
+"""Where Prefect runs: the embedded default, task runners, and a supervised local server.
+
+Embedded default (nothing to start by hand): unless the user set ``PREFECT_API_URL`` or
+``PREFECT_HOME``, Prefect's home (its SQLite database, profiles, logs) is ``<work>/prefect``,
+inside the catalog's work area, so a build never writes to ``~/.prefect`` and deleting the work
+area removes every trace. Flow-run heartbeats are off (``heartbeat_frequency=None``; each flow
+run otherwise pays ~1 s joining the heartbeat thread), the ephemeral API gets 120 s to start on
+a loaded machine, logs are quiet (WARNING) and the ephemeral server sends no analytics. Every
+setting the user put in the environment wins.
+
+:func:`configure` must run before ``prefect`` is imported (the CLI does it first thing).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+
+DEFAULTS = {
+    "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "120",
+    "PREFECT_LOGGING_LEVEL": "WARNING",
+    "PREFECT_SERVER_LOGGING_LEVEL": "CRITICAL",
+    "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+}
+
+
+def configure(work_root: Path | str) -> dict[str, str]:
+    """Set the embedded defaults (module docstring) in ``os.environ`` where unset; returns
+    what it set. Has no effect on settings once ``prefect`` is imported."""
+    env = {}
+    if "PREFECT_API_URL" not in os.environ and "PREFECT_HOME" not in os.environ:
+        env["PREFECT_HOME"] = str(Path(work_root).expanduser().resolve() / "prefect")
+        Path(env["PREFECT_HOME"]).mkdir(parents=True, exist_ok=True)
+    for key, value in DEFAULTS.items():
+        if key not in os.environ:
+            env[key] = value
+    os.environ.update(env)
+    return env
+
+
+@contextlib.contextmanager
+def build_settings(api_url: str | None = None) -> Iterator[None]:
+    """Settings for a build's flow run: heartbeats off unless the user set a frequency, and
+    ``api_url`` when given (the API every Dask worker must report to)."""
+    from prefect.settings import (
+        PREFECT_API_URL,
+        PREFECT_FLOWS_HEARTBEAT_FREQUENCY,
+        temporary_settings,
+    )
+
+    updates: dict = {}
+    if "PREFECT_FLOWS_HEARTBEAT_FREQUENCY" not in os.environ:
+        updates[PREFECT_FLOWS_HEARTBEAT_FREQUENCY] = None
+    if api_url:
+        updates[PREFECT_API_URL] = api_url
+    with temporary_settings(updates=updates):
+        yield
+
+
+@contextlib.contextmanager
+def worker_api(dask: str | None) -> Iterator[str | None]:
+    """The API URL Dask workers must use: the configured one, or (no API configured and Dask
+    asked for) Prefect's ephemeral server started here in the parent on 127.0.0.1; without it
+    each worker process would start its own temporary API. None for the thread-pool runner."""
+    from prefect.settings import get_current_settings
+
+    url = get_current_settings().api.url
+    if dask is None or url:
+        yield url
+        return
+    from prefect.server.api.server import SubprocessASGIServer
+
+    server = SubprocessASGIServer()
+    server.start(timeout=int(os.environ.get(
+        "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")))
+    yield server.api_url
+
+
+def task_runner(dask: str | None = None, workers: int = 2):
+    """A Prefect task runner: threads in this process (``dask=None``, ``workers`` threads),
+    a Dask ``LocalCluster`` of N single-threaded worker processes (``"local:N"``), or an
+    existing Dask scheduler (its address, e.g. ``"tcp://10.0.0.5:8786"``)."""
+    if dask is None:
+        from prefect.task_runners import ThreadPoolTaskRunner
+
+        return ThreadPoolTaskRunner(max_workers=workers)
+    from prefect_dask import DaskTaskRunner
+
+    if dask.startswith("local:"):
+        n = int(dask.split(":", 1)[1])
+        return DaskTaskRunner(cluster_class="distributed.LocalCluster", cluster_kwargs={
+            "n_workers": n, "threads_per_worker": 1, "processes": True,
+            "dashboard_address": None})
+    return DaskTaskRunner(address=dask)
+
+
+# --- a supervised local Prefect server (for schedules) ------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def local_server(port: int | None = None, timeout_s: float = 180.0,
+                 log_file: Path | None = None) -> Iterator[str]:
+    """Run ``prefect server start`` on 127.0.0.1 as a child process until the block exits;
+    yields its API URL once ``/api/health`` answers."""
+    port = port or free_port()
+    url = f"http://127.0.0.1:{port}/api"
+    log = open(log_file, "ab") if log_file else subprocess.DEVNULL  # noqa: SIM115
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1",
+         "--port", str(port)], stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ),
+        start_new_session=True)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if proc.poll() is not None:
+                raise RuntimeError(f"prefect server exited with {proc.returncode} while "
+                                   f"starting" + (f"; see {log_file}" if log_file else ""))
+            try:
+                with urllib.request.urlopen(f"{url}/health", timeout=2) as r:
+                    if r.status == 200:
+                        break
+            except OSError:
+                pass
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"prefect server on port {port} not healthy after "
+                                   f"{timeout_s:g} s")
+            time.sleep(0.5)
+        yield url
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        if log_file:
+            log.close()

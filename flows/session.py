@@ -1,0 +1,97 @@
+"""One capture session as a DAG of Prefect tasks, one per stage of ``tasks.pipeline.STAGES``.
+
+Every task is the same thin wrapper, :func:`run_stage_task`, named per stage. Its body is
+:func:`graspcap.flows.cached.run_cached`: our own cache key and work area decide whether the
+stage body runs, so Prefect's result store and cache are off (``persist_result=False``,
+``cache_policy=NONE``) and tasks hand each other only small :class:`ResultRef` s.
+
+Transient faults (an ``OSError`` of the storage, a lost Dask worker) are retried with back-off;
+a :class:`StageError` (invalid input, a solver that cannot converge) is deterministic and never
+retried: the task fails with its reason and the session's downstream tasks do not run.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+from prefect import flow, task
+from prefect.cache_policies import NONE
+from prefect.futures import PrefectFuture
+
+from graspcap.catalog.workarea import ResultRef, WorkArea
+from graspcap.flows.cached import run_cached, session_id_of
+from graspcap.tasks.config import StageConfig
+
+RETRIES = 3
+RETRY_DELAYS_S = [1.0, 4.0, 16.0]
+"""Back-off between the attempts of a task that failed with a transient fault."""
+
+_PERMANENT_OS_ERRORS = (FileNotFoundError, NotADirectoryError, PermissionError,
+                        IsADirectoryError)
+
+
+def is_transient(exc: BaseException | None) -> bool:
+    """True for faults worth retrying: an ``OSError`` of the storage other than a missing or
+    forbidden path, or a lost Dask worker / closed connection."""
+    if exc is None:
+        return False
+    names = {cls.__name__ for cls in type(exc).__mro__}
+    if names & {"KilledWorker", "CommClosedError"}:
+        return True
+    return isinstance(exc, OSError) and not isinstance(exc, _PERMANENT_OS_ERRORS)
+
+
+def _retry_condition(task, task_run, state) -> bool:
+    try:
+        exc = state.result(raise_on_failure=False)
+    except Exception as lookup_error:  # noqa: BLE001 - the state lost its exception
+        exc = lookup_error
+    return is_transient(exc) if isinstance(exc, BaseException) else False
+
+
+@task(persist_result=False, cache_policy=NONE, retries=RETRIES,
+      retry_delay_seconds=RETRY_DELAYS_S, retry_condition_fn=_retry_condition,
+      log_prints=False)
+def run_stage_task(stage: str, session_dir: str, session_id: str, config: StageConfig,
+                   work: WorkArea, build_id: str, **upstream: ResultRef) -> ResultRef:
+    """One stage of one session through the work area's cache (see ``flows/cached.py``)."""
+    return run_cached(stage, session_dir, session_id, config, upstream, work, build_id)
+
+
+def stage_task(stage: str, session_id: str):
+    """``run_stage_task`` named for ``stage`` (task name) and the session (task-run name)."""
+    return run_stage_task.with_options(name=stage, task_run_name=f"{stage}[{session_id}]")
+
+
+def submit_session(session_dir: Path | str, configs: Mapping[str, StageConfig],
+                   work: WorkArea, build_id: str, session_id: str | None = None,
+                   stages: Mapping | None = None) -> dict[str, PrefectFuture]:
+    """Submit every stage of one session into the running flow; futures by stage name.
+
+    Upstream futures are passed as parameters, so Prefect resolves them to their refs and a
+    task whose upstream failed does not run (it ends ``NotReady``).
+    """
+    from graspcap.tasks.pipeline import STAGES
+
+    stages = STAGES if stages is None else stages
+    session_dir = str(Path(session_dir).resolve())
+    session_id = session_id or session_id_of(Path(session_dir))
+    futures: dict[str, PrefectFuture] = {}
+    for name, stage in stages.items():
+        futures[name] = stage_task(name, session_id).submit(
+            name, session_dir, session_id, configs[name], work, build_id,
+            **{up: futures[up] for up in stage.upstream},
+        )
+    return futures
+
+
+@flow(name="graspcap-session", persist_result=False)
+def session_flow(session_dir: str, work_root: str, preset: str = "default",
+                 build_id: str = "session-flow") -> dict[str, ResultRef]:
+    """Run one session on its own (no catalog commit); the refs of its stage results."""
+    from graspcap.tasks.pipeline import configs_for
+
+    work = WorkArea(work_root)
+    futures = submit_session(session_dir, configs_for(preset), work, build_id)
+    return {name: f.result() for name, f in futures.items()}

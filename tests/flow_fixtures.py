@@ -1,0 +1,64 @@
+"""Fixtures shared by the flow and build tests: one Prefect test harness per test session,
+synthetic sessions generated once, a work area warmed by one build, copied per test."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("PREFECT_LOGGING_LEVEL", "ERROR")
+os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "CRITICAL")
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+
+PRESET = "fast"
+"""Stage presets the tests build with (the pipeline itself is tested elsewhere)."""
+SEED = 5
+FRAMES = 12
+
+
+@pytest.fixture(scope="session")
+def prefect_harness():
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=180):
+        yield
+
+
+@pytest.fixture(scope="session")
+def synth_root(tmp_path_factory) -> Path:
+    """Two easy synthetic sessions, written once per test session (do not modify)."""
+    from graspcap.synth import generate
+
+    root = tmp_path_factory.mktemp("synth")
+    generate(root, sessions=2, seed=SEED, difficulty="easy", frames=FRAMES)
+    return root
+
+
+@pytest.fixture(scope="session")
+def warm(synth_root, tmp_path_factory, prefect_harness):
+    """A catalog and work area after one cold build of ``synth_root`` (do not modify)."""
+    from graspcap.flows.build import build_dataset
+
+    base = tmp_path_factory.mktemp("warm")
+    report = build_dataset([synth_root], base / "catalog", PRESET, build_id="warm")
+    return base / "catalog", report
+
+
+def copy_catalog(warm_catalog: Path, dest: Path) -> Path:
+    """A private copy of the warm catalog (with its work area)."""
+    shutil.copytree(warm_catalog, dest)
+    return dest
+
+
+def executions(catalog: Path, build_id: str) -> list[tuple[str, str]]:
+    """(session_id, stage) of every successful stage-body execution of ``build_id``."""
+    path = catalog / "work" / "executions.jsonl"
+    if not path.exists():
+        return []
+    recs = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return sorted((r["session_id"], r["stage"]) for r in recs
+                  if r["build_id"] == build_id and r["ok"])
