@@ -1,0 +1,305 @@
+"""T_adj: how the object moved during grasp adjustment (pipeline item 7, the paper's caveat).
+
+The object in the first steady frame is registered against that frame's depth
+with the hand's pixels masked out. Two paths, tried in order:
+
+1. ``stage1_icp``: ICP initialised at the stage-1 pose, accepted when enough
+   depth points around the posed object are explained (small motions).
+2. ``near_hand_global``: the participant usually lifts the object 0.1-0.3 m and
+   turns it tens of degrees, out of ICP's reach. The object touches the hand,
+   so the depth is restricted to the space within one object diameter of the
+   hand's 3D points, then FPFH + RANSAC + ICP as in stage 1; the stage-1 pose
+   is one more start. Among poses that explain the depth equally well (a
+   symmetric object) the one closest in rotation to stage 1 is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from graspcap.tasks.config import StageConfig
+from graspcap.tasks.errors import StageError
+from graspcap.tasks.geometry import inv_T, rotation_error_deg
+from graspcap.tasks.registration import (
+    Candidate,
+    RegistrationConfig,
+    as_good_as,
+    cloud_from_depth,
+    prepare_model,
+    prepare_scene,
+    probe_symmetry,
+    refine,
+    register,
+    to_pcd,
+    valid_depth,
+)
+from graspcap.tasks.render import render
+
+STAGE_VERSION = "estimate_adjustment/1"
+STAGE = "estimate_adjustment"
+
+HAND_BONES = (
+    (0, 1), (1, 2), (2, 3), (3, 4), (0, 5), (5, 6), (6, 7), (7, 8), (0, 9), (9, 10), (10, 11),
+    (11, 12), (0, 13), (13, 14), (14, 15), (15, 16), (0, 17), (17, 18), (18, 19), (19, 20),
+    (5, 9), (9, 13), (13, 17),
+)  # fmt: skip
+"""Connected keypoint pairs of the 21-point layout (fingers, palm rim)."""
+PALM = (0, 1, 5, 9, 13, 17)
+
+
+class AdjustmentPath(StrEnum):
+    """How ``T_adj`` was found."""
+
+    STAGE1_ICP = "stage1_icp"
+    NEAR_HAND_GLOBAL = "near_hand_global"
+
+
+class EstimateAdjustmentConfig(StageConfig):
+    """Masking, the region around the hand and acceptance thresholds."""
+
+    max_range_m: float = 3.0
+    """Depth beyond this is treated as invalid."""
+    mask_dilate_px: int = 3
+    """The hand mask is grown by this many pixels before its pixels are dropped."""
+    region_margin_m: float = 0.02
+    """The region kept around the hand is one object diameter plus this."""
+    min_hand_points: int = 30
+    """With fewer hand pixels with depth than this, the whole (unmasked) cloud is searched."""
+    stage1_reach_m: float = 0.03
+    """ICP from the stage-1 pose sees the points within the object's radius plus this."""
+    cluster_voxel_m: float = 0.004
+    """Voxel size of the Euclidean clustering of the region around the hand."""
+    cluster_eps_m: float = 0.012
+    """Clustering neighbour distance: pieces of the object closer than this stay together."""
+    touch_m: float = 0.02
+    """A cluster with a point this close to a hand point is held by the hand."""
+    min_points: int = 150
+    """Fewer unmasked pixels than this where the posed object is seen: the pose is not supported."""
+    agree_tol_m: float = 0.006
+    """A pixel agrees with the posed object when its depth is within this of the rendered depth."""
+    accept_fitness: float = 0.85
+    """ICP from the stage-1 pose is accepted at this fitness."""
+    min_fitness: float = 0.5
+    """A final fitness below this fails the stage."""
+    check_ambiguity: bool = True
+    """Run the symmetry probes on the global path (finds the symmetric pose closest to stage 1)."""
+    registration: RegistrationConfig = RegistrationConfig()
+    """Global registration and ICP settings."""
+
+
+PRESETS: dict[str, EstimateAdjustmentConfig] = {
+    "default": EstimateAdjustmentConfig(),
+    "fast": EstimateAdjustmentConfig(
+        check_ambiguity=False, registration=RegistrationConfig(n_restarts=2)
+    ),
+    "always_global": EstimateAdjustmentConfig(accept_fitness=1.1),
+}
+
+
+@dataclass(frozen=True)
+class Adjustment:
+    """Result of :func:`estimate_adjustment`.
+
+    Attributes
+    ----------
+    T_adj : (4, 4) float
+        World-frame motion: the object at the first steady frame is ``T_adj @ T_w_o_stage1``.
+    T_w_o : (4, 4) float
+        That pose, ``T_adj @ T_w_o_stage1``.
+    fitness : float
+        Where the posed mesh is seen (hand masked): share of pixels whose depth agrees with
+        it, among those that agree or lie behind it.
+    inlier_rmse_m : float
+        RMS depth difference of the agreeing pixels.
+    n_points : int
+        Pixels judged.
+    path : AdjustmentPath
+        Which path produced the pose.
+    ambiguous : bool
+        A pose at least ``ambiguity_min_deg`` away explains the depth as well.
+    """
+
+    T_adj: np.ndarray
+    T_w_o: np.ndarray
+    fitness: float
+    inlier_rmse_m: float
+    n_points: int
+    path: AdjustmentPath
+    ambiguous: bool
+
+
+def hand_mask_from_keypoints(
+    keypoints_2d: np.ndarray,
+    conf: np.ndarray,
+    shape: tuple[int, int],
+    radius_px: float,
+    min_conf: float = 0.1,
+) -> np.ndarray:
+    """Pixels (h, w) bool covered by the hand: bones between confident connected keypoints
+    drawn ``radius_px`` thick, plus the palm polygon when three or more palm points are
+    confident.
+
+    Parameters
+    ----------
+    keypoints_2d : (21, 2) float
+        Pixel coordinates (x, y), 21-point layout.
+    conf : (21,) float
+        Detection confidence; points below ``min_conf`` are ignored.
+    """
+    kp = np.asarray(keypoints_2d, dtype=float)
+    ok = np.asarray(conf, dtype=float) >= min_conf
+    ok &= np.all(np.isfinite(kp), axis=1)
+    mask = np.zeros(shape, np.uint8)
+    r = max(int(round(radius_px)), 1)
+    pts = np.round(np.where(ok[:, None], kp, 0.0)).astype(np.int32)
+    for a, b in HAND_BONES:
+        if ok[a] and ok[b]:
+            cv2.line(mask, tuple(pts[a]), tuple(pts[b]), 1, thickness=2 * r + 1)
+    for i in np.flatnonzero(ok):
+        cv2.circle(mask, tuple(pts[i]), r, 1, thickness=-1)
+    palm = [i for i in PALM if ok[i]]
+    if len(palm) >= 3:
+        cv2.fillPoly(mask, [cv2.convexHull(pts[palm])], 1)
+    return mask.astype(bool)
+
+
+def _score(
+    depth: np.ndarray,
+    keep: np.ndarray,
+    K: np.ndarray,
+    mesh: tuple[np.ndarray, np.ndarray],
+    T_w_o: np.ndarray,
+    tol_m: float,
+) -> tuple[float, float, int]:
+    """Does the depth show the object at ``T_w_o``? Renders the mesh; over the pixels where
+    it is visible, ``keep`` is True and the depth valid, a pixel agrees when
+    ``|depth - rendered| <= tol_m`` and contradicts it when the depth lies further (the
+    camera sees through where the object would be); nearer depth is an unmasked occluder and
+    is not counted. Returns (agreeing / (agreeing + contradicting), RMS depth difference of
+    the agreeing pixels, agreeing + contradicting)."""
+    h, w = depth.shape
+    hits = render([mesh], [T_w_o], K, w, h)
+    seen = (hits.mesh_index == 0) & keep & (depth > 0)
+    diff = depth[seen] - hits.depth_m[seen]
+    agree = np.abs(diff) <= tol_m
+    behind = diff > tol_m
+    n = int(agree.sum() + behind.sum())
+    if n == 0 or not agree.any():
+        return 0.0, 0.0, n
+    return float(agree.sum() / n), float(np.sqrt(np.mean(diff[agree] ** 2))), n
+
+
+def _near_hand(points: np.ndarray, hand_pts: np.ndarray, radius_m: float, cfg) -> np.ndarray:
+    """The points of the clusters that touch the hand (or else the nearest cluster), within
+    an object's reach of it."""
+    if len(hand_pts) < cfg.min_hand_points:
+        return points
+    tree = cKDTree(hand_pts[:: max(len(hand_pts) // 3000, 1)])
+    region = points[tree.query(points, k=1)[0] <= 2 * radius_m + cfg.region_margin_m]
+    if len(region) == 0:
+        return region
+    down = to_pcd(region).voxel_down_sample(cfg.cluster_voxel_m)
+    labels = np.asarray(down.cluster_dbscan(cfg.cluster_eps_m, 4))
+    pts = np.asarray(down.points)
+    gap = tree.query(pts, k=1)[0]
+    clustered = labels >= 0
+    if not clustered.any():
+        return region
+    touching = np.unique(labels[(gap <= cfg.touch_m) & clustered])
+    if len(touching) == 0:  # nothing within touch_m: the cluster nearest to the hand
+        touching = labels[clustered][[np.argmin(gap[clustered])]]
+    kept = pts[np.isin(labels, touching)]
+    near = cKDTree(kept).query(region, k=1)[0] <= cfg.cluster_voxel_m * 1.5
+    return region[near]
+
+
+def estimate_adjustment(
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    mesh_vertices: np.ndarray,
+    mesh_faces: np.ndarray,
+    T_w_o_stage1: np.ndarray,
+    hand_mask: np.ndarray,
+    config: EstimateAdjustmentConfig = PRESETS["default"],
+) -> Adjustment:
+    """Estimate ``T_adj`` from the depth of the first steady frame.
+
+    Parameters
+    ----------
+    depth_m : (h, w) float
+        Depth of the first steady frame, aligned to colour, metres; 0 = invalid.
+    K : (3, 3) float
+        Colour intrinsics.
+    mesh_vertices, mesh_faces : (n, 3) float, (m, 3) int
+        Object mesh, object frame, metres.
+    T_w_o_stage1 : (4, 4) float
+        Object pose from stage 1.
+    hand_mask : (h, w) bool
+        Pixels of the hand (from the fitted hand or :func:`hand_mask_from_keypoints`).
+    """
+    cfg = config.registration
+    depth = valid_depth(depth_m, config.max_range_m)
+    if not depth.any():
+        raise StageError(STAGE, "depth image has no valid pixel (all zero, NaN or out of range)")
+    hand = np.asarray(hand_mask, bool)
+    if hand.shape != depth.shape:
+        raise StageError(STAGE, f"hand mask has shape {hand.shape}, depth {depth.shape}")
+    T_w_o1 = np.asarray(T_w_o_stage1, float)
+    grown = hand
+    if config.mask_dilate_px > 0:
+        k = 2 * config.mask_dilate_px + 1
+        grown = cv2.dilate(hand.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+    points = cloud_from_depth(depth, K, ~grown)
+    hand_pts = cloud_from_depth(depth, K, hand)
+    if len(points) < config.min_points:
+        raise StageError(STAGE, f"only {len(points)} depth points outside the hand mask")
+    model = prepare_model(mesh_vertices, mesh_faces, cfg)
+
+    # Path 1: ICP from the stage-1 pose, on the points it can reach.
+    centre1 = T_w_o1[:3, :3] @ model.centroid + T_w_o1[:3, 3]
+    reach1 = np.linalg.norm(points - centre1, axis=1) <= model.radius_m + config.stage1_reach_m
+    scene_all = to_pcd(points[reach1])
+    mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
+    keep = ~grown
+    first = refine(scene_all, model, inv_T(T_w_o1), cfg, "stage1")
+    fit, rmse, n = _score(depth, keep, K, mesh, inv_T(first.T_o_s), config.agree_tol_m)
+    if n >= config.min_points and fit >= config.accept_fitness:
+        T_w_o = inv_T(first.T_o_s)
+        return Adjustment(
+            T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.STAGE1_ICP, False
+        )
+
+    # Path 2: global registration on the depth around the hand.
+    region = _near_hand(points, hand_pts, model.radius_m, config)
+    if len(region) < config.min_points:
+        raise StageError(
+            STAGE, f"only {len(region)} depth points near the hand: the object is not in view"
+        )
+    scene, down, feats = prepare_scene(region, None, np.zeros(3), cfg)
+    candidates = register(scene, down, feats, model, cfg, [("stage1", inv_T(T_w_o1))])
+    if config.check_ambiguity:
+        candidates = probe_symmetry(scene, model, candidates, cfg)
+    best = candidates[0]
+    equal = [c for c in candidates if as_good_as(c, best, cfg)]
+    chosen: Candidate = min(
+        equal, key=lambda c: rotation_error_deg(inv_T(c.T_o_s)[:3, :3], T_w_o1[:3, :3])
+    )
+    ambiguous = any(
+        rotation_error_deg(c.T_o_s, chosen.T_o_s) >= cfg.ambiguity_min_deg for c in equal
+    )
+    T_w_o = inv_T(chosen.T_o_s)
+    fit, rmse, n = _score(depth, keep, K, mesh, T_w_o, config.agree_tol_m)
+    if n < config.min_points or fit < config.min_fitness:
+        raise StageError(
+            STAGE,
+            f"object not found near the hand: fitness {fit:.2f} over {n} points "
+            f"(need {config.min_fitness:.2f} over {config.min_points})",
+        )
+    return Adjustment(
+        T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.NEAR_HAND_GLOBAL, ambiguous
+    )

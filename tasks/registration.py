@@ -1,0 +1,415 @@
+"""Registering a known object mesh into depth point clouds (Open3D).
+
+Shared by :mod:`register_object`, :mod:`estimate_adjustment` and
+:mod:`register_scan`. Registration always moves the *scene* cloud (source)
+onto points sampled on the *model* (target, with the mesh's normals), so a
+partial view is matched against the whole surface and the fitness is "the
+share of observed points explained by the model". The transforms returned
+here are therefore ``T_o_s`` (scene frame into object frame); stages invert
+them into ``T_s_o``.
+
+Pipeline pieces: cloud from depth, crop to the platter, FPFH features,
+RANSAC global registration with restarts, coarse-to-fine point-to-plane ICP,
+and a symmetry check that re-runs ICP from the best pose turned about the
+model's principal axes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+import trimesh
+from pydantic import model_validator
+
+from graspcap.tasks.config import StageConfig
+from graspcap.tasks.geometry import (
+    depth_to_points,
+    inv_T,
+    make_T,
+    rotation_error_deg,
+    transform_points,
+)
+
+reg = o3d.pipelines.registration
+
+
+class RegistrationConfig(StageConfig):
+    """Global registration, ICP and ambiguity check, shared by the registration stages."""
+
+    voxel_m: float = 0.005
+    """Voxel size for the global (FPFH + RANSAC) step."""
+    normal_radius_factor: float = 2.0
+    """Normal estimation radius, in voxels."""
+    feature_radius_factor: float = 5.0
+    """FPFH radius, in voxels."""
+    ransac_distance_factor: float = 1.5
+    """RANSAC inlier distance, in voxels."""
+    ransac_max_iterations: int = 20_000
+    """RANSAC iteration cap per restart."""
+    ransac_confidence: float = 0.999
+    """RANSAC early-stop confidence."""
+    n_restarts: int = 4
+    """RANSAC restarts, each with its own seed; the best after ICP wins (fitness, then RMSE)."""
+    seed: int = 0
+    """Base seed of Open3D's RNG (restart k uses ``seed + k``) and of model sampling."""
+    model_points: int = 20_000
+    """Points sampled on the mesh surface (with face normals) as the ICP target."""
+    icp_voxels_m: tuple[float, ...] = (0.005, 0.0025, 0.0015)
+    """Scene voxel size per ICP level, coarse to fine; 0 keeps every point."""
+    icp_max_distance_m: tuple[float, ...] = (0.015, 0.006, 0.003)
+    """Correspondence distance per ICP level."""
+    icp_max_iterations: int = 30
+    """ICP iterations per level."""
+    eval_distance_m: float = 0.003
+    """A scene point within this distance of the posed model counts as an inlier."""
+    probe_angles_deg: tuple[float, ...] = (90.0, 180.0)
+    """Ambiguity probes: turn the best pose about each principal axis by these, re-run ICP."""
+    ambiguity_min_deg: float = 10.0
+    """Two poses closer than this in rotation are the same solution."""
+    ambiguity_fitness_tol: float = 0.02
+    """A distinct pose is as good as the best when its fitness is at most this much lower..."""
+    ambiguity_excess_rmse_m: float = 0.001
+    """...and its residuals exceed the best's by at most this RMS (``sqrt(rmse_2^2 - rmse_1^2)``):
+    a difference below depth-sensor noise is not evidence."""
+    probe_levels: int = 1
+    """ICP levels a probe runs before it is scored; only probes that come within twice the
+    ambiguity tolerances of the best run the remaining levels."""
+
+    @model_validator(mode="after")
+    def _levels_match(self) -> RegistrationConfig:
+        if len(self.icp_voxels_m) != len(self.icp_max_distance_m) or not self.icp_voxels_m:
+            raise ValueError("icp_voxels_m and icp_max_distance_m need the same, non-zero length")
+        return self
+
+
+class PlatterCrop(StageConfig):
+    """The space over the platter where the object is looked for (turntable frame)."""
+
+    radius_m: float = 0.15
+    """Radius of the platter's top surface."""
+    margin_m: float = 0.03
+    """Kept beyond the platter's rim (objects overhanging it)."""
+    min_height_m: float = 0.004
+    """Points at most this high over the platter top are the platter itself and dropped."""
+    max_height_m: float = 0.35
+    """Points higher than this over the platter are not the object."""
+    max_range_m: float = 3.0
+    """Depth beyond this is treated as invalid."""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One registration hypothesis.
+
+    Attributes
+    ----------
+    T_o_s : (4, 4) float
+        Scene frame into object frame.
+    fitness : float
+        Share of scene points within ``eval_distance_m`` of the model.
+    inlier_rmse_m : float
+        RMSE of those inliers.
+    origin : str
+        How it was found (``"ransac:3"``, ``"probe:1:180"``, ``"init"``...).
+    """
+
+    T_o_s: np.ndarray
+    fitness: float
+    inlier_rmse_m: float
+    origin: str
+
+
+@dataclass(frozen=True)
+class Model:
+    """A mesh prepared for registration.
+
+    Attributes
+    ----------
+    dense : o3d.geometry.PointCloud
+        Surface samples with face normals (ICP target).
+    down, fpfh
+        Voxel-downsampled samples and their FPFH features (global step).
+    centroid : (3,) float
+        Centroid of the samples, object frame.
+    axes : (3, 3) float
+        Principal axes as columns, largest variance first.
+    radius_m : float
+        Largest distance from the centroid to a sample.
+    surface : o3d.t.geometry.RaycastingScene
+        The mesh itself, for exact point-to-surface distances.
+    """
+
+    dense: o3d.geometry.PointCloud
+    down: o3d.geometry.PointCloud
+    fpfh: o3d.pipelines.registration.Feature
+    centroid: np.ndarray
+    axes: np.ndarray
+    radius_m: float
+    surface: o3d.t.geometry.RaycastingScene
+
+
+def to_pcd(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
+    """Open3D cloud from ``points`` (n, 3) and optional ``normals`` (n, 3)."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
+    if normals is not None:
+        pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=float))
+    return pcd
+
+
+def valid_depth(depth_m: np.ndarray, max_range_m: float) -> np.ndarray:
+    """Depth (h, w) with non-finite, negative and beyond-range values set to 0."""
+    d = np.asarray(depth_m, dtype=float)
+    if d.ndim != 2:
+        raise ValueError(f"depth has shape {d.shape}, expected (h, w)")
+    return np.where(np.isfinite(d) & (d > 0) & (d <= max_range_m), d, 0.0)
+
+
+def cloud_from_depth(
+    depth_m: np.ndarray, K: np.ndarray, keep: np.ndarray | None = None
+) -> np.ndarray:
+    """Camera-frame points (n, 3) of the valid pixels of ``depth_m`` (h, w), optionally only
+    where the boolean image ``keep`` (h, w) is True."""
+    d = depth_m if keep is None else np.where(keep, depth_m, 0.0)
+    return depth_to_points(d, np.asarray(K, dtype=float))[0]
+
+
+def crop_platter(
+    depth_m: np.ndarray, K: np.ndarray, T_color_turntable: np.ndarray, crop: PlatterCrop
+) -> np.ndarray:
+    """Colour-frame points (n, 3) of the valid pixels of ``depth_m`` (h, w) that lie over the
+    platter (turntable frame: origin at the centre of its top, z up)."""
+    pts_c = cloud_from_depth(valid_depth(depth_m, crop.max_range_m), K)
+    pts_t = transform_points(inv_T(np.asarray(T_color_turntable, float)), pts_c)
+    r = np.linalg.norm(pts_t[:, :2], axis=1)
+    z = pts_t[:, 2]
+    keep = (r <= crop.radius_m + crop.margin_m) & (z >= crop.min_height_m)
+    return pts_c[keep & (z <= crop.max_height_m)]
+
+
+def estimate_normals(pcd: o3d.geometry.PointCloud, radius_m: float, viewpoint: np.ndarray) -> None:
+    """Normals by local PCA (in place), oriented towards ``viewpoint`` (3,)."""
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=30))
+    pcd.orient_normals_towards_camera_location(np.asarray(viewpoint, dtype=float))
+
+
+def fpfh(pcd: o3d.geometry.PointCloud, cfg: RegistrationConfig) -> reg.Feature:
+    """FPFH features of a cloud that already has normals."""
+    radius = cfg.feature_radius_factor * cfg.voxel_m
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=100)
+    return reg.compute_fpfh_feature(pcd, search)
+
+
+def prepare_model(
+    vertices: np.ndarray, faces: np.ndarray, cfg: RegistrationConfig
+) -> Model:
+    """Sample the mesh (vertices (n, 3), faces (m, 3)) and compute its global features."""
+    mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64), process=False)
+    good = mesh.area_faces > 0
+    if not good.any():
+        raise ValueError("the object mesh has no face with non-zero area")
+    mesh.update_faces(good)
+    pts, face_idx = trimesh.sample.sample_surface(mesh, cfg.model_points, seed=cfg.seed)
+    normals = mesh.face_normals[face_idx]
+    dense = to_pcd(pts, normals)
+    down = dense.voxel_down_sample(cfg.voxel_m)
+    mesh_normals = np.asarray(down.normals).copy()
+    radius = cfg.normal_radius_factor * cfg.voxel_m
+    down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+    est = np.asarray(down.normals)
+    flip = (est * mesh_normals).sum(1) < 0
+    est[flip] *= -1
+    down.normals = o3d.utility.Vector3dVector(est)
+    centroid = pts.mean(0)
+    _, _, Vt = np.linalg.svd(pts - centroid, full_matrices=False)
+    radius = float(np.linalg.norm(pts - centroid, axis=1).max())
+    surface = o3d.t.geometry.RaycastingScene()
+    surface.add_triangles(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
+    return Model(dense, down, fpfh(down, cfg), centroid, Vt.T, radius, surface)
+
+
+def prepare_scene(
+    points: np.ndarray, normals: np.ndarray | None, viewpoint: np.ndarray, cfg: RegistrationConfig
+) -> tuple[o3d.geometry.PointCloud, o3d.geometry.PointCloud, reg.Feature]:
+    """Scene ``points`` (n, 3) -> (cloud at the finest ICP voxel, downsampled cloud, its FPFH).
+
+    ``normals`` (n, 3), when given, are kept (already oriented); otherwise they are
+    estimated and turned towards ``viewpoint`` (3,).
+    """
+    full = to_pcd(points, normals)
+    finest = min(cfg.icp_voxels_m)
+    if finest > 0:  # every ICP level and every score works at or above this resolution
+        full = full.voxel_down_sample(finest)
+    down = full.voxel_down_sample(cfg.voxel_m)
+    old = np.asarray(down.normals).copy() if normals is not None else None
+    estimate_normals(down, cfg.normal_radius_factor * cfg.voxel_m, viewpoint)
+    if old is not None:
+        est = np.asarray(down.normals)
+        est[(est * old).sum(1) < 0] *= -1
+        down.normals = o3d.utility.Vector3dVector(est)
+    return full, down, fpfh(down, cfg)
+
+
+def surface_distance(model: Model, points_o: np.ndarray) -> np.ndarray:
+    """Distance (n,) from object-frame ``points_o`` (n, 3) to the mesh surface."""
+    q = o3d.core.Tensor(np.asarray(points_o, dtype=np.float32))
+    return model.surface.compute_distance(q).numpy().astype(float)
+
+
+def evaluate(
+    scene: o3d.geometry.PointCloud, model: Model, T_o_s: np.ndarray, distance_m: float
+) -> tuple[float, float]:
+    """(fitness, inlier RMSE) of the scene moved by ``T_o_s``, measured to the mesh surface:
+    the share of scene points within ``distance_m`` and their RMSE."""
+    d = surface_distance(model, transform_points(T_o_s, np.asarray(scene.points)))
+    inl = d <= distance_m
+    if not inl.any():
+        return 0.0, 0.0
+    return float(inl.mean()), float(np.sqrt(np.mean(d[inl] ** 2)))
+
+
+def refine(
+    scene: o3d.geometry.PointCloud,
+    model: Model,
+    T_o_s: np.ndarray,
+    cfg: RegistrationConfig,
+    origin: str,
+    first: int = 0,
+    stop: int | None = None,
+) -> Candidate:
+    """Coarse-to-fine point-to-plane ICP from ``T_o_s`` (4, 4) over the configured levels
+    ``first`` to ``stop`` (all by default)."""
+    T = np.asarray(T_o_s, dtype=float)
+    criteria = reg.ICPConvergenceCriteria(1e-7, 1e-7, cfg.icp_max_iterations)
+    pairs = list(zip(cfg.icp_voxels_m, cfg.icp_max_distance_m, strict=True))[first:stop]
+    for voxel, dist in pairs:
+        src = scene.voxel_down_sample(voxel) if voxel > 0 else scene
+        est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=dist))
+        T = reg.registration_icp(src, model.dense, dist, T, est, criteria).transformation
+    fit, rmse = evaluate(scene, model, T, cfg.eval_distance_m)
+    return Candidate(np.asarray(T).copy(), fit, rmse, origin)
+
+
+def global_candidates(
+    scene_down: o3d.geometry.PointCloud,
+    scene_fpfh: reg.Feature,
+    model: Model,
+    cfg: RegistrationConfig,
+) -> list[tuple[str, np.ndarray]]:
+    """FPFH + RANSAC, once per restart with seed ``cfg.seed + k``: [(origin, T_o_s), ...]."""
+    dist = cfg.ransac_distance_factor * cfg.voxel_m
+    checkers = [
+        reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+        reg.CorrespondenceCheckerBasedOnDistance(dist),
+    ]
+    criteria = reg.RANSACConvergenceCriteria(cfg.ransac_max_iterations, cfg.ransac_confidence)
+    out = []
+    for k in range(cfg.n_restarts):
+        o3d.utility.random.seed(cfg.seed + k)
+        res = reg.registration_ransac_based_on_feature_matching(
+            scene_down, model.down, scene_fpfh, model.fpfh, False, dist,
+            reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria,
+        )
+        out.append((f"ransac:{k}", np.asarray(res.transformation).copy()))
+    return out
+
+
+def tls_cost(c: Candidate, distance_m: float) -> float:
+    """Truncated least squares over all scene points, in metres squared: inliers count their
+    squared distance, outliers ``distance_m`` squared. Fitness first, then RMSE, in one number."""
+    return (1.0 - c.fitness) * distance_m**2 + c.fitness * c.inlier_rmse_m**2
+
+
+def rank(candidates: list[Candidate], distance_m: float) -> list[Candidate]:
+    """Best first by :func:`tls_cost` at ``distance_m``, then origin (a stable order)."""
+    return sorted(candidates, key=lambda c: (tls_cost(c, distance_m), c.origin))
+
+
+def about_axis(model: Model, axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Object-frame rotation (4, 4) by ``angle_rad`` about ``axis`` through the model centroid."""
+    R = trimesh.transformations.rotation_matrix(angle_rad, axis)[:3, :3]
+    return make_T(R, model.centroid - R @ model.centroid)
+
+
+@dataclass(frozen=True)
+class Ambiguity:
+    """Outcome of the symmetry check.
+
+    Attributes
+    ----------
+    ambiguous : bool
+        A pose at least ``ambiguity_min_deg`` away explains the data about as well.
+    ambiguity_deg : float
+        Rotation between the best pose and the runner-up (0 when there is none).
+    runner_up : Candidate or None
+        Best candidate distinct from the winner.
+    """
+
+    ambiguous: bool
+    ambiguity_deg: float
+    runner_up: Candidate | None
+
+
+def as_good_as(c: Candidate, best: Candidate, cfg: RegistrationConfig) -> bool:
+    """``c`` explains the scene as well as ``best`` within the ambiguity tolerances."""
+    excess_sq = max(c.inlier_rmse_m**2 - best.inlier_rmse_m**2, 0.0)
+    return (
+        c.fitness >= best.fitness - cfg.ambiguity_fitness_tol
+        and excess_sq <= cfg.ambiguity_excess_rmse_m**2
+    )
+
+
+def distinct_from(best: Candidate, others: list[Candidate], cfg: RegistrationConfig) -> Ambiguity:
+    """Compare ``best`` with the best of ``others`` that is a distinct rotation."""
+    distinct = [
+        c for c in others if rotation_error_deg(c.T_o_s, best.T_o_s) >= cfg.ambiguity_min_deg
+    ]
+    if not distinct:
+        return Ambiguity(False, 0.0, None)
+    runner = rank(distinct, cfg.eval_distance_m)[0]
+    angle = rotation_error_deg(runner.T_o_s, best.T_o_s)
+    return Ambiguity(as_good_as(runner, best, cfg), angle, runner)
+
+
+def probe_symmetry(
+    scene: o3d.geometry.PointCloud,
+    model: Model,
+    candidates: list[Candidate],
+    cfg: RegistrationConfig,
+) -> list[Candidate]:
+    """Re-run ICP from the best of ``candidates`` (ranked) turned about each principal axis
+    of the model; returns every candidate, the probes included, best first (a probe may beat
+    the global step). Pass the result to :func:`distinct_from`."""
+    best = candidates[0]
+    probes = list(candidates)
+    for i in range(3):
+        for angle in cfg.probe_angles_deg:
+            T_probe = about_axis(model, model.axes[:, i], np.radians(angle))
+            start = inv_T(T_probe) @ best.T_o_s
+            origin = f"probe:{i}:{angle:g}"
+            c = refine(scene, model, start, cfg, origin, stop=cfg.probe_levels)
+            if c.fitness >= best.fitness - 2 * cfg.ambiguity_fitness_tol:
+                c = refine(scene, model, c.T_o_s, cfg, origin, first=cfg.probe_levels)
+            probes.append(c)
+    return rank(probes, cfg.eval_distance_m)
+
+
+def register(
+    scene: o3d.geometry.PointCloud,
+    scene_down: o3d.geometry.PointCloud,
+    scene_fpfh: reg.Feature,
+    model: Model,
+    cfg: RegistrationConfig,
+    extra_starts: list[tuple[str, np.ndarray]] = (),
+) -> list[Candidate]:
+    """Global registration (every restart) plus ``extra_starts`` [(origin, T_o_s)], each
+    refined by ICP; returns all candidates, best first."""
+    starts = global_candidates(scene_down, scene_fpfh, model, cfg) + list(extra_starts)
+    refined = [refine(scene, model, T, cfg, origin) for origin, T in starts]
+    return rank(refined, cfg.eval_distance_m)
+
+
+def posed_points(model: Model, T_s_o: np.ndarray) -> np.ndarray:
+    """Model samples (n, 3) placed in the scene frame by ``T_s_o``."""
+    return transform_points(T_s_o, np.asarray(model.dense.points))
