@@ -112,8 +112,7 @@ class Adjustment:
     T_w_o : (4, 4) float
         That pose, ``T_adj @ T_w_o_stage1``.
     fitness : float
-        Where the posed mesh is seen (hand masked): share of pixels whose depth agrees with
-        it, among those that agree or lie behind it.
+        Where the posed mesh is seen (hand masked): share of pixels whose depth agrees with it.
     inlier_rmse_m : float
         RMS depth difference of the agreeing pixels.
     n_points : int
@@ -177,18 +176,17 @@ def _score(
     tol_m: float,
 ) -> tuple[float, float, int]:
     """Does the depth show the object at ``T_w_o``? Renders the mesh; over the pixels where
-    it is visible, ``keep`` is True and the depth valid, a pixel agrees when
-    ``|depth - rendered| <= tol_m`` and contradicts it when the depth lies further (the
-    camera sees through where the object would be); nearer depth is an unmasked occluder and
-    is not counted. Returns (agreeing / (agreeing + contradicting), RMS depth difference of
-    the agreeing pixels, agreeing + contradicting)."""
+    it is visible, ``keep`` is True (the hand is masked out) and the depth valid, a pixel
+    agrees when ``|depth - rendered| <= tol_m``. Depth further away means the camera sees
+    through where the object would be; nearer depth means something unmasked covers it (or
+    the pose is inside another surface): both count against the pose. Returns (agreeing
+    share, RMS depth difference of the agreeing pixels, pixels judged)."""
     h, w = depth.shape
     hits = render([mesh], [T_w_o], K, w, h)
     seen = (hits.mesh_index == 0) & keep & (depth > 0)
     diff = depth[seen] - hits.depth_m[seen]
     agree = np.abs(diff) <= tol_m
-    behind = diff > tol_m
-    n = int(agree.sum() + behind.sum())
+    n = int(seen.sum())
     if n == 0 or not agree.any():
         return 0.0, 0.0, n
     return float(agree.sum() / n), float(np.sqrt(np.mean(diff[agree] ** 2))), n

@@ -16,6 +16,7 @@ model's principal axes.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -401,7 +402,7 @@ def register(
     scene_fpfh: reg.Feature,
     model: Model,
     cfg: RegistrationConfig,
-    extra_starts: list[tuple[str, np.ndarray]] = (),
+    extra_starts: Sequence[tuple[str, np.ndarray]] = (),
 ) -> list[Candidate]:
     """Global registration (every restart) plus ``extra_starts`` [(origin, T_o_s)], each
     refined by ICP; returns all candidates, best first."""
@@ -409,7 +410,3 @@ def register(
     refined = [refine(scene, model, T, cfg, origin) for origin, T in starts]
     return rank(refined, cfg.eval_distance_m)
 
-
-def posed_points(model: Model, T_s_o: np.ndarray) -> np.ndarray:
-    """Model samples (n, 3) placed in the scene frame by ``T_s_o``."""
-    return transform_points(T_s_o, np.asarray(model.dense.points))

@@ -110,7 +110,8 @@ def test_register_object_is_deterministic(shared_data):
     mesh, _, depth = _stage1(shared_data, "bunny", 4)
     a = register_object(depth, K, T_CT, *mesh, OBJECT_PRESETS["fast"])
     b = register_object(depth, K, T_CT, *mesh, OBJECT_PRESETS["fast"])
-    np.testing.assert_array_equal(a.T_w_o, b.T_w_o)
+    # Same seeds, same hypotheses; Open3D's reductions may differ in the last bit.
+    np.testing.assert_allclose(a.T_w_o, b.T_w_o, rtol=0, atol=1e-9)
 
 
 def test_bad_stage1_inputs_raise_with_a_reason(shared_data):
@@ -138,7 +139,9 @@ def _lifted(shared_data, name, seed, **kw):
 
 
 def test_adjustment_of_a_lifted_object_behind_fingers(shared_data):
-    mesh, T_w_o1, depth, mask, T_true = _lifted(shared_data, "bunny", 0, angle_deg=30.0)
+    # Seed 2: ICP from the stage-1 pose sinks the mesh into the empty platter; the depth
+    # check must reject that and take the global path.
+    mesh, T_w_o1, depth, mask, T_true = _lifted(shared_data, "bunny", 2, angle_deg=20.0)
     assert mask.sum() > 1000  # the fingers hide part of the object
     assert pose_error(T_w_o1, T_true)[1] > 0.15
     r = estimate_adjustment(depth, K, *mesh, T_w_o1, mask)
@@ -159,7 +162,7 @@ def test_small_adjustment_keeps_the_stage1_guess(shared_data):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name,angle", [("mustard", 25.0), ("fuze", 40.0), ("bunny", 20.0)])
+@pytest.mark.parametrize("name,angle", [("mustard", 25.0), ("fuze", 40.0), ("bunny", 35.0)])
 def test_adjustment_more_objects(shared_data, name, angle):
     mesh, T_w_o1, depth, mask, T_true = _lifted(shared_data, name, 2, angle_deg=angle)
     r = estimate_adjustment(depth, K, *mesh, T_w_o1, mask)
