@@ -40,6 +40,7 @@ from graspcap.flows.runtime import build_settings, task_runner, worker_api
 from graspcap.flows.session import submit_session
 from graspcap.schemas.tables import Status
 from graspcap.tasks.config import StageConfig
+from graspcap.tasks.errors import StageError
 from graspcap.tasks.load_session import discover_sessions
 
 BUILDS_LOG = "builds.jsonl"
@@ -125,7 +126,9 @@ def _stage_outcomes(futures: Mapping[str, Any], done: list[int], total: int, sid
             exc = state.result(raise_on_failure=False)
             failed_stage = failed_stage or name
             if error is None:
-                error = f"{name}: {exc}" if isinstance(exc, BaseException) else str(state.message)
+                error = (str(exc) if isinstance(exc, StageError) else
+                         f"{name}: {type(exc).__name__}: {exc}" if isinstance(exc, BaseException)
+                         else f"{name}: {state.message}")
         else:
             not_run.append(name)
         done[0] += 1

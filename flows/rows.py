@@ -58,6 +58,8 @@ def flag_reasons(results: Mapping[str, Any]) -> list[str]:
         reasons.append("register_object: symmetric object, registration ambiguous")
     if _get(results, "estimate_adjustment", "ambiguous"):
         reasons.append("estimate_adjustment: ambiguous")
+    if _get(results, "register_scan", "ambiguous"):
+        reasons.append("register_scan: symmetric object, scan registration ambiguous")
     return reasons
 
 
@@ -74,7 +76,7 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
     T_w_o1 = results["register_object"].T_w_o
     T_adj = results["estimate_adjustment"].T_adj
     scan = results.get("register_scan")
-    T_tt_o = getattr(scan, "T_turntable_o", getattr(scan, "T_turntable_o_scan", None))
+    T_tt_o = None if scan is None else scan.T_turntable_o_scan
     cross = results.get("crosscheck_sfm")
     row = {
         "session_id": m.session_id, "participant": m.participant, "object_id": m.object_id,

@@ -58,6 +58,26 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args.out, sessions=args.sessions, frames=args.frames, seed=args.seed)
 
 
+def _cmd_build(args: argparse.Namespace) -> int:
+    from graspcap.flows.commands import run_build
+
+    return run_build(args.roots, args.catalog, args.preset, dask=args.dask,
+                     retry_failed=args.retry_failed)
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    from graspcap.flows.commands import status_text
+
+    print(status_text(args.catalog, limit=args.limit))
+    return 0
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from graspcap.flows.commands import serve
+
+    return serve(args.roots, args.catalog, args.preset, cron=args.cron, interval_s=args.interval)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="graspcap", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -89,6 +109,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=60, help="grasp-video frames per session")
     p.add_argument("--seed", type=int, default=7, help="random seed")
     p.set_defaults(func=_cmd_demo)
+    p = sub.add_parser("build", help="build or update the catalog from capture sessions")
+    p.add_argument("roots", type=Path, nargs="+", help="session folders or roots holding many")
+    p.add_argument("--catalog", type=Path, default=Path("catalog"), help="catalog folder")
+    p.add_argument("--preset", default="default", help="stage preset (default, fast, ...)")
+    p.add_argument("--dask", default=None, metavar="ADDRESS|local:N",
+                   help="run on a Dask scheduler, or a local cluster of N worker processes")
+    p.add_argument("--retry-failed", action="store_true",
+                   help="re-run only the sessions that failed in the last build")
+    p.set_defaults(func=_cmd_build)
+
+    p = sub.add_parser("status", help="recent builds, failures with reasons, stage runs")
+    p.add_argument("--catalog", type=Path, default=Path("catalog"), help="catalog folder")
+    p.add_argument("--limit", type=int, default=5, help="number of builds to show")
+    p.set_defaults(func=_cmd_status)
+
+    p = sub.add_parser("serve", help="run the build on a schedule (Prefect serve)")
+    p.add_argument("roots", type=Path, nargs="+", help="session folders or roots holding many")
+    p.add_argument("--catalog", type=Path, default=Path("catalog"), help="catalog folder")
+    p.add_argument("--preset", default="default", help="stage preset")
+    when = p.add_mutually_exclusive_group(required=True)
+    when.add_argument("--cron", help='cron schedule, e.g. "0 2 * * *"')
+    when.add_argument("--interval", type=float, help="run every this many seconds")
+    p.set_defaults(func=_cmd_serve)
     return parser
 
 

@@ -1,0 +1,133 @@
+"""What ``graspcap build``, ``status`` and ``serve`` do (the CLI parses, this acts).
+
+Call :func:`graspcap.flows.runtime.configure` before importing this module's Prefect users;
+the functions here import them lazily for that reason.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TextIO
+
+from graspcap.flows.runtime import configure
+
+
+class Progress:
+    """A progress bar over the build's tasks on a terminal; a line per session otherwise."""
+
+    def __init__(self, stream: TextIO = sys.stderr, stages: int = 10):
+        self.stream, self.tty, self.stages = stream, stream.isatty(), stages
+        self.per_session: dict[str, int] = {}
+        self.t0 = time.perf_counter()
+
+    def __call__(self, done: int, total: int, session_id: str, stage: str, state: str) -> None:
+        self.per_session[session_id] = self.per_session.get(session_id, 0) + 1
+        if self.tty:
+            width = 30
+            fill = int(width * done / max(total, 1))
+            sessions_done = sum(1 for n in self.per_session.values() if n >= self.stages)
+            self.stream.write(f"\r[{'#' * fill}{'.' * (width - fill)}] {done}/{total} tasks, "
+                              f"{sessions_done} session(s) done; {session_id}: {stage} "
+                              f"{state}\x1b[K")
+            if done == total:
+                self.stream.write("\n")
+        elif self.per_session[session_id] == self.stages:
+            self.stream.write(f"[{time.perf_counter() - self.t0:7.1f} s] {session_id}: "
+                              f"{self.stages} stages done ({done}/{total} tasks)\n")
+        self.stream.flush()
+
+
+def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
+              dask: str | None = None, retry_failed: bool = False) -> int:
+    """``graspcap build``: exit status 0, or 1 when a session failed."""
+    configure(Path(catalog) / "work")
+    from graspcap.flows.build import build_dataset
+    from graspcap.tasks.pipeline import STAGES
+
+    report = build_dataset(roots, catalog, preset, dask=dask, retry_failed=retry_failed,
+                           progress=Progress(stages=len(STAGES)))
+    print(report.summary())
+    return 1 if report.failed else 0
+
+
+def status_text(catalog: Path, limit: int = 5) -> str:
+    """Recent builds (newest first): outcome counts, failures with reasons, stage runs."""
+    import graspcap.catalog as gc
+
+    cat = gc.open(catalog)
+    out = []
+    log = cat.layout.root / "work" / "builds.jsonl"
+    records = [json.loads(x) for x in log.read_text().splitlines() if x.strip()] \
+        if log.exists() else []
+    committed = {}
+    if cat.latest_version() is not None:
+        for row in cat.table("builds").sort_by("catalog_version").to_pylist():
+            committed[row["build_id"]] = row
+            rec = json.loads(row["parameters_json"]).get("report")
+            if rec and rec["build_id"] not in {r["build_id"] for r in records}:
+                records.append(rec)
+    if not records:
+        return f"catalog {cat.layout.root}: no builds yet"
+    out.append(f"catalog {cat.layout.root}: latest version {cat.latest_version()}")
+    for rec in records[::-1][:limit]:
+        s = rec["summary"]
+        version = rec.get("catalog_version")
+        where = f"version {version}" if version is not None else "no new version"
+        ran = sum(len(x["ran"]) for x in rec["sessions"])
+        hit = sum(len(x["cached"]) for x in rec["sessions"])
+        out.append(f"build {rec['build_id']} ({where}): {len(s['added'])} added, "
+                   f"{len(s['changed'])} changed, {len(s['unchanged'])} unchanged, "
+                   f"{len(s['failed'])} failed; {ran} stage run(s), {hit} cache hit(s), "
+                   f"{rec['seconds'].get('total', 0):.1f} s")
+        for x in rec["sessions"]:
+            line = f"    {x['session_id']:<32} {x['outcome']:<9}"
+            if x["ran"]:
+                line += f" ran: {', '.join(x['ran'])}"
+            if x["retries"]:
+                line += f" retries: {x['retries']}"
+            if x["error"]:
+                line += f" ERROR: {x['error'].splitlines()[0]}"
+                line += "".join(f"\n{' ' * 46}{e}" for e in x["error"].splitlines()[1:6])
+            out.append(line)
+    return "\n".join(out)
+
+
+def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
+          cron: str | None = None, interval_s: float | None = None,
+          name: str = "graspcap-build") -> int:
+    """``graspcap serve``: run the build on a schedule with Prefect's ``serve``.
+
+    ``serve`` refuses Prefect's ephemeral API, so without ``PREFECT_API_URL`` a local Prefect
+    server is started on 127.0.0.1 (database under the catalog's work area), supervised, and
+    stopped when this returns (Ctrl-C).
+    """
+    from contextlib import nullcontext
+
+    from graspcap.flows.runtime import local_server
+
+    work = Path(catalog).expanduser().resolve() / "work"
+    configure(work)
+    own = "PREFECT_API_URL" not in os.environ
+    server = local_server(log_file=work / "prefect-server.log") if own else nullcontext(None)
+    with server as url:
+        if url:
+            os.environ["PREFECT_API_URL"] = url
+            print(f"Prefect server (UI and API) at {url.removesuffix('/api')}", flush=True)
+        from prefect import serve as prefect_serve
+
+        from graspcap.flows.build import build_flow
+
+        params = {"roots": [str(Path(r).resolve()) for r in roots],
+                  "catalog": str(Path(catalog).resolve()), "preset": preset}
+        deployment = build_flow.to_deployment(
+            name=name, cron=cron, interval=interval_s, parameters=params)
+        try:
+            prefect_serve(deployment, print_starting_message=True)
+        except KeyboardInterrupt:
+            pass
+    return 0

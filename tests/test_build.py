@@ -1,0 +1,311 @@
+# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
+"""Dataset builds: re-run only what changed, isolate failures, retry transient faults."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import graspcap.catalog as gc
+from graspcap.flows.build import build_dataset
+from graspcap.tasks.errors import StageError
+from tests.conftest import REPO
+from tests.flow_fixtures import (  # noqa: F401
+    PRESET,
+    copy_catalog,
+    executions,
+    prefect_harness,
+    require_pipeline_passes,
+    synth_root,
+    warm,
+)
+
+
+def _sessions(root: Path) -> list[Path]:
+    return sorted(p for p in root.iterdir() if (p / "session.json").exists())
+
+
+def _ids(root: Path) -> list[str]:
+    return [json.loads((p / "session.json").read_text())["session_id"] for p in _sessions(root)]
+
+
+def _tweak(config):
+    """The config with its first float field moved by 10 % (a real parameter change)."""
+    for name, value in config.model_dump().items():
+        if isinstance(value, float) and value != 0:
+            return config.model_copy(update={name: value * 1.1})
+    raise AssertionError(f"{type(config).__name__} has no float field to change")
+
+
+def test_cold_build_runs_every_stage_and_commits_one_version(warm, synth_root):
+    from graspcap.tasks.pipeline import STAGES
+
+    catalog, report = warm
+    ids = _ids(synth_root)
+    assert report.catalog_version == 1 and sorted(report.added) == sorted(ids)
+    assert executions(catalog, "warm") == sorted((s, st) for s in ids for st in STAGES)
+    cat = gc.open(catalog)
+    sessions = cat.table("sessions").to_pylist()
+    assert sorted(r["session_id"] for r in sessions) == sorted(ids)
+    assert all(r["status"] in ("ok", "flagged") and r["error"] is None for r in sessions)
+    frames = cat.table("frames")
+    for r in sessions:
+        count = json.loads((synth_root / r["session_id"] / "session.json").read_text()
+                           )["grasp"]["count"] if (synth_root / r["session_id"]).exists() else None
+        n = sum(1 for s in frames["session_id"].to_pylist() if s == r["session_id"])
+        assert count is None or n == count - r["steady_from"]
+        values, observed = cat.contactmap(r["session_id"])
+        assert len(values) == len(observed) > 0
+    build = cat.table("builds").sort_by("catalog_version").to_pylist()[-1]
+    record = json.loads(build["parameters_json"])["report"]
+    assert {s["session_id"]: len(s["ran"]) for s in record["sessions"]} == {
+        s: len(STAGES) for s in ids}
+
+
+def test_unchanged_rebuild_runs_nothing_and_makes_no_version(warm, synth_root, tmp_path):
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    report = build_dataset([synth_root], catalog, PRESET, build_id="noop")
+    assert executions(catalog, "noop") == []
+    assert report.catalog_version is None and report.previous_version == 1
+    assert sorted(report.unchanged) == sorted(_ids(synth_root))
+    assert "nothing changed" in report.summary()
+    assert gc.open(catalog).latest_version() == 1
+
+
+def test_config_change_reruns_that_stage_and_downstream_only(warm, synth_root, tmp_path):
+    from graspcap.tasks.pipeline import STAGES, configs_for
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    changed = _tweak(configs_for(PRESET)["register_scan"])
+    report = build_dataset([synth_root], catalog, PRESET,
+                           overrides={"register_scan": changed}, build_id="cfg")
+    downstream = {"register_scan"}
+    for name, stage in STAGES.items():  # topological order
+        if downstream & set(stage.upstream):
+            downstream.add(name)
+    ran = executions(catalog, "cfg")
+    assert {st for _, st in ran} <= downstream and "register_scan" in {st for _, st in ran}
+    assert sorted(s for s, st in ran if st == "register_scan") == sorted(_ids(synth_root))
+    assert report.failed == {}
+    assert report.catalog_version == 2  # config_digest of every row changed
+
+
+def test_file_change_reruns_only_its_readers_in_that_session(synth_root, tmp_path,
+                                                             prefect_harness):
+    from graspcap.tasks.pipeline import STAGES
+
+    root = tmp_path / "sessions"
+    for s in _sessions(synth_root):
+        shutil.copytree(s, root / s.name)
+    catalog = tmp_path / "catalog"
+    first = build_dataset([root], catalog, PRESET, build_id="b1")
+    require_pipeline_passes(first)
+    assert first.catalog_version == 1
+    target = _sessions(root)[0]
+    depth_png = target / json.loads((target / "session.json").read_text()
+                                    )["scan"]["views"][0]["depth"]
+    depth = cv2.imread(str(depth_png), cv2.IMREAD_UNCHANGED)
+    ys, xs = np.nonzero(depth)
+    depth[ys[0], xs[0]] += 1  # one millimetre on one pixel
+    assert cv2.imwrite(str(depth_png), depth)
+    second = build_dataset([root], catalog, PRESET, build_id="b2")
+    sid = _ids(root)[0]
+    readers = {n for n, st in STAGES.items() if "scan_depth" in st.reads} - {"load_session"}
+    for name, stage in STAGES.items():  # topological order: add the downstream stages
+        if readers & set(stage.upstream):
+            readers.add(name)
+    readers.add("load_session")
+    ran = executions(catalog, "b2")
+    assert {s for s, _ in ran} == {sid}
+    # load_session reads every file; its result (the validated session) is unchanged, so
+    # nothing downstream of it re-runs unless it also reads the file
+    assert {st for _, st in ran} == readers, ran
+    assert second.catalog_version == 2 and sid in second.changed
+
+
+def test_malformed_session_is_reported_and_the_good_ones_are_kept(warm, synth_root, tmp_path):
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    bad = tmp_path / "more" / "bad"
+    shutil.copytree(_sessions(synth_root)[0], bad)
+    manifest = json.loads((bad / "session.json").read_text())
+    manifest["session_id"] = "bad-one"
+    del manifest["depth_scale_m"]
+    (bad / "session.json").write_text(json.dumps(manifest))
+    report = build_dataset([synth_root, tmp_path / "more"], catalog, PRESET, build_id="mixed")
+    assert set(report.failed) == {"bad-one"}
+    assert "session.json" in report.failed["bad-one"]
+    assert "depth_scale_m" in report.failed["bad-one"]
+    assert sorted(report.unchanged) == sorted(_ids(synth_root))
+    cat = gc.open(catalog)
+    rows = {r["session_id"]: r for r in cat.table("sessions").to_pylist()}
+    assert rows["bad-one"]["status"] == "failed" and "depth_scale_m" in rows["bad-one"]["error"]
+    assert all(rows[s]["status"] != "failed" for s in _ids(synth_root))
+    build = cat.table("builds").sort_by("catalog_version").to_pylist()[-1]
+    assert [f["session_id"] for f in build["sessions_failed"]] == ["bad-one"]
+
+    # fix it; --retry-failed touches only the session that failed
+    manifest["depth_scale_m"] = 0.001
+    (bad / "session.json").write_text(json.dumps(manifest))
+    retry = build_dataset([synth_root, tmp_path / "more"], catalog, PRESET,
+                          retry_failed=True, build_id="retry")
+    assert [s.session_id for s in retry.sessions] == ["bad-one"]
+    assert {s for s, _ in executions(catalog, "retry")} == {"bad-one"}
+    assert retry.failed == {} and retry.changed == ["bad-one"]
+    assert gc.open(catalog).table("sessions").num_rows == 3
+
+
+def test_transient_fault_is_retried_and_recorded(warm, synth_root, tmp_path, monkeypatch):
+    from graspcap.tasks import pipeline
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    shutil.rmtree(catalog / "work" / "results" / "register_scan")
+    original = pipeline.STAGES["register_scan"]
+    lock, failures = threading.Lock(), [0]
+
+    def flaky(session, config, **kw):
+        with lock:
+            failures[0] += 1
+            fail = failures[0] <= 2
+        if fail:
+            raise OSError(5, "Input/output error (injected)")
+        return original.run(session, config, **kw)
+
+    monkeypatch.setitem(pipeline.STAGES, "register_scan",
+                        dataclasses.replace(original, run=flaky))
+    report = build_dataset([synth_root], catalog, PRESET, build_id="flaky")
+    assert report.failed == {}
+    assert sum(s.retries.get("register_scan", 0) for s in report.sessions) == 2
+    recs = [json.loads(x) for x in (catalog / "work" / "executions.jsonl").read_text()
+            .splitlines()]
+    bad = [r for r in recs if r["build_id"] == "flaky" and not r["ok"]]
+    assert len(bad) == 2 and all("OSError" in r["error"] for r in bad)
+    assert sorted(s for s, _ in executions(catalog, "flaky")) == sorted(_ids(synth_root))
+
+
+def test_failed_session_keeps_its_previous_good_rows(warm, synth_root, tmp_path, monkeypatch):
+    from graspcap.tasks import pipeline
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    shutil.rmtree(catalog / "work" / "results" / "register_scan")
+    calls = []
+
+    def broken(session, config, **_):
+        calls.append(session.session_id)
+        raise StageError("register_scan", "fitness 0.1 below 0.5", session=session.session_id)
+
+    monkeypatch.setitem(pipeline.STAGES, "register_scan",
+                        dataclasses.replace(pipeline.STAGES["register_scan"], run=broken))
+    before = gc.open(catalog).table("sessions").to_pylist()
+    report = build_dataset([synth_root], catalog, PRESET, build_id="broken")
+    assert sorted(calls) == sorted(_ids(synth_root))  # once each: never retried
+    assert set(report.failed) == set(_ids(synth_root))
+    assert all(s.kept_previous for s in report.sessions)
+    assert all("fitness 0.1 below 0.5" in e for e in report.failed.values())
+    cat = gc.open(catalog)
+    assert report.catalog_version == 2  # the failure is recorded ...
+    after = cat.table("sessions").to_pylist()
+    assert [r["build_id"] for r in after] == [r["build_id"] for r in before]  # ... rows kept
+    last = cat.table("builds").sort_by("catalog_version").to_pylist()[-1]
+    record = json.loads(last["parameters_json"])["report"]
+    assert set(record["summary"]["failed"]) == set(_ids(synth_root))
+
+
+KILL_SCRIPT = """
+import sys
+from graspcap.flows.runtime import configure
+configure(sys.argv[3])
+from graspcap.flows.build import build_dataset
+build_dataset([sys.argv[1]], sys.argv[2], "fast", build_id="killed")
+"""
+
+
+@pytest.mark.slow
+def test_build_killed_half_way_completes_on_rerun(synth_root, tmp_path, prefect_harness):
+    from graspcap.tasks.pipeline import STAGES
+
+    catalog = tmp_path / "catalog"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env.pop("PREFECT_API_URL", None)
+    env.pop("PREFECT_HOME", None)
+    child = subprocess.Popen([sys.executable, "-c", KILL_SCRIPT, str(synth_root), str(catalog),
+                              str(tmp_path / "prefect-work")], env=env, cwd=REPO)
+    total = 2 * len(STAGES)
+    deadline = time.monotonic() + 600
+    while len(executions(catalog, "killed")) < total // 2 and child.poll() is None:
+        assert time.monotonic() < deadline, "child build made no progress"
+        time.sleep(0.2)
+    os.kill(child.pid, signal.SIGKILL)
+    child.wait()
+    done_before = len(executions(catalog, "killed"))
+    assert 0 < done_before < total
+    report = build_dataset([synth_root], catalog, PRESET, build_id="rerun")
+    require_pipeline_passes(report)
+    rerun = executions(catalog, "rerun")
+    assert len(rerun) + done_before >= total and len(rerun) <= total - done_before + 2
+    assert report.failed == {} and report.catalog_version == 1
+    cat = gc.open(catalog)
+    assert sorted(cat.table("sessions")["session_id"].to_pylist()) == sorted(_ids(synth_root))
+    assert set(cat.table("frames")["session_id"].to_pylist()) == set(_ids(synth_root))
+
+
+@pytest.mark.slow
+def test_dask_local_cluster_builds_the_same_tables(warm, synth_root, tmp_path):
+    catalog = tmp_path / "catalog"
+    report = build_dataset([synth_root], catalog, PRESET, dask="local:2", build_id="dask",
+                           work=tmp_path / "work")
+    assert report.failed == {}
+    assert len(executions(tmp_path, "dask")) == len(warm[1].sessions) * 10
+    drop = ["build_id", "code_version"]
+    a = gc.open(warm[0]).table("sessions").drop(drop).sort_by("session_id")
+    b = gc.open(catalog).table("sessions").drop(drop).sort_by("session_id")
+    assert a.equals(b)
+    fa = gc.open(warm[0]).table("frames").drop(["build_id"]).sort_by([("session_id", "ascending"),
+                                                                      ("frame", "ascending")])
+    fb = gc.open(catalog).table("frames").drop(["build_id"]).sort_by([("session_id", "ascending"),
+                                                                     ("frame", "ascending")])
+    assert fa.equals(fb)
+
+
+@pytest.mark.slow
+def test_serve_runs_the_build_on_a_schedule_with_its_own_server(synth_root, tmp_path,
+                                                                 prefect_harness):
+    catalog = tmp_path / "catalog"
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("PREFECT_API_URL", "PREFECT_HOME")} | {"OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "graspcap.cli", "serve", str(synth_root),
+                             "--catalog", str(catalog), "--preset", PRESET, "--interval", "5"],
+                            env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    log = catalog / "work" / "builds.jsonl"
+    deadline = time.monotonic() + 600
+    try:
+        while not log.exists() and proc.poll() is None:
+            assert time.monotonic() < deadline, "no scheduled build within 600 s"
+            time.sleep(1)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            out, _ = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate()
+    assert log.exists(), out[-3000:]
+    assert "Prefect server (UI and API) at http://127.0.0.1:" in out
+    assert gc.open(catalog).latest_version() == 1
+    port = out.split("http://127.0.0.1:")[1].split()[0].strip("/")
+    import socket
+
+    with socket.socket() as s:  # the supervised server is gone
+        assert s.connect_ex(("127.0.0.1", int(port))) != 0
