@@ -1,0 +1,269 @@
+"""One capture session as a DAG of stages, in the order of ``pipeline.md`` (no Prefect here).
+
+Each :class:`Stage` names the stages it consumes (``upstream``), the session files
+whose bytes it reads (``reads``: roles of :meth:`Session.input_files`), its code
+version and config type, and a ``run`` function: a few lines of glue that pull the
+stage's inputs out of the session and the upstream results and call the pure stage
+function. ``flows/`` turns each stage into a cached Prefect task from exactly this
+table; :func:`run_session` runs the same table bare and in order (the baseline the
+build is benchmarked against, and a way to debug one session without Prefect).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from graspcap.tasks import (
+    crosscheck_sfm,
+    detect_keypoints,
+    estimate_adjustment,
+    fit_hand,
+    load_session,
+    propagate_poses,
+    reconstruct_hand,
+    register_object,
+    register_scan,
+    select_steady,
+)
+from graspcap.tasks.config import StageConfig
+from graspcap.tasks.hand_model import SURFACE_OFFSET_M, HandSide
+from graspcap.tasks.load_session import Session
+from graspcap.tasks.render import render
+
+ALL_FILES = (
+    "manifest", "object_mesh", "stage1", "grasp_color", "grasp_depth", "grasp_keypoints",
+    "scan_thermal", "scan_depth",
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One node of the session DAG."""
+
+    name: str
+    version: str
+    presets: Mapping[str, StageConfig]
+    upstream: tuple[str, ...]
+    reads: tuple[str, ...]
+    run: Callable[..., Any]
+    """``run(session, config, **upstream_results) -> result``."""
+
+    @property
+    def config_type(self) -> type[StageConfig]:
+        return type(self.presets["default"])
+
+
+# --- glue: session + upstream results -> pure stage call ------------------------------------
+
+
+def read_mesh(session: Session) -> tuple[np.ndarray, np.ndarray]:
+    """The object mesh as (vertices (n, 3) float, faces (m, 3) int), in file vertex order."""
+    mesh = trimesh.load(session.path(session.manifest.object_mesh), force="mesh", process=False)
+    return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64)
+
+
+def _K(session: Session) -> np.ndarray:
+    return np.asarray(session.manifest.color_camera.K, dtype=float)
+
+
+def _T_color_turntable(session: Session) -> np.ndarray:
+    return np.asarray(session.manifest.turntable.T_color_turntable, dtype=float)
+
+
+def _depth_lookup(session: Session, window_px: int = 2):
+    """``depth_at(frame, uv (k, 2)) -> (k,)`` metres, median of non-zero depth around each
+    pixel; frames are read lazily (a session's depth video does not fit in memory as float)."""
+    read = lru_cache(maxsize=4)(lambda i: session.read_depth_m(session.grasp_path("depth", i)))
+
+    def depth_at(frame: int, uv: np.ndarray) -> np.ndarray:
+        depth = read(int(frame))
+        h, w = depth.shape
+        out = np.zeros(len(uv))
+        for k, (u, v) in enumerate(np.rint(np.asarray(uv, dtype=float)).astype(int)):
+            win = depth[
+                max(v - window_px, 0) : v + window_px + 1, max(u - window_px, 0) : u + window_px + 1
+            ]
+            vals = win[win > 0]
+            if 0 <= u < w and 0 <= v < h and vals.size:
+                out[k] = np.median(vals)
+        return out
+
+    return depth_at
+
+
+def _load(session_dir: Path | str, config) -> Session:
+    return load_session.load_session(Path(session_dir), check_images=config.check_images)
+
+
+def _register_object(session, config, **_):
+    depth = session.read_depth_m(session.manifest.stage1.depth)
+    V, F = read_mesh(session)
+    return register_object.register_object(
+        depth, _K(session), _T_color_turntable(session), V, F, config
+    )
+
+
+def _detect_keypoints(session, config, **_):
+    return detect_keypoints.detect_keypoints(session, config)
+
+
+def _select_steady(session, config, detect_keypoints, **_):
+    return select_steady.select_steady(
+        detect_keypoints.keypoints, _K(session), session.manifest.grasp.steady_from, config
+    )
+
+
+def _reconstruct_hand(session, config, detect_keypoints, select_steady, **_):
+    return reconstruct_hand.reconstruct_hand(
+        detect_keypoints.keypoints,
+        _K(session),
+        select_steady.steady_from,
+        _depth_lookup(session),
+        np.asarray(SURFACE_OFFSET_M),
+        config,
+    )
+
+
+def _crosscheck_sfm(session, config, detect_keypoints, reconstruct_hand, **_):
+    return crosscheck_sfm.crosscheck_sfm(
+        detect_keypoints.keypoints, _K(session), reconstruct_hand, config
+    )
+
+
+def _fit_hand(session, config, reconstruct_hand, **_):
+    return fit_hand.fit_hand(reconstruct_hand.joints_w, HandSide(session.manifest.hand), config)
+
+
+def _estimate_adjustment(
+    session, config, register_object, detect_keypoints, select_steady, fit_hand, **_
+):
+    """Depth of the first steady frame with the hand masked out: the fitted hand rendered
+    into that frame (the world frame is that frame's camera), plus the detected keypoints'
+    bones in case the fit misses a finger."""
+    s = select_steady.steady_from
+    depth = session.read_depth_m(session.grasp_path("depth", s))
+    h, w = depth.shape
+    hand = fit_hand.mesh()
+    rendered = render([(hand.vertices, hand.faces)], [np.eye(4)], _K(session), w, h)
+    kp = detect_keypoints.keypoints[s]
+    bones = estimate_adjustment.hand_mask_from_keypoints(kp[:, :2], kp[:, 2], (h, w), 6.0)
+    V, F = read_mesh(session)
+    return estimate_adjustment.estimate_adjustment(
+        depth, _K(session), V, F, register_object.T_w_o, (rendered.mesh_index >= 0) | bones, config
+    )
+
+
+def _register_scan(session, config, **_):
+    views = [
+        (session.read_depth_m(v.depth), np.radians(v.angle_deg))
+        for v in session.manifest.scan.views
+    ]
+    V, F = read_mesh(session)
+    return register_scan.register_scan(
+        views, _K(session), _T_color_turntable(session), V, F, config
+    )
+
+
+def _propagate_poses(
+    session,
+    config,
+    detect_keypoints,
+    select_steady,
+    reconstruct_hand,
+    fit_hand,
+    register_object,
+    estimate_adjustment,
+    **_,
+):
+    s = select_steady.steady_from
+    frames = np.arange(s, session.manifest.grasp.count)
+    return propagate_poses.propagate_poses(
+        reconstruct_hand.T_w_c, estimate_adjustment.T_adj, register_object.T_w_o,
+        fit_hand.T_w_p, reconstruct_hand.joints_w, _K(session), frames,
+        detect_keypoints.keypoints[frames], joints_fit_w=fit_hand.joints_fit_w, config=config,
+    )
+
+
+# --- the DAG ----------------------------------------------------------------------------------
+
+STAGES: dict[str, Stage] = {
+    s.name: s
+    for s in [
+        Stage("load_session", load_session.STAGE_VERSION, load_session.PRESETS, (), ALL_FILES,
+              _load),
+        Stage("register_object", register_object.STAGE_VERSION, register_object.PRESETS,
+              ("load_session",), ("manifest", "object_mesh", "stage1"), _register_object),
+        Stage("detect_keypoints", detect_keypoints.STAGE_VERSION, detect_keypoints.PRESETS,
+              ("load_session",), ("manifest", "grasp_keypoints", "grasp_color"),
+              _detect_keypoints),
+        Stage("select_steady", select_steady.STAGE_VERSION, select_steady.PRESETS,
+              ("load_session", "detect_keypoints"), ("manifest",), _select_steady),
+        Stage("reconstruct_hand", reconstruct_hand.STAGE_VERSION, reconstruct_hand.PRESETS,
+              ("load_session", "detect_keypoints", "select_steady"), ("manifest", "grasp_depth"),
+              _reconstruct_hand),
+        Stage("crosscheck_sfm", crosscheck_sfm.STAGE_VERSION, crosscheck_sfm.PRESETS,
+              ("load_session", "detect_keypoints", "reconstruct_hand"), ("manifest",),
+              _crosscheck_sfm),
+        Stage("fit_hand", fit_hand.STAGE_VERSION, fit_hand.PRESETS,
+              ("load_session", "reconstruct_hand"), ("manifest",), _fit_hand),
+        Stage("estimate_adjustment", estimate_adjustment.STAGE_VERSION,
+              estimate_adjustment.PRESETS,
+              ("load_session", "register_object", "detect_keypoints", "select_steady",
+               "fit_hand"),
+              ("manifest", "object_mesh", "grasp_depth"), _estimate_adjustment),
+        Stage("register_scan", register_scan.STAGE_VERSION, register_scan.PRESETS,
+              ("load_session",), ("manifest", "object_mesh", "scan_depth"), _register_scan),
+        Stage("propagate_poses", propagate_poses.STAGE_VERSION, propagate_poses.PRESETS,
+              ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
+               "fit_hand", "register_object", "estimate_adjustment"),
+              ("manifest",), _propagate_poses),
+    ]
+}  # fmt: skip
+
+
+def configs_for(preset: str = "default", **overrides: StageConfig) -> dict[str, StageConfig]:
+    """Every stage's config: the named preset where the stage has one, else its default,
+    with explicit per-stage ``overrides``."""
+    unknown = set(overrides) - set(STAGES)
+    if unknown:
+        raise KeyError(f"no such stage(s): {sorted(unknown)}; stages are {list(STAGES)}")
+    return {
+        name: overrides.get(name) or stage.presets.get(preset, stage.presets["default"])
+        for name, stage in STAGES.items()
+    }
+
+
+def run_stage(
+    stage: Stage, session_dir: Path | str, config: StageConfig, upstream: Mapping[str, Any]
+) -> Any:
+    """Run one stage given its upstream results (``load_session`` gets the directory)."""
+    if stage.name == "load_session":
+        return stage.run(session_dir, config)
+    return stage.run(upstream["load_session"], config, **{k: upstream[k] for k in stage.upstream})
+
+
+def run_session(
+    session_dir: Path | str,
+    configs: Mapping[str, StageConfig] | None = None,
+    timings_s: dict[str, float] | None = None,
+) -> dict[str, Any]:
+    """Every stage of one session, bare and in order; the results by stage name.
+
+    When ``timings_s`` is given it receives each stage's wall time in seconds.
+    """
+    configs = configs or configs_for()
+    results: dict[str, Any] = {}
+    for name, stage in STAGES.items():
+        t0 = time.perf_counter()
+        results[name] = run_stage(stage, session_dir, configs[name], results)
+        if timings_s is not None:
+            timings_s[name] = time.perf_counter() - t0
+    return results
