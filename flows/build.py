@@ -129,8 +129,11 @@ def _stage_outcomes(futures: Mapping[str, Any], done: list[int], total: int, sid
                 error = (str(exc) if isinstance(exc, StageError) else
                          f"{name}: {type(exc).__name__}: {exc}" if isinstance(exc, BaseException)
                          else f"{name}: {state.message}")
-        else:
+        else:  # NotReady (an upstream failed), Cancelled, ...
             not_run.append(name)
+            if failed_stage is None:  # no failed upstream seen: say what Prefect said
+                failed_stage = name
+                error = f"{name} did not run ({state.type.value}: {state.message})"
         done[0] += 1
         if _progress is not None:
             _progress(done[0], total, sid, name, state.name or state.type.value)
