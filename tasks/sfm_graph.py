@@ -76,6 +76,7 @@ def bundle_adjust(
     huber_k: float | None,
     range_m: np.ndarray | None = None,
     range_sigma_m: float = 0.003,
+    scale_sigma_rel: float | None = None,
     min_observations: int = 4,
     max_iterations: int = 100,
 ) -> BundleResult:
@@ -90,6 +91,10 @@ def bundle_adjust(
     anchor, scale_ref : frames whose pose (anchor) and distance (anchor to scale_ref) are held;
         ``scale_ref`` None when range measurements fix the scale.
     huber_k : Huber threshold in sigmas, None for a plain Gaussian loss.
+    scale_sigma_rel : relative sigma of the anchor-to-``scale_ref`` distance, None for the
+        stiff ``GAUGE_SIGMA``. The stiff prior can make Levenberg-Marquardt crawl on a small,
+        distant hand; a soft one (1e-3) converges in far fewer iterations when only the
+        shape matters.
     range_m : (m, 21) float or None, measured distance from camera centre to joint (from the
         aligned depth), NaN where none; each gets a ``RangeFactor3D`` under a Huber loss.
     """
@@ -130,7 +135,12 @@ def bundle_adjust(
         dist = float(np.linalg.norm(inv_T(T_c_w[scale_ref])[:3, 3] - inv_T(T_c_w[anchor])[:3, 3]))
         graph.add(
             gtsam.RangeFactorPose3(
-                X(anchor), X(scale_ref), dist, gtsam.noiseModel.Isotropic.Sigma(1, GAUGE_SIGMA)
+                X(anchor),
+                X(scale_ref),
+                dist,
+                gtsam.noiseModel.Isotropic.Sigma(
+                    1, GAUGE_SIGMA if scale_sigma_rel is None else scale_sigma_rel * dist
+                ),
             )
         )
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, lm_params(max_iterations))

@@ -205,3 +205,40 @@ def test_reconstruct_hand_120_frames(seed):
     errs = _pose_errors(rec, video)
     assert np.median(errs[:, 0]) < 2.0 and np.median(errs[:, 1]) < 0.015
     assert not crosscheck_sfm(video.keypoints, video.K, rec).flagged
+
+
+def _rig_onset_errors(tmp_path, sessions, seed, frames):
+    """Detected minus true first steady frame on synthetic rig sessions (realistic noise)."""
+    from graspcap.synth import generate
+    from graspcap.synth.evaluate import load_truth
+    from graspcap.tasks.detect_keypoints import PRESETS as DETECT_PRESETS
+    from graspcap.tasks.detect_keypoints import detect_keypoints
+    from graspcap.tasks.load_session import load_session
+
+    errors = []
+    for d in generate(tmp_path, sessions=sessions, seed=seed, frames=frames):
+        session = load_session(d)
+        kp = detect_keypoints(session, DETECT_PRESETS["default"]).keypoints
+        K = np.asarray(session.manifest.color_camera.K, dtype=float)
+        sel = select_steady(kp, K, None)
+        truth = int(load_truth(d)["steady_from"])
+        assert sel.method is SteadyMethod.DETECTED
+        # Frames without a detection are not scored; the onset is the CUSUM's argmax.
+        assert np.isnan(sel.scores_px[kp[:, :, 2].max(1) == 0]).all()
+        assert sel.steady_from == int(np.argmax(sel.cusum))
+        assert sel.model_frames.min() >= sel.steady_from
+        errors.append(sel.steady_from - truth)
+    return np.array(errors)
+
+
+def test_select_steady_on_a_rig_session(tmp_path):
+    """One 50-frame realistic rig session: the onset within 3 frames of the truth."""
+    errors = _rig_onset_errors(tmp_path, 1, 9100, 50)
+    assert np.abs(errors).max() <= 3
+
+
+@pytest.mark.slow
+def test_select_steady_on_rig_sessions(tmp_path):
+    """Five 50-frame realistic rig sessions: at least 4 onsets within 3 frames."""
+    errors = _rig_onset_errors(tmp_path, 5, 9100, 50)
+    assert (np.abs(errors) <= 3).sum() >= 4, errors

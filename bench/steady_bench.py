@@ -1,0 +1,112 @@
+"""select_steady and reconstruct_hand on synthetic rig sessions: per-session and median table.
+
+Run: OMP_NUM_THREADS=1 .venv/bin/python bench/steady_bench.py [n_sessions] [seed] [out_dir]
+
+Sessions come from ``graspcap.synth.generate(out_dir, sessions=n, seed=seed,
+difficulty="realistic", frames=120)`` (written once, reused when ``out_dir`` already holds
+them). Times are process CPU seconds (the machine is shared; wall time is noisier).
+reconstruct_hand runs from the detected onset, as the pipeline does.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from graspcap.synth import generate
+from graspcap.synth.evaluate import evaluate, load_truth
+from graspcap.tasks.detect_keypoints import PRESETS as DETECT_PRESETS
+from graspcap.tasks.detect_keypoints import detect_keypoints
+from graspcap.tasks.errors import StageError
+from graspcap.tasks.hand_model import SURFACE_OFFSET_M
+from graspcap.tasks.load_session import load_session
+from graspcap.tasks.reconstruct_hand import reconstruct_hand
+from graspcap.tasks.select_steady import select_steady
+
+
+def session_dirs(out: Path, n: int, seed: int) -> list[Path]:
+    """The n sessions of ``seed`` under ``out``, generated when missing."""
+    found = sorted(out.glob(f"synth-s{seed}-*"))
+    if len(found) >= n and all((d / "ground_truth" / "truth.json").exists() for d in found[:n]):
+        return found[:n]
+    return generate(out, sessions=n, seed=seed, difficulty="realistic", frames=120)
+
+
+def depth_lookup(session, window_px: int = 2):
+    """Lazy ``depth_at(frame, uv) -> metres``: median of non-zero depth around each pixel."""
+    read = lru_cache(maxsize=4)(lambda i: session.read_depth_m(session.grasp_path("depth", i)))
+
+    def depth_at(frame: int, uv: np.ndarray) -> np.ndarray:
+        depth = read(int(frame))
+        h, w = depth.shape
+        out = np.zeros(len(uv))
+        for k, (u, v) in enumerate(np.rint(np.asarray(uv, dtype=float)).astype(int)):
+            if not (0 <= u < w and 0 <= v < h):
+                continue
+            win = depth[
+                max(v - window_px, 0) : v + window_px + 1, max(u - window_px, 0) : u + window_px + 1
+            ]
+            vals = win[win > 0]
+            out[k] = np.median(vals) if vals.size else 0.0
+        return out
+
+    return depth_at
+
+
+def run(d: Path) -> dict[str, float]:
+    session = load_session(d)
+    kp = detect_keypoints(session, DETECT_PRESETS["default"]).keypoints
+    K = np.asarray(session.manifest.color_camera.K, dtype=float)
+    truth = load_truth(d)
+    row = {"steady_true": float(truth["steady_from"])}
+    t0 = time.process_time()
+    try:
+        sel = select_steady(kp, K, None)
+    except StageError as e:
+        print(f"  {d.name}: select_steady failed: {e.reason}")
+        return row | {"steady_err": np.nan, "steady_s": time.process_time() - t0}
+    t1 = time.process_time()
+    rec = reconstruct_hand(
+        kp, K, sel.steady_from, depth_lookup(session), np.asarray(SURFACE_OFFSET_M)
+    )
+    t2 = time.process_time()
+    ev = evaluate(d, {"select_steady": sel, "reconstruct_hand": rec})
+    return row | {
+        "steady_found": float(sel.steady_from),
+        "steady_err": float(sel.steady_from - truth["steady_from"]),
+        "steady_s": t1 - t0,
+        "recon_s": t2 - t1,
+        "mpjpe_mm": ev["joints_mpjpe_mm"],
+        "cam_rot_deg": ev["camera_rot_deg"],
+        "cam_trans_mm": ev["camera_trans_mm"],
+    }
+
+
+def main(n: int = 10, seed: int = 9000, out: str | None = None) -> None:
+    out_dir = Path(out) if out else Path(tempfile.mkdtemp(prefix="steady_bench_"))
+    rows = []
+    cols = ["steady_true", "steady_found", "steady_err", "steady_s", "recon_s", "mpjpe_mm",
+            "cam_rot_deg", "cam_trans_mm"]  # fmt: skip
+    print("session".ljust(34) + "".join(c.rjust(13) for c in cols))
+    for d in session_dirs(out_dir, n, seed):
+        row = run(d)
+        rows.append(row)
+        print(d.name.ljust(34) + "".join(f"{row.get(c, np.nan):13.2f}" for c in cols), flush=True)
+    table = {c: np.array([r.get(c, np.nan) for r in rows]) for c in cols}
+    print("median".ljust(34) + "".join(f"{np.nanmedian(table[c]):13.2f}" for c in cols))
+    err = np.abs(table["steady_err"])
+    print(f"onset within 3 frames: {np.sum(err <= 3)}/{len(rows)} ({np.mean(err <= 3):.0%})")
+    print(f"max camera median rot {np.nanmax(table['cam_rot_deg']):.2f} deg, "
+          f"trans {np.nanmax(table['cam_trans_mm']):.1f} mm; max mpjpe "
+          f"{np.nanmax(table['mpjpe_mm']):.2f} mm")  # fmt: skip
+
+
+if __name__ == "__main__":
+    args = sys.argv[1:]
+    main(int(args[0]) if args else 10, int(args[1]) if len(args) > 1 else 9000,
+         args[2] if len(args) > 2 else None)  # fmt: skip
