@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from graspcap.synth import generate
-from graspcap.synth.evaluate import evaluate
+from graspcap.synth.evaluate import estimate_from_results, evaluate
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.pipeline import STAGES, run_session
 
@@ -64,7 +64,7 @@ def run(difficulty: str, sessions: int, frames: int, root: Path) -> None:
         except StageError as e:
             failures[f"{e.stage}: {e.reason[:80]}"] += 1
             continue
-        for k, v in evaluate(d, results).items():
+        for k, v in evaluate(d, estimate_from_results(results)).items():
             metrics[k].append(v)
         steady_within_3.append(metrics["steady_from_err_frames"][-1] <= 3)
         for k, v in t.items():

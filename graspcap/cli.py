@@ -55,7 +55,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from graspcap.demo import run_demo
 
-    return run_demo(args.out, sessions=args.sessions, frames=args.frames, seed=args.seed)
+    options = {k: getattr(args, k) for k in ("sessions", "frames", "seed")}
+    return run_demo(args.out, **{k: v for k, v in options.items() if v is not None})
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
@@ -105,9 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="synthesise sessions, validate them and run the pipeline")
     p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder")
-    p.add_argument("--sessions", type=int, default=3, help="number of synthetic sessions")
-    p.add_argument("--frames", type=int, default=60, help="grasp-video frames per session")
-    p.add_argument("--seed", type=int, default=7, help="random seed")
+    p.add_argument("--sessions", type=int, help="number of synthetic sessions")
+    p.add_argument("--frames", type=int, help="grasp-video frames per session")
+    p.add_argument("--seed", type=int, help="random seed")
     p.set_defaults(func=_cmd_demo)
     p = sub.add_parser("build", help="build or update the catalog from capture sessions")
     p.add_argument("roots", type=Path, nargs="+", help="session folders or roots holding many")

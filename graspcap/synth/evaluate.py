@@ -27,50 +27,87 @@ def _pose_metrics(prefix: str, T_est: np.ndarray, T_true: np.ndarray) -> dict[st
     return {f"{prefix}_rot_deg": rot_deg, f"{prefix}_trans_mm": 1e3 * trans_m}
 
 
-def evaluate(session_dir: Path, results: Mapping[str, Any]) -> dict[str, float]:
-    """Errors of whatever stages ran (a missing stage gives no entries).
+def estimate_from_results(results: Mapping[str, Any]) -> dict[str, Any]:
+    """Stage results (by stage name, as ``run_session`` returns them) -> the estimate dict
+    :func:`evaluate` takes, keyed by the catalog's column names."""
+    est: dict[str, Any] = {}
+    get = results.get
+    if get("register_object") is not None:
+        est["T_w_o_stage1"] = results["register_object"].T_w_o
+    if get("register_scan") is not None:
+        est["T_turntable_o_scan"] = results["register_scan"].T_turntable_o_scan
+    if get("estimate_adjustment") is not None:
+        est["T_adj"] = results["estimate_adjustment"].T_adj
+    if get("select_steady") is not None:
+        est["steady_from"] = results["select_steady"].steady_from
+    if get("reconstruct_hand") is not None:
+        rec = results["reconstruct_hand"]
+        est |= {
+            "joints_w": rec.joints_w,
+            "T_w_c": rec.T_w_c,
+            "qa_reproj_rmse_px": rec.reproj_rmse_px,
+        }
+    if get("crosscheck_sfm") is not None:
+        est["qa_crosscheck_mm"] = 1e3 * float(results["crosscheck_sfm"].max_joint_discrepancy_m)
+    if get("fit_hand") is not None:
+        est["joints_fit_w"] = results["fit_hand"].joints_fit_w
+    if get("propagate_poses") is not None:
+        prop = results["propagate_poses"]
+        est |= {"frame": np.asarray(prop.frame_indices), "T_c_o": prop.T_c_o}
+    return est
 
-    ``results`` maps stage name to its result, as :func:`graspcap.tasks.pipeline.run_session`
-    returns them.
+
+def estimate_from_catalog(session: Mapping[str, Any], frames: Any) -> dict[str, Any]:
+    """A ``sessions`` row (dict) and that session's ``frames`` rows (a pandas DataFrame) ->
+    the estimate dict :func:`evaluate` takes."""
+
+    def mat(v, shape):
+        return None if v is None else np.asarray(v, dtype=float).reshape(shape)
+
+    est = {k: mat(session.get(k), (4, 4)) for k in ("T_w_o_stage1", "T_turntable_o_scan", "T_adj")}
+    est |= {k: mat(session.get(k), (21, 3)) for k in ("joints_w", "joints_fit_w")}
+    est |= {k: session.get(k) for k in ("steady_from", "qa_reproj_rmse_px", "qa_crosscheck_mm")}
+    frames = frames.sort_values("frame")
+    est["frame"] = frames["frame"].to_numpy()
+    est["T_w_c"] = np.stack([mat(v, (4, 4)) for v in frames["T_w_c"]])
+    est["T_c_o"] = np.stack([mat(v, (4, 4)) for v in frames["T_c_o"]])
+    return {k: v for k, v in est.items() if v is not None}
+
+
+def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
+    """Errors of an estimate against the session's ground truth.
+
+    ``est`` is keyed by the catalog's column names (see :func:`estimate_from_results`,
+    :func:`estimate_from_catalog`); what it lacks gives no metric.
     """
     truth = load_truth(session_dir)
     out: dict[str, float] = {}
-    if "register_object" in results:
-        out |= _pose_metrics(
-            "object_stage1", results["register_object"].T_w_o, truth["T_w_o_stage1"]
-        )
-    if "register_scan" in results:
-        out |= _pose_metrics(
-            "object_scan", results["register_scan"].T_turntable_o_scan, truth["T_turntable_o_scan"]
-        )
-    if "estimate_adjustment" in results:
-        out |= _pose_metrics("T_adj", results["estimate_adjustment"].T_adj, truth["T_adj"])
-    steady_true = int(truth["steady_from"])
-    if "select_steady" in results:
-        out["steady_from_err_frames"] = float(
-            abs(results["select_steady"].steady_from - steady_true)
-        )
-    if "reconstruct_hand" in results:
-        rec = results["reconstruct_hand"]
-        steady_est = results["select_steady"].steady_from
-        out["joints_mpjpe_mm"] = _mpjpe_mm(rec.joints_w, rec.T_w_c, steady_est, truth)
-        cams = _camera_errors(rec.T_w_c, steady_est, truth)
+    for key, prefix in (
+        ("T_w_o_stage1", "object_stage1"),
+        ("T_turntable_o_scan", "object_scan"),
+        ("T_adj", "T_adj"),
+    ):
+        if key in est:
+            out |= _pose_metrics(prefix, est[key], truth[key])
+    if "steady_from" not in est:
+        return out
+    steady_est = int(est["steady_from"])
+    out["steady_from_err_frames"] = float(abs(steady_est - int(truth["steady_from"])))
+    if "joints_w" in est:
+        out["joints_mpjpe_mm"] = _mpjpe_mm(est["joints_w"], est["T_w_c"], steady_est, truth)
+        cams = _camera_errors(est["T_w_c"], steady_est, truth)
         out["camera_rot_deg"] = float(np.median(cams[:, 0]))
         out["camera_trans_mm"] = 1e3 * float(np.median(cams[:, 1]))
-        out["reproj_rmse_px"] = float(rec.reproj_rmse_px)
-    if "crosscheck_sfm" in results:
-        out["crosscheck_max_mm"] = 1e3 * float(
-            np.max(results["crosscheck_sfm"].joint_discrepancy_m)
-        )
-    if "fit_hand" in results:
-        out["fit_joints_mm"] = _mpjpe_mm(
-            results["fit_hand"].joints_fit_w,
-            results["reconstruct_hand"].T_w_c,
-            results["select_steady"].steady_from,
-            truth,
-        )
-    if "propagate_poses" in results:
-        out |= _per_frame_object_errors(results, truth)
+    if "joints_fit_w" in est:
+        out["fit_joints_mm"] = _mpjpe_mm(est["joints_fit_w"], est["T_w_c"], steady_est, truth)
+    for key, name in (
+        ("qa_reproj_rmse_px", "reproj_rmse_px"),
+        ("qa_crosscheck_mm", "crosscheck_max_mm"),
+    ):
+        if est.get(key) is not None:
+            out[name] = float(est[key])
+    if "T_c_o" in est:
+        out |= _per_frame_object_errors(est["frame"], est["T_c_o"], truth)
     return out
 
 
@@ -105,17 +142,15 @@ def _camera_errors(T_w_c: np.ndarray, steady_est: int, truth: Mapping[str, Any])
 
 
 def _per_frame_object_errors(
-    results: Mapping[str, Any], truth: Mapping[str, Any]
+    frames: np.ndarray, T_c_o: np.ndarray, truth: Mapping[str, Any]
 ) -> dict[str, float]:
     steady_true = int(truth["steady_from"])
-    prop = results["propagate_poses"]
-    frames = np.asarray(prop.frame_indices)
     T_obj_true = truth["T_adj"] @ truth["T_w_o_stage1"]
     errs = []
-    for f, T_c_o in zip(frames, prop.T_c_o, strict=True):
+    for f, T in zip(np.asarray(frames), T_c_o, strict=True):
         i = int(f) - steady_true
         if 0 <= i < len(truth["T_w_c"]):
-            errs.append(pose_error(T_c_o, inv_T(truth["T_w_c"][i]) @ T_obj_true))
+            errs.append(pose_error(T, inv_T(truth["T_w_c"][i]) @ T_obj_true))
     if not errs:
         return {}
     e = np.asarray(errs)
