@@ -67,7 +67,8 @@ class EstimateAdjustmentConfig(StageConfig):
     mask_dilate_px: int = 3
     """The hand mask is grown by this many pixels before its pixels are dropped."""
     region_margin_m: float = 0.02
-    """The region kept around the hand is one object diameter plus this."""
+    """Slack on the object's size (its largest distance from its centroid) when judging
+    which clusters around the hand may be pieces of it."""
     min_hand_points: int = 30
     """With fewer hand pixels with depth than this, the whole (unmasked) cloud is searched."""
     stage1_reach_m: float = 0.03
@@ -76,8 +77,6 @@ class EstimateAdjustmentConfig(StageConfig):
     """Voxel size of the Euclidean clustering of the region around the hand."""
     cluster_eps_m: float = 0.012
     """Clustering neighbour distance: pieces of the object closer than this stay together."""
-    touch_m: float = 0.02
-    """A cluster with a point this close to a hand point is held by the hand."""
     min_points: int = 150
     """Fewer unmasked pixels than this where the posed object is seen: the pose is not supported."""
     agree_tol_m: float = 0.006
@@ -192,25 +191,48 @@ def _score(
     return float(agree.sum() / n), float(np.sqrt(np.mean(diff[agree] ** 2))), n
 
 
-def _near_hand(points: np.ndarray, hand_pts: np.ndarray, radius_m: float, cfg) -> np.ndarray:
-    """The points of the clusters that touch the hand (or else the nearest cluster), within
-    an object's reach of it."""
+def _largest_cluster(points: np.ndarray, cfg: EstimateAdjustmentConfig) -> np.ndarray:
+    """The hand's own points (k, 3) among the masked pixels' ``points`` (n, 3): the largest
+    Euclidean cluster. The mask's rim and the gaps between fingers also hold pixels of the
+    table or platter behind the hand; counted as hand, they would make the background
+    "touch" it."""
+    down = to_pcd(points).voxel_down_sample(cfg.cluster_voxel_m)
+    labels = np.asarray(down.cluster_dbscan(cfg.cluster_eps_m, 4))
+    pts = np.asarray(down.points)
+    if not (labels >= 0).any():
+        return pts
+    return pts[labels == np.bincount(labels[labels >= 0]).argmax()]
+
+
+def _near_hand(
+    points: np.ndarray, hand_pts: np.ndarray, radius_m: float, cfg: EstimateAdjustmentConfig
+) -> np.ndarray:
+    """The points near the hand that may be the object: the Euclidean clusters no wider than
+    the object (every point within ``radius_m`` + margin of the cluster's centroid) that come
+    within ``radius_m`` + margin of the hand (the hand splits the object into pieces, so
+    several; the table and platter are wider or further), else the cluster nearest the hand.
+    Pieces of the hand the mask missed are kept too: registration treats them as outliers."""
     if len(hand_pts) < cfg.min_hand_points:
         return points
-    tree = cKDTree(hand_pts[:: max(len(hand_pts) // 3000, 1)])
-    region = points[tree.query(points, k=1)[0] <= 2 * radius_m + cfg.region_margin_m]
+    tree = cKDTree(_largest_cluster(hand_pts, cfg))
+    reach = radius_m + cfg.region_margin_m
+    region = points[tree.query(points, k=1)[0] <= 2 * reach]
     if len(region) == 0:
         return region
     down = to_pcd(region).voxel_down_sample(cfg.cluster_voxel_m)
     labels = np.asarray(down.cluster_dbscan(cfg.cluster_eps_m, 4))
     pts = np.asarray(down.points)
-    gap = tree.query(pts, k=1)[0]
     clustered = labels >= 0
     if not clustered.any():
         return region
-    touching = np.unique(labels[(gap <= cfg.touch_m) & clustered])
-    if len(touching) == 0:  # nothing within touch_m: the cluster nearest to the hand
-        touching = labels[clustered][[np.argmin(gap[clustered])]]
+    gap = tree.query(pts, k=1)[0]
+    object_like = []
+    for label in range(labels.max() + 1):
+        piece = labels == label
+        width = np.linalg.norm(pts[piece] - pts[piece].mean(0), axis=1).max()
+        if width <= reach and gap[piece].min() <= reach:
+            object_like.append(label)
+    touching = object_like or labels[clustered][[np.argmin(gap[clustered])]]
     kept = pts[np.isin(labels, touching)]
     near = cKDTree(kept).query(region, k=1)[0] <= cfg.cluster_voxel_m * 1.5
     return region[near]
