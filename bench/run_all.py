@@ -6,7 +6,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-BENCHES = ["synth_speed.py", "hand_model_speed.py", "validate_speed.py", "fit_hand_speed.py", "catalog_bench.py"]
+BENCHES = [
+    "synth_speed.py", "validate_speed.py", "hand_model_speed.py", "fit_hand_speed.py",
+    "bench_sfm.py", "steady_bench.py", "accuracy.py", "catalog_bench.py", "build_overhead.py",
+]
 
 
 def main() -> int:
