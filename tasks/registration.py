@@ -61,8 +61,17 @@ class RegistrationConfig(StageConfig):
     """Scene voxel size per ICP level, coarse to fine; 0 keeps every point."""
     icp_max_distance_m: tuple[float, ...] = (0.015, 0.006, 0.003)
     """Correspondence distance per ICP level."""
-    icp_max_iterations: int = 30
+    icp_max_iterations: int = 20
     """ICP iterations per level."""
+    icp_max_points: int = 3000
+    """At most this many scene points per ICP level (an even stride over the voxel grid's
+    points): ICP's cost grows with the points, its accuracy stops improving long before."""
+    eval_max_points: int = 10_000
+    """At most this many scene points (even stride) when a candidate is scored."""
+    good_fitness: float = 0.95
+    """RANSAC restarts stop early once a refined candidate explains this share of the scene..."""
+    agree_m: float = 0.005
+    """...or once two restarts' refined poses agree within ``ambiguity_min_deg`` and this."""
     eval_distance_m: float = 0.003
     """A scene point within this distance of the posed model counts as an inlier."""
     probe_angles_deg: tuple[float, ...] = (90.0, 180.0)
@@ -258,12 +267,26 @@ def surface_distance(model: Model, points_o: np.ndarray) -> np.ndarray:
     return model.surface.compute_distance(q).numpy().astype(float)
 
 
+def strided(pcd: o3d.geometry.PointCloud, max_points: int) -> o3d.geometry.PointCloud:
+    """``pcd`` itself, or every k-th of its points so that at most ``max_points`` remain."""
+    n = len(pcd.points)
+    if max_points <= 0 or n <= max_points:
+        return pcd
+    return pcd.select_by_index(np.arange(0, n, -(-n // max_points)).tolist())
+
+
 def evaluate(
-    scene: o3d.geometry.PointCloud, model: Model, T_o_s: np.ndarray, distance_m: float
+    scene: o3d.geometry.PointCloud,
+    model: Model,
+    T_o_s: np.ndarray,
+    distance_m: float,
+    max_points: int = 0,
 ) -> tuple[float, float]:
     """(fitness, inlier RMSE) of the scene moved by ``T_o_s``, measured to the mesh surface:
-    the share of scene points within ``distance_m`` and their RMSE."""
-    d = surface_distance(model, transform_points(T_o_s, np.asarray(scene.points)))
+    the share of scene points within ``distance_m`` and their RMSE (over an even stride of
+    at most ``max_points`` points when it is positive)."""
+    pts = np.asarray(strided(scene, max_points).points)
+    d = surface_distance(model, transform_points(T_o_s, pts))
     inl = d <= distance_m
     if not inl.any():
         return 0.0, 0.0
@@ -285,35 +308,46 @@ def refine(
     criteria = reg.ICPConvergenceCriteria(1e-7, 1e-7, cfg.icp_max_iterations)
     pairs = list(zip(cfg.icp_voxels_m, cfg.icp_max_distance_m, strict=True))[first:stop]
     for voxel, dist in pairs:
-        src = scene.voxel_down_sample(voxel) if voxel > 0 else scene
+        src = strided(scene.voxel_down_sample(voxel) if voxel > 0 else scene, cfg.icp_max_points)
         est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=dist))
         T = reg.registration_icp(src, model.dense, dist, T, est, criteria).transformation
-    fit, rmse = evaluate(scene, model, T, cfg.eval_distance_m)
+    fit, rmse = evaluate(scene, model, T, cfg.eval_distance_m, cfg.eval_max_points)
     return Candidate(np.asarray(T).copy(), fit, rmse, origin)
 
 
-def global_candidates(
+def ransac(
     scene_down: o3d.geometry.PointCloud,
     scene_fpfh: reg.Feature,
     model: Model,
     cfg: RegistrationConfig,
-) -> list[tuple[str, np.ndarray]]:
-    """FPFH + RANSAC, once per restart with seed ``cfg.seed + k``: [(origin, T_o_s), ...]."""
+    restart: int,
+) -> np.ndarray:
+    """One FPFH + RANSAC run with seed ``cfg.seed + restart``: ``T_o_s`` (4, 4)."""
     dist = cfg.ransac_distance_factor * cfg.voxel_m
     checkers = [
         reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
         reg.CorrespondenceCheckerBasedOnDistance(dist),
     ]
     criteria = reg.RANSACConvergenceCriteria(cfg.ransac_max_iterations, cfg.ransac_confidence)
-    out = []
-    for k in range(cfg.n_restarts):
-        o3d.utility.random.seed(cfg.seed + k)
-        res = reg.registration_ransac_based_on_feature_matching(
-            scene_down, model.down, scene_fpfh, model.fpfh, False, dist,
-            reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria,
-        )
-        out.append((f"ransac:{k}", np.asarray(res.transformation).copy()))
-    return out
+    o3d.utility.random.seed(cfg.seed + restart)
+    res = reg.registration_ransac_based_on_feature_matching(
+        scene_down, model.down, scene_fpfh, model.fpfh, False, dist,
+        reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria,
+    )
+    return np.asarray(res.transformation).copy()
+
+
+def _settled(refined: list[Candidate], cfg: RegistrationConfig) -> bool:
+    """A refined candidate is clearly good, or two agree (independent RANSAC runs)."""
+    if any(c.fitness >= cfg.good_fitness for c in refined):
+        return True
+    return any(
+        rotation_error_deg(a.T_o_s, b.T_o_s) < cfg.ambiguity_min_deg
+        and np.linalg.norm(a.T_o_s[:3, 3] - b.T_o_s[:3, 3]) <= cfg.agree_m
+        and min(a.fitness, b.fitness) > 0
+        for i, a in enumerate(refined)
+        for b in refined[i + 1 :]
+    )
 
 
 def tls_cost(c: Candidate, distance_m: float) -> float:
@@ -404,9 +438,14 @@ def register(
     cfg: RegistrationConfig,
     extra_starts: Sequence[tuple[str, np.ndarray]] = (),
 ) -> list[Candidate]:
-    """Global registration (every restart) plus ``extra_starts`` [(origin, T_o_s)], each
-    refined by ICP; returns all candidates, best first."""
-    starts = global_candidates(scene_down, scene_fpfh, model, cfg) + list(extra_starts)
-    refined = [refine(scene, model, T, cfg, origin) for origin, T in starts]
+    """``extra_starts`` [(origin, T_o_s)] and global registration, each refined by ICP; returns
+    all candidates, best first. RANSAC restarts (at most ``n_restarts``) stop early once the
+    candidates have settled (:func:`_settled`)."""
+    refined = [refine(scene, model, T, cfg, origin) for origin, T in extra_starts]
+    for k in range(cfg.n_restarts):
+        refined.append(
+            refine(scene, model, ransac(scene_down, scene_fpfh, model, cfg, k), cfg, f"ransac:{k}")
+        )
+        if _settled(refined, cfg):
+            break
     return rank(refined, cfg.eval_distance_m)
-
