@@ -71,11 +71,17 @@ def run(d: Path) -> dict[str, float]:
         print(f"  {d.name}: select_steady failed: {e.reason}")
         return row | {"steady_err": np.nan, "steady_s": time.process_time() - t0}
     t1 = time.process_time()
-    rec = reconstruct_hand(
-        kp, K, sel.steady_from, depth_lookup(session), np.asarray(SURFACE_OFFSET_M)
-    )
+    try:
+        rec = reconstruct_hand(
+            kp, K, sel.steady_from, depth_lookup(session), np.asarray(SURFACE_OFFSET_M)
+        )
+    except StageError as e:
+        print(f"  {d.name}: reconstruct_hand raised: {e.reason}")
+        return row | {"steady_found": float(sel.steady_from),
+                      "steady_err": float(sel.steady_from - truth["steady_from"]),
+                      "steady_s": t1 - t0, "recon_s": time.process_time() - t1}  # fmt: skip
     t2 = time.process_time()
-    ev = evaluate(d, {"select_steady": sel, "reconstruct_hand": rec})
+    ev = evaluate(d, {"steady_from": sel.steady_from, "joints_w": rec.joints_w, "T_w_c": rec.T_w_c})
     return row | {
         "steady_found": float(sel.steady_from),
         "steady_err": float(sel.steady_from - truth["steady_from"]),

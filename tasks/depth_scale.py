@@ -63,6 +63,19 @@ class ScaleEstimate:
     inlier: np.ndarray
 
 
+def ratio_mode(ratio: np.ndarray, rel_tol: float) -> float:
+    """Centre of the densest window of relative half-width ``rel_tol`` among ratios (k,) > 0.
+
+    Readings of a hand are often mostly wrong (the object or the hand's own palm and fingers
+    in front of a joint, all nearer than the joint's skin), so a median can sit among the
+    wrong ones; the correct readings form the one tight cluster.
+    """
+    lr = np.sort(np.log(ratio))
+    hi = np.searchsorted(lr, lr + 2 * rel_tol, side="right")
+    k = int(np.argmax(hi - np.arange(len(lr))))
+    return float(np.exp(np.median(lr[k : hi[k]])))
+
+
 def estimate_scale(
     z_units: np.ndarray,
     depth_m: np.ndarray,
@@ -71,7 +84,9 @@ def estimate_scale(
     rel_tol: float,
     min_samples: int,
 ) -> ScaleEstimate | None:
-    """Robust ratio ``(depth_m + offset_m) / z_units`` over k samples, all arrays (k,).
+    """Robust ratio ``(depth_m + offset_m) / z_units`` over k samples, all arrays (k,): the
+    densest cluster (:func:`ratio_mode`), refined by the median of the ratios within
+    ``rel_tol`` of it.
 
     Returns None when fewer than ``min_samples`` samples survive.
     """
@@ -81,8 +96,7 @@ def estimate_scale(
     ratio = (d[valid] + np.asarray(offset_m, dtype=float)[valid]) / z[valid]
     if len(ratio) < min_samples:
         return None
-    keep = np.ones(len(ratio), bool)
-    s = float(np.median(ratio))
+    s = ratio_mode(ratio, rel_tol)
     for _ in range(3):
         keep = np.abs(ratio / s - 1.0) < rel_tol
         if keep.sum() < min_samples:

@@ -16,11 +16,17 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from graspcap.tasks.config import StageConfig
-from graspcap.tasks.depth_scale import DepthLookup, depth_lookup_from_frames, estimate_scale
+from graspcap.tasks.depth_scale import (
+    DepthLookup,
+    depth_lookup_from_frames,
+    estimate_scale,
+    ratio_mode,
+)
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T
 from graspcap.tasks.sfm_graph import bundle_adjust, reprojection_residuals
 from graspcap.tasks.sfm_init import initialise, normalise
+from graspcap.tasks.sfm_sanity import implausibility
 
 STAGE = "reconstruct_hand"
 STAGE_VERSION = "reconstruct_hand/1"
@@ -61,13 +67,17 @@ class ReconstructConfig(StageConfig):
     """At least this many usable frames from the steady frame on."""
     max_iterations: int = 100
     """Levenberg-Marquardt iterations per solve."""
-    visual_max_iterations: int = 30
-    """Iterations of each reprojection-only solve when depth factors follow; pixels alone
-    leave each camera's tilt weakly determined, so LM crawls and only the inliers and the
-    scale are taken from these solves."""
+    visual_max_iterations: int = 100
+    """Iterations of each reprojection-only solve when range factors follow (which then
+    refine everything): pixels alone leave each camera's tilt weakly determined and LM can
+    crawl along it for hundreds of iterations without changing the inliers or the scale."""
+    scale_prior_rel: float = 1e-3
+    """Relative sigma of the soft prior holding the distance between the initial pair's cameras
+    in the reprojection-only solves (the gauge of scale). A stiff prior makes LM crawl along
+    the nearly flat scale direction; a soft one lets it converge."""
     depth_min_confidence: float = 0.5
     """Only inlier detections at least this confident sample the depth for the scale."""
-    scale_rel_tol: float = 0.05
+    scale_rel_tol: float = 0.02
     """Depth ratios further than this (relative) from the median are rejected."""
     min_scale_samples: int = 10
     """Fewest depth samples that may fix the scale."""
@@ -75,8 +85,28 @@ class ReconstructConfig(StageConfig):
     """Depth for the scale only, or also as range factors in the final solve."""
     depth_sigma_m: float = 0.002
     """Sigma of a range factor (depth noise plus the skin-to-joint-centre model error)."""
-    depth_gate_rel: float = 0.15
-    """Readings further than this (relative) from the scaled visual solve get no range factor."""
+    depth_gate_m: float = 0.008
+    """Range readings further than this from the scaled reprojection-only solve get no range
+    factor (most rejected readings are the object or the hand's own palm and fingers in
+    front of the joint, centimetres nearer)."""
+    range_gate_sigmas: float = 3.0
+    """After the first RGB-D solve, readings within this many ``depth_sigma_m`` of it get a
+    range factor (re-gated from all readings each round)."""
+    range_rounds: int = 3
+    """At most this many RGB-D solves (stops early when the gated readings settle)."""
+    bone_range_m: tuple[float, float] = (0.008, 0.13)
+    """Shortest and longest plausible bone of the result (parent to child keypoint, metres);
+    outside it the stage raises instead of returning a diverged hand."""
+    distance_range_m: tuple[float, float] = (0.1, 2.5)
+    """Plausible camera-to-joint distances (metres) of the result, else the stage raises."""
+    max_reproj_rmse_px: float = 8.0
+    """The stage raises when the final inlier reprojection RMSE exceeds this."""
+    min_inlier_ratio: float = 0.6
+    """The stage raises when fewer of the detections are inliers of the final solve."""
+    depth_init_score: bool = True
+    """Choose the initial pair among near-equally good ones by how many depth readings one
+    scale explains: pixels of a small, distant hand barely tell the hand from its
+    depth-reversed twin, the depth does."""
 
 
 PRESETS: dict[str, ReconstructConfig] = {
@@ -98,6 +128,8 @@ class SfmDiagnostics:
     T_w_c_visual, joints_w_visual, inlier_visual : the reprojection-only solve (scaled, output
         frame) and its inliers, the problem ``crosscheck_sfm`` hands to pycolmap.
     depth_inlier : (m, 21) bool, observations whose depth reading fixed the scale.
+    range_factor : (m, 21) bool, observations whose depth reading entered the final solve as a
+        range factor (none with ``depth_use = scale``).
     """
 
     pair_frames: tuple[int, int]
@@ -115,6 +147,7 @@ class SfmDiagnostics:
     joints_w_visual: np.ndarray
     inlier_visual: np.ndarray
     depth_inlier: np.ndarray
+    range_factor: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -171,6 +204,33 @@ def _sample_depth(cfg, uv, conf, inlier, T_c_w, X, depth_at, offset, steady_from
     return depth, z
 
 
+def _depth_scorer(cfg, uv, conf, ok, depth_at, offset, steady_from):
+    """``score(frames, T_c_w, X)``: share of depth readings within ``scale_rel_tol`` / 2 of the
+    densest ratio ``(depth + offset) / z`` (scale-free, so it applies before the scale)."""
+    cache: dict[int, np.ndarray] = {}
+    sample = ok & (conf >= cfg.depth_min_confidence)
+
+    def score(frames: np.ndarray, T_c_w: np.ndarray, X: np.ndarray) -> float:
+        ratios = []
+        for i, T in zip(frames, T_c_w, strict=True):
+            if not np.all(np.isfinite(T)):
+                continue
+            if int(i) not in cache:
+                cache[int(i)] = np.where(
+                    sample[i], depth_at(steady_from + int(i), uv[i]), np.nan
+                ).astype(float)
+            z = X @ T[2, :3] + T[2, 3]
+            ratios.append((cache[int(i)] + offset) / z)
+        r = np.concatenate(ratios) if ratios else np.zeros(0)
+        r = r[np.isfinite(r) & (r > 0)]
+        if len(r) < cfg.min_scale_samples:
+            return 0.0
+        tol = cfg.scale_rel_tol / 2
+        return float(np.mean(np.abs(r / ratio_mode(r, tol) - 1.0) < tol))
+
+    return score
+
+
 def _solve_visual(cfg, uv, ok, sigma, K, T_c_w, X, pair):
     """Robust reprojection-only solve, then reject-and-re-solve rounds -> (ba, res, inlier, n)."""
     use, huber = ok.copy(), cfg.huber_k
@@ -185,6 +245,7 @@ def _solve_visual(cfg, uv, ok, sigma, K, T_c_w, X, pair):
             anchor=pair.a,
             scale_ref=pair.b,
             huber_k=huber,
+            scale_sigma_rel=cfg.scale_prior_rel,
             min_observations=cfg.min_points_per_frame // 2 + 1,
             max_iterations=(
                 cfg.visual_max_iterations
@@ -207,20 +268,32 @@ def _solve_visual(cfg, uv, ok, sigma, K, T_c_w, X, pair):
     return ba, res, inlier, rounds
 
 
+def _ranges(T_c_w, X):
+    """Distance (m, 21) from each camera centre to each joint."""
+    return np.linalg.norm(
+        np.einsum("mab,jb->mja", T_c_w[:, :3, :3], X) + T_c_w[:, None, :3, 3], axis=2
+    )
+
+
 def _solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor):
-    """Reprojection + range factors, metric; range readings off by > 3 sigma dropped once."""
+    """Reprojection + range factors, metric. Each round gates every reading afresh against
+    the current solution: ``depth_gate_m`` against the scaled visual solve, then
+    ``range_gate_sigmas`` sigmas against the previous RGB-D solve."""
     m = len(uv)
     rays = np.concatenate(
         [normalise(K, uv.reshape(-1, 2)).reshape(m, 21, 2), np.ones((m, 21, 1))], 2
     )
-    range_m = np.where(
+    measured = np.where(
         np.isfinite(depth) & (depth > 0), (depth + offset) * np.linalg.norm(rays, axis=2), np.nan
     )
-    pred = np.linalg.norm(
-        np.einsum("mab,jb->mja", T_c_w[:, :3, :3], X) + T_c_w[:, None, :3, 3], axis=2
-    )
-    range_m[np.abs(range_m / pred - 1.0) > cfg.depth_gate_rel] = np.nan
-    for rounds in (1, 2):
+    gate = cfg.depth_gate_m
+    used = np.zeros((m, 21), bool)
+    for rounds in range(1, cfg.range_rounds + 1):  # noqa: B007 (returned)
+        with np.errstate(invalid="ignore"):
+            keep = np.abs(measured - _ranges(T_c_w, X)) <= gate
+        if rounds > 1 and np.array_equal(keep, used):
+            break
+        used = keep
         ba = bundle_adjust(
             uv,
             inlier,
@@ -231,21 +304,15 @@ def _solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor):
             anchor=anchor,
             scale_ref=None,
             huber_k=None,
-            range_m=range_m,
+            range_m=np.where(used, measured, np.nan),
             range_sigma_m=cfg.depth_sigma_m,
             min_observations=cfg.min_points_per_frame // 2 + 1,
             max_iterations=cfg.max_iterations,
         )
         T_c_w, X = ba.T_c_w, ba.points_w
-        pred = np.linalg.norm(
-            np.einsum("mab,jb->mja", T_c_w[:, :3, :3], X) + T_c_w[:, None, :3, 3], axis=2
-        )
-        far = np.abs(range_m - pred) > 3 * cfg.depth_sigma_m
-        if rounds == 2 or not far.any():
-            break
-        range_m[far] = np.nan
+        gate = cfg.range_gate_sigmas * cfg.depth_sigma_m
     res = reprojection_residuals(K, T_c_w, X, uv)
-    return T_c_w, X, res, ok & (res < cfg.outlier_px), rounds
+    return T_c_w, X, res, ok & (res < cfg.outlier_px), rounds, used
 
 
 def reconstruct_hand(
@@ -297,6 +364,11 @@ def reconstruct_hand(
         ransac_px=cfg.ransac_px,
         min_points=cfg.min_points_per_frame,
         min_parallax_deg=cfg.min_parallax_deg,
+        depth_score=(
+            _depth_scorer(cfg, uv, conf, ok, depth_at, offset, steady_from)
+            if cfg.depth_init_score
+            else None
+        ),
     )
     if init is None:
         raise StageError(
@@ -340,14 +412,28 @@ def reconstruct_hand(
     T_vis, X_vis, inlier_vis = T_c_w.copy(), X * s, inlier.copy()
     T_vis[:, :3, 3] *= s
 
+    range_used = np.zeros((m, 21), bool)
     if cfg.depth_use is DepthUse.FACTORS:
-        T_c_w, X, res, inlier, n = _solve_rgbd(
+        T_c_w, X, res, inlier, n, range_used = _solve_rgbd(
             cfg, K, uv, ok, inlier, sigma, T_vis, X_vis, depth, offset, pair.a
         )
         rounds += n
     else:
         T_c_w, X = T_vis, X_vis
 
+    n_inl = int((inlier & np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)[:, None]).sum())
+    reason = implausibility(
+        X,
+        T_c_w,
+        float(np.sqrt(np.mean(res[inlier] ** 2))) if inlier.any() else float("inf"),
+        n_inl / int(ok.sum()),
+        bone_range_m=cfg.bone_range_m,
+        distance_range_m=cfg.distance_range_m,
+        max_reproj_rmse_px=cfg.max_reproj_rmse_px,
+        min_inlier_ratio=cfg.min_inlier_ratio,
+    )
+    if reason:
+        raise StageError(STAGE, reason)
     T_c_w, pose_valid = _fill_poses(T_c_w)
     T_0_w = T_c_w[0].copy()
 
@@ -397,5 +483,6 @@ def reconstruct_hand(
             joints_w_visual=joints_w_vis,
             inlier_visual=inlier_vis,
             depth_inlier=depth_inlier,
+            range_factor=range_used,
         ),
     )

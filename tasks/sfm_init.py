@@ -8,6 +8,7 @@ scale is the two-view baseline (unit length); callers re-anchor and re-scale.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -235,13 +236,20 @@ def initialise(
     min_parallax_deg: float,
     n_hypotheses: int = 6,
     n_check_frames: int = 15,
+    depth_score: Callable[[np.ndarray, np.ndarray, np.ndarray], float] | None = None,
+    agreement_slack: float = 0.05,
 ) -> tuple[Initialisation | None, float]:
     """Two-view start, triangulation, PnP for every frame, then the remaining joints.
 
     Two views of a small, distant hand are often ambiguous (several essential matrices fit),
     so the ``n_hypotheses`` pairs of largest parallax (at least ``min_parallax_deg``) are each
     grown on ``n_check_frames`` evenly spaced frames and the one most observations agree
-    with wins. Returns (initialisation or None, the largest parallax found in degrees).
+    with wins. Under weak perspective (a hand ~130 px across) a pair also fits its depth-
+    reversed (Necker) twin almost as well as the truth; with ``depth_score(frames (k,),
+    T_c_w (k, 4, 4), points_w (21, 3)) -> float`` (higher is better, e.g. the share of depth
+    readings that one scale explains) the winner is the hypothesis of best depth score among
+    those within ``agreement_slack`` of the best pixel agreement.
+    Returns (initialisation or None, the largest parallax found in degrees).
     """
     hyps = pair_hypotheses(uv, ok, K, n_candidates, ransac_px)
     best_parallax = hyps[0].parallax_deg if hyps else 0.0
@@ -253,7 +261,12 @@ def initialise(
     scored = []
     for h in hyps:
         T, X = _grow(uv, ok, K, h, check, ransac_px, min_points, passes=1)
-        scored.append((_agreement(uv[check], ok[check], K, T[check], X, ransac_px), h))
+        agree = _agreement(uv[check], ok[check], K, T[check], X, ransac_px)
+        scored.append((agree, h, T[check], X))
     pair = max(scored, key=lambda s: s[0])[1]
+    if depth_score is not None and len(scored) > 1:
+        best = max(s[0] for s in scored)
+        close = [s for s in scored if s[0] >= best - agreement_slack]
+        pair = max(close, key=lambda s: depth_score(check, s[2], s[3]))[1]
     T, X = _grow(uv, ok, K, pair, range(m), ransac_px, min_points, passes=2)
     return Initialisation(T, X, pair), best_parallax
