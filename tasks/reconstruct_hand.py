@@ -29,7 +29,7 @@ from graspcap.tasks.sfm_init import initialise, normalise
 from graspcap.tasks.sfm_sanity import implausibility
 
 STAGE = "reconstruct_hand"
-STAGE_VERSION = "reconstruct_hand/1"
+STAGE_VERSION = "reconstruct_hand/2"
 
 
 class DepthUse(StrEnum):
