@@ -80,7 +80,10 @@ def backproject(K: np.ndarray, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 
 def depth_to_points(depth_m: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Valid pixels of a depth image (h, w) metres -> (points (n, 3), pixel indices (n, 2) as v, u)."""
+    """Valid pixels of a depth image (h, w) in metres.
+
+    Returns (points (n, 3) in the camera frame, pixel indices (n, 2) as v, u).
+    """
     v, u = np.nonzero(depth_m > 0)
     pts = backproject(K, np.stack([u, v], axis=1), depth_m[v, u])
     return pts, np.stack([v, u], axis=1)
