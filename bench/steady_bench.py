@@ -13,7 +13,6 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from graspcap.tasks.detect_keypoints import detect_keypoints
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.hand_model import SURFACE_OFFSET_M
 from graspcap.tasks.load_session import load_session
+from graspcap.tasks.pipeline import depth_lookup
 from graspcap.tasks.reconstruct_hand import reconstruct_hand
 from graspcap.tasks.select_steady import select_steady
 
@@ -35,27 +35,6 @@ def session_dirs(out: Path, n: int, seed: int) -> list[Path]:
     if len(found) >= n and all((d / "ground_truth" / "truth.json").exists() for d in found[:n]):
         return found[:n]
     return generate(out, sessions=n, seed=seed, difficulty="realistic", frames=120)
-
-
-def depth_lookup(session, window_px: int = 2):
-    """Lazy ``depth_at(frame, uv) -> metres``: median of non-zero depth around each pixel."""
-    read = lru_cache(maxsize=4)(lambda i: session.read_depth_m(session.grasp_path("depth", i)))
-
-    def depth_at(frame: int, uv: np.ndarray) -> np.ndarray:
-        depth = read(int(frame))
-        h, w = depth.shape
-        out = np.zeros(len(uv))
-        for k, (u, v) in enumerate(np.rint(np.asarray(uv, dtype=float)).astype(int)):
-            if not (0 <= u < w and 0 <= v < h):
-                continue
-            win = depth[
-                max(v - window_px, 0) : v + window_px + 1, max(u - window_px, 0) : u + window_px + 1
-            ]
-            vals = win[win > 0]
-            out[k] = np.median(vals) if vals.size else 0.0
-        return out
-
-    return depth_at
 
 
 def run(d: Path) -> dict[str, float]:

@@ -78,7 +78,7 @@ def _T_color_turntable(session: Session) -> np.ndarray:
     return np.asarray(session.manifest.turntable.T_color_turntable, dtype=float)
 
 
-def _depth_lookup(session: Session, window_px: int = 2):
+def depth_lookup(session: Session, window_px: int = 2):
     """``depth_at(frame, uv (k, 2)) -> (k,)`` metres, median of non-zero depth around each
     pixel; frames are read lazily (a session's depth video does not fit in memory as float)."""
     read = lru_cache(maxsize=4)(lambda i: session.read_depth_m(session.grasp_path("depth", i)))
@@ -126,7 +126,7 @@ def _reconstruct_hand(session, config, detect_keypoints, select_steady, **_):
         detect_keypoints.keypoints,
         _K(session),
         select_steady.steady_from,
-        _depth_lookup(session),
+        depth_lookup(session),
         np.asarray(SURFACE_OFFSET_M),
         config,
     )
