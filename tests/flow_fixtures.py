@@ -16,8 +16,12 @@ os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 
 PRESET = "fast"
 """Stage presets the tests build with (the pipeline itself is tested elsewhere)."""
-SEED = 5
-FRAMES = 30
+SEED = 7
+FRAMES = 40
+"""Two easy sessions the stages get through today. These tests are about orchestration; with
+other seeds some sessions currently fail a stage (mugs in estimate_adjustment, see
+docs/status.md), which the accuracy benchmark reports. If these two stop getting through, the
+fixture fails: a stage regression must not pass as skipped orchestration tests."""
 
 
 @pytest.fixture(scope="session")
@@ -53,10 +57,9 @@ def warm(synth_root, tmp_path_factory, prefect_harness):
 
 
 def require_pipeline_passes(report) -> None:
-    """Skip (with the stage's reason) when a stage fails on the synthetic sessions: these
-    tests are about orchestration and need sessions the pipeline gets through."""
+    """Fail (with the stage's reason) when a stage fails on the fixture sessions."""
     if report.failed:
-        pytest.skip(f"the pipeline fails on the synthetic sessions: {report.failed}")
+        pytest.fail(f"the pipeline fails on the fixture sessions: {report.failed}")
 
 
 def copy_catalog(warm_catalog: Path, dest: Path) -> Path:
