@@ -124,8 +124,10 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
 
         params = {"roots": [str(Path(r).resolve()) for r in roots],
                   "catalog": str(Path(catalog).resolve()), "preset": preset}
+        # one build of a catalog at a time: a scheduled run that comes due while the last
+        # one is still going waits instead of redoing the same cold work beside it
         deployment = build_flow.to_deployment(
-            name=name, cron=cron, interval=interval_s, parameters=params)
+            name=name, cron=cron, interval=interval_s, parameters=params, concurrency_limit=1)
         try:
             prefect_serve(deployment, print_starting_message=True)
         except KeyboardInterrupt:
