@@ -15,7 +15,7 @@ with the hand's pixels masked out. Two paths, tried in order:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import cv2
@@ -27,6 +27,7 @@ from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T, rotation_error_deg
 from graspcap.tasks.registration import (
     Candidate,
+    Model,
     RegistrationConfig,
     as_good_as,
     cloud_from_depth,
@@ -40,7 +41,7 @@ from graspcap.tasks.registration import (
 )
 from graspcap.tasks.render import render
 
-STAGE_VERSION = "estimate_adjustment/1"
+STAGE_VERSION = "estimate_adjustment/2"
 STAGE = "estimate_adjustment"
 
 HAND_BONES = (
@@ -57,6 +58,13 @@ class AdjustmentPath(StrEnum):
 
     STAGE1_ICP = "stage1_icp"
     NEAR_HAND_GLOBAL = "near_hand_global"
+
+
+class Stage1Hypothesis(StrEnum):
+    """Which stage-1 pose the adjustment started from."""
+
+    BEST = "best"
+    RUNNER_UP = "runner_up"
 
 
 class EstimateAdjustmentConfig(StageConfig):
@@ -120,6 +128,8 @@ class Adjustment:
         Which path produced the pose.
     ambiguous : bool
         A pose at least ``ambiguity_min_deg`` away explains the depth as well.
+    stage1_hypothesis : Stage1Hypothesis
+        The stage-1 pose it started from (``runner_up`` only when one was passed and won).
     """
 
     T_adj: np.ndarray
@@ -129,6 +139,7 @@ class Adjustment:
     n_points: int
     path: AdjustmentPath
     ambiguous: bool
+    stage1_hypothesis: Stage1Hypothesis = Stage1Hypothesis.BEST
 
 
 def hand_mask_from_keypoints(
@@ -246,6 +257,7 @@ def estimate_adjustment(
     T_w_o_stage1: np.ndarray,
     hand_mask: np.ndarray,
     config: EstimateAdjustmentConfig = PRESETS["default"],
+    T_w_o_stage1_alt: np.ndarray | None = None,
 ) -> Adjustment:
     """Estimate ``T_adj`` from the depth of the first steady frame.
 
@@ -261,6 +273,11 @@ def estimate_adjustment(
         Object pose from stage 1.
     hand_mask : (h, w) bool
         Pixels of the hand (from the fitted hand or :func:`hand_mask_from_keypoints`).
+    T_w_o_stage1_alt : (4, 4) float, optional
+        A second stage-1 hypothesis (``ObjectRegistration.T_w_o_runner_up`` when stage 1 was
+        ``ambiguous``): the stage runs from both and keeps the pose whose rendering the depth
+        agrees with more (ties: ``T_w_o_stage1``); ``Adjustment.stage1_hypothesis`` says which.
+        ``T_adj`` stays relative to ``T_w_o_stage1``.
     """
     cfg = config.registration
     depth = valid_depth(depth_m, config.max_range_m)
@@ -269,7 +286,6 @@ def estimate_adjustment(
     hand = np.asarray(hand_mask, bool)
     if hand.shape != depth.shape:
         raise StageError(STAGE, f"hand mask has shape {hand.shape}, depth {depth.shape}")
-    T_w_o1 = np.asarray(T_w_o_stage1, float)
     grown = hand
     if config.mask_dilate_px > 0:
         k = 2 * config.mask_dilate_px + 1
@@ -280,18 +296,62 @@ def estimate_adjustment(
         raise StageError(STAGE, f"only {len(points)} depth points outside the hand mask")
     model = prepare_model(mesh_vertices, mesh_faces, cfg)
 
+    mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
+    ctx = _Context(depth, K, ~grown, points, hand_pts, model, mesh)
+    T_w_o1 = np.asarray(T_w_o_stage1, float)
+    hypotheses = [(Stage1Hypothesis.BEST, T_w_o1)]
+    if T_w_o_stage1_alt is not None:
+        hypotheses.append((Stage1Hypothesis.RUNNER_UP, np.asarray(T_w_o_stage1_alt, float)))
+    results: list[Adjustment] = []
+    errors: list[StageError] = []
+    for which, T_start in hypotheses:
+        try:
+            results.append(_from_hypothesis(ctx, T_start, which, config))
+        except StageError as e:
+            errors.append(e)
+    if not results:
+        raise errors[0]
+    best = max(results, key=lambda a: a.fitness)  # ties: the stage-1 best (listed first)
+    # T_adj is relative to the stage-1 pose passed in, whichever hypothesis won, so that
+    # T_adj @ T_w_o_stage1 is the object's pose in the steady frame.
+    return replace(best, T_adj=best.T_w_o @ inv_T(T_w_o1))
+
+
+@dataclass(frozen=True)
+class _Context:
+    """The steady frame, prepared once for every stage-1 hypothesis."""
+
+    depth: np.ndarray
+    K: np.ndarray
+    keep: np.ndarray
+    points: np.ndarray
+    hand_pts: np.ndarray
+    model: Model
+    mesh: tuple[np.ndarray, np.ndarray]
+
+
+def _from_hypothesis(
+    ctx: _Context,
+    T_w_o1: np.ndarray,
+    which: Stage1Hypothesis,
+    config: EstimateAdjustmentConfig,
+) -> Adjustment:
+    """Both paths from one stage-1 pose ``T_w_o1`` (4, 4); ``T_adj`` relative to it."""
+    cfg = config.registration
+    depth, K, keep, points, hand_pts, model, mesh = (
+        ctx.depth, ctx.K, ctx.keep, ctx.points, ctx.hand_pts, ctx.model, ctx.mesh
+    )  # fmt: skip
+
     # Path 1: ICP from the stage-1 pose, on the points it can reach.
     centre1 = T_w_o1[:3, :3] @ model.centroid + T_w_o1[:3, 3]
     reach1 = np.linalg.norm(points - centre1, axis=1) <= model.radius_m + config.stage1_reach_m
     scene_all = to_pcd(points[reach1])
-    mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
-    keep = ~grown
     first = refine(scene_all, model, inv_T(T_w_o1), cfg, "stage1")
     fit, rmse, n = _score(depth, keep, K, mesh, inv_T(first.T_o_s), config.agree_tol_m)
     if n >= config.min_points and fit >= config.accept_fitness:
         T_w_o = inv_T(first.T_o_s)
         return Adjustment(
-            T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.STAGE1_ICP, False
+            T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.STAGE1_ICP, False, which
         )
 
     # Path 2: global registration on the depth around the hand.
@@ -321,5 +381,6 @@ def estimate_adjustment(
             f"(need {config.min_fitness:.2f} over {config.min_points})",
         )
     return Adjustment(
-        T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.NEAR_HAND_GLOBAL, ambiguous
+        T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.NEAR_HAND_GLOBAL, ambiguous,
+        which,
     )

@@ -5,6 +5,12 @@ frame) -> FPFH + RANSAC with restarts -> coarse-to-fine point-to-plane ICP
 against the mesh surface. Near-symmetric objects are reported, not hidden:
 the best pose is turned about the mesh's principal axes and re-fitted, and a
 distinct pose that explains the depth as well makes the result ``ambiguous``.
+
+Candidates are ranked by the share of cropped points the posed mesh explains
+times the share of the mesh's rendered pixels the depth agrees with. The
+nearest-neighbour fitness alone cannot see model surface where the depth shows
+empty space: a mug (a surface of revolution but for its handle) turned so that
+its handle hangs in the air explains nearly every observed point too.
 The method does not use the fact that the object rests on the platter beyond
 the crop, so it also works for objects leaning on something.
 """
@@ -14,23 +20,27 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T
 from graspcap.tasks.registration import (
+    Candidate,
     PlatterCrop,
     RegistrationConfig,
     crop_platter,
+    depth_agreement,
     distinct_from,
     prepare_model,
     prepare_scene,
     probe_symmetry,
     register,
+    tls_cost,
     valid_depth,
 )
 
-STAGE_VERSION = "register_object/1"
+STAGE_VERSION = "register_object/2"
 STAGE = "register_object"
 
 
@@ -45,6 +55,23 @@ class RegisterObjectConfig(StageConfig):
     """Registration with a lower fitness (share of cropped points explained) fails the stage."""
     check_ambiguity: bool = True
     """Run the symmetry probes (ICP from the best pose turned about the principal axes)."""
+    probe_grid: str = "I"
+    """Symmetry probes: every rotation of this point group (scipy
+    ``Rotation.create_group``: ``"I"`` 60 rotations, ``"O"`` 24) about the model's centroid
+    and principal axes, applied to the best pose; ``""`` probes only about the principal
+    axes by ``registration.probe_angles_deg``. Pose errors that are not a turn about one
+    axis (a mug lying on its side, handle up, for one standing) need the grid."""
+    probe_rounds: int = 2
+    """Probe again from the new best pose while probing keeps finding a better one, at most
+    this many rounds."""
+    check_depth: bool = True
+    """Rank candidates by fitness times depth agreement (rendered mesh against the depth
+    image); off ranks by fitness and inlier RMSE alone."""
+    agree_tol_m: float = 0.006
+    """A pixel agrees with the posed mesh when its depth is within this of the rendered depth."""
+    depth_fitness_margin: float = 0.2
+    """Only candidates whose fitness is within this of the best are rendered (the rest rank
+    after them, by fitness and RMSE)."""
     registration: RegistrationConfig = RegistrationConfig()
     """Global registration and ICP settings."""
 
@@ -52,7 +79,7 @@ class RegisterObjectConfig(StageConfig):
 PRESETS: dict[str, RegisterObjectConfig] = {
     "default": RegisterObjectConfig(),
     "fast": RegisterObjectConfig(
-        check_ambiguity=False, registration=RegistrationConfig(n_restarts=2)
+        probe_grid="O", probe_rounds=1, registration=RegistrationConfig(n_restarts=2)
     ),
     "thorough": RegisterObjectConfig(
         registration=RegistrationConfig(
@@ -76,25 +103,30 @@ class ObjectRegistration:
         RMSE of those inliers, metres.
     n_points : int
         Points over the platter that were registered.
+    depth_agreement : float
+        Share of the posed mesh's rendered pixels whose depth agrees (1 when not checked).
     ambiguous : bool
-        A pose at least ``ambiguity_min_deg`` away explains the depth about as well.
+        A pose at least ``ambiguity_min_deg`` away explains the depth about as well (fitness
+        times depth agreement within ``ambiguity_fitness_tol``).
     ambiguity_deg : float
         Rotation between ``T_w_o`` and the runner-up (0 when there is none).
     T_w_o_runner_up : (4, 4) float or None
         Best pose distinct from ``T_w_o``.
-    runner_up_fitness, runner_up_rmse_m : float
-        Its fitness and inlier RMSE (0 when there is none).
+    runner_up_fitness, runner_up_rmse_m, runner_up_depth_agreement : float
+        Its fitness, inlier RMSE and depth agreement (0 when there is none).
     """
 
     T_w_o: np.ndarray
     fitness: float
     inlier_rmse_m: float
     n_points: int
+    depth_agreement: float
     ambiguous: bool
     ambiguity_deg: float
     T_w_o_runner_up: np.ndarray | None
     runner_up_fitness: float
     runner_up_rmse_m: float
+    runner_up_depth_agreement: float
 
 
 def register_object(
@@ -140,19 +172,62 @@ def register_object(
             f"registration fitness {best.fitness:.2f} below {config.min_fitness:.2f}: the mesh "
             "does not explain the depth over the platter (wrong object or mesh units?)",
         )
+    mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
+    agreement: dict[int, float] = {}
+
+    def ranked(cands: list[Candidate]) -> list[Candidate]:
+        if not config.check_depth:
+            return cands
+        top = max(c.fitness for c in cands) - config.depth_fitness_margin
+        for c in cands:
+            if id(c) not in agreement and c.fitness >= top:
+                agreement[id(c)] = depth_agreement(
+                    depth_m, K, mesh, inv_T(c.T_o_s), config.agree_tol_m
+                )[0]
+        return sorted(
+            cands,
+            key=lambda c: (
+                -c.fitness * agreement.get(id(c), 0.0),
+                tls_cost(c, cfg.eval_distance_m),
+                c.origin,
+            ),
+        )
+
+    candidates = ranked(candidates)
     if config.check_ambiguity:
-        candidates = probe_symmetry(scene, model, candidates, cfg)
+        grid = None
+        if config.probe_grid:
+            group = Rotation.create_group(config.probe_grid)
+            grid = group[group.magnitude() > 1e-6].as_matrix()  # the identity is the best
+        for _ in range(config.probe_rounds):
+            before = candidates[0]
+            candidates = ranked(probe_symmetry(scene, model, candidates, cfg, grid))
+            if candidates[0] is before:
+                break
     best = candidates[0]
-    amb = distinct_from(best, candidates[1:], cfg)
-    runner = amb.runner_up
+    if config.check_depth:  # ambiguity judged on the combined score
+        combined = {
+            id(c): Candidate(
+                c.T_o_s, c.fitness * agreement.get(id(c), 0.0), c.inlier_rmse_m, c.origin
+            )
+            for c in candidates
+        }
+        amb = distinct_from(combined[id(best)], [combined[id(c)] for c in candidates[1:]], cfg)
+        by_origin = {id(combined[id(c)]): c for c in candidates}
+        runner = None if amb.runner_up is None else by_origin[id(amb.runner_up)]
+    else:
+        amb = distinct_from(best, candidates[1:], cfg)
+        runner = amb.runner_up
     return ObjectRegistration(
         T_w_o=inv_T(best.T_o_s),
         fitness=best.fitness,
         inlier_rmse_m=best.inlier_rmse_m,
         n_points=len(points),
+        depth_agreement=agreement.get(id(best), 1.0),
         ambiguous=amb.ambiguous,
         ambiguity_deg=amb.ambiguity_deg,
         T_w_o_runner_up=None if runner is None else inv_T(runner.T_o_s),
         runner_up_fitness=0.0 if runner is None else runner.fitness,
         runner_up_rmse_m=0.0 if runner is None else runner.inlier_rmse_m,
+        runner_up_depth_agreement=0.0 if runner is None else agreement.get(id(runner), 0.0),
     )

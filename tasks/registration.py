@@ -32,6 +32,7 @@ from graspcap.tasks.geometry import (
     rotation_error_deg,
     transform_points,
 )
+from graspcap.tasks.render import render
 
 reg = o3d.pipelines.registration
 
@@ -350,6 +351,37 @@ def _settled(refined: list[Candidate], cfg: RegistrationConfig) -> bool:
     )
 
 
+def depth_agreement(
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    mesh: tuple[np.ndarray, np.ndarray],
+    T_c_o: np.ndarray,
+    tol_m: float,
+    keep: np.ndarray | None = None,
+) -> tuple[float, float, int]:
+    """Does the depth (h, w) show the mesh (vertices (n, 3), faces (m, 3)) at ``T_c_o``?
+
+    The mesh is rendered; over the pixels where it is visible, the depth valid and ``keep``
+    (h, w) bool True (all when None), a pixel agrees when ``|depth - rendered| <= tol_m``.
+    Depth further away means the camera sees through where the model would be (a handle
+    placed where there is none); nearer depth means something covers it: both count against
+    the pose. Unlike a nearest-neighbour fitness, this penalises model surface that the depth
+    does not show. Returns (agreeing share, RMS depth difference of the agreeing pixels,
+    pixels judged).
+    """
+    h, w = depth_m.shape
+    hits = render([mesh], [np.asarray(T_c_o, float)], np.asarray(K, float), w, h)
+    seen = (hits.mesh_index == 0) & (depth_m > 0)
+    if keep is not None:
+        seen &= keep
+    diff = depth_m[seen] - hits.depth_m[seen]
+    agree = np.abs(diff) <= tol_m
+    n = int(seen.sum())
+    if n == 0 or not agree.any():
+        return 0.0, 0.0, n
+    return float(agree.sum() / n), float(np.sqrt(np.mean(diff[agree] ** 2))), n
+
+
 def tls_cost(c: Candidate, distance_m: float) -> float:
     """Truncated least squares over all scene points, in metres squared: inliers count their
     squared distance, outliers ``distance_m`` squared. Fitness first, then RMSE, in one number."""
@@ -412,21 +444,32 @@ def probe_symmetry(
     model: Model,
     candidates: list[Candidate],
     cfg: RegistrationConfig,
+    rotations: np.ndarray | None = None,
 ) -> list[Candidate]:
     """Re-run ICP from the best of ``candidates`` (ranked) turned about each principal axis
-    of the model; returns every candidate, the probes included, best first (a probe may beat
-    the global step). Pass the result to :func:`distinct_from`."""
+    of the model by ``cfg.probe_angles_deg``, or, when ``rotations`` (k, 3, 3) are given, by
+    each of them (expressed in the principal-axes frame, turned about the centroid); returns
+    every candidate, the probes included, best first (a probe may beat the global step).
+    Pass the result to :func:`distinct_from`."""
     best = candidates[0]
     probes = list(candidates)
-    for i in range(3):
-        for angle in cfg.probe_angles_deg:
-            T_probe = about_axis(model, model.axes[:, i], np.radians(angle))
-            start = inv_T(T_probe) @ best.T_o_s
-            origin = f"probe:{i}:{angle:g}"
-            c = refine(scene, model, start, cfg, origin, stop=cfg.probe_levels)
-            if c.fitness >= best.fitness - 2 * cfg.ambiguity_fitness_tol:
-                c = refine(scene, model, c.T_o_s, cfg, origin, first=cfg.probe_levels)
-            probes.append(c)
+    starts: list[tuple[str, np.ndarray]] = []
+    if rotations is None:
+        for i in range(3):
+            for angle in cfg.probe_angles_deg:
+                T_probe = about_axis(model, model.axes[:, i], np.radians(angle))
+                starts.append((f"probe:{i}:{angle:g}", T_probe))
+    else:
+        A = model.axes
+        for j, R in enumerate(np.asarray(rotations, float)):
+            R_o = A @ R @ A.T
+            starts.append((f"probe:grid:{j}", make_T(R_o, model.centroid - R_o @ model.centroid)))
+    for origin, T_probe in starts:
+        start = inv_T(T_probe) @ best.T_o_s
+        c = refine(scene, model, start, cfg, origin, stop=cfg.probe_levels)
+        if c.fitness >= best.fitness - 2 * cfg.ambiguity_fitness_tol:
+            c = refine(scene, model, c.T_o_s, cfg, origin, first=cfg.probe_levels)
+        probes.append(c)
     return rank(probes, cfg.eval_distance_m)
 
 
