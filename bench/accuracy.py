@@ -41,6 +41,9 @@ TARGETS = {
     "object_scan_rot_deg": (1.0, "<="),
     "object_scan_trans_mm": (3.0, "<="),
     "reproj_rmse_px": (None, ""),
+    "contact_mae": (0.06, "<="),
+    "contact_iou": (0.85, ">="),
+    "contact_seen_share": (0.95, ">="),
 }
 
 

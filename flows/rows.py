@@ -2,9 +2,7 @@
 
 Maps the results of ``tasks.pipeline.STAGES`` onto the contract columns of
 ``graspcap.schemas.tables``. Columns whose stage does not exist yet stay null (QA of
-penetration and contact); the contact map, whose stage (``build_contactmap``) does not exist
-yet either, is written as "not observed" everywhere (values 0, ``observed`` all False), because
-the catalog requires the group on every session that did not fail. See
+penetration and contact agreement: refine_grasp and qa_metrics). See
 ``docs/architecture.md``, "Orchestration".
 """
 
@@ -78,6 +76,7 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
     scan = results.get("register_scan")
     T_tt_o = None if scan is None else scan.T_turntable_o_scan
     cross = results.get("crosscheck_sfm")
+    contact = results.get("build_contactmap")
     row = {
         "session_id": m.session_id, "participant": m.participant, "object_id": m.object_id,
         "intent": m.intent, "hand": str(m.hand),
@@ -94,7 +93,8 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         "qa_registration_rmse_mm": _mm(results["register_object"].inlier_rmse_m),
         "qa_fit_residual_mm": float(fit.rmse_mm),
         "qa_penetration_max_mm": None, "qa_penetration_mean_mm": None,
-        "qa_contact_agreement": None, "qa_contact_coverage": None,
+        "qa_contact_agreement": None,
+        "qa_contact_coverage": None if contact is None else float(contact.coverage),
         "input_digest": input_digest, "code_version": code_version, "build_id": build_id,
         "config_digest": config_digest,
     }
@@ -115,7 +115,8 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
     T_o_w = inv_T(results["estimate_adjustment"].T_w_o)  # object at the first steady frame
     hand = fit.mesh()
     arrays = SessionArrays(
-        contact=np.zeros(len(V), np.float32), observed=np.zeros(len(V), bool),
+        contact=np.zeros(len(V), np.float32) if contact is None else contact.contact,
+        observed=np.zeros(len(V), bool) if contact is None else contact.observed,
         hand_vertices=transform_points(T_o_w, hand.vertices).astype(np.float32),
         hand_faces=np.asarray(hand.faces, np.int32),
         joints=transform_points(T_o_w, fit.joints_fit_w).astype(np.float64),

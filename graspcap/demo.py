@@ -31,6 +31,8 @@ SHOWN = (
     ("frame_object_trans_mm", "per-frame object trans (mm)"),
     ("object_scan_rot_deg", "scan object rot (deg)"),
     ("object_scan_trans_mm", "scan object trans (mm)"),
+    ("contact_mae", "contact MAE, observed vertices"),
+    ("contact_iou", "contact IoU at 0.4"),
 )
 
 
@@ -72,6 +74,7 @@ def run_demo(out: Path, *, sessions: int = 3, frames: int = 60, seed: int = 7) -
             continue
         est = estimate_from_catalog(row.iloc[0].to_dict(),
                                     frames_df[frames_df.session_id == d.name])
+        est["contact"], est["observed"] = cat.contactmap(d.name)
         metrics = evaluate(d, est)
         print(f"      {d.name} ({row.iloc[0]['status']}):")
         for key, label in SHOWN:

@@ -22,6 +22,7 @@ import numpy as np
 import trimesh
 
 from graspcap.tasks import (
+    build_contactmap,
     crosscheck_sfm,
     detect_keypoints,
     estimate_adjustment,
@@ -172,6 +173,18 @@ def _register_scan(session, config, **_):
     )
 
 
+def _build_contactmap(session, config, register_scan, **_):
+    m = session.manifest
+    cam = m.thermal_camera
+    views = [(session.read_thermal_k(v.thermal), np.radians(v.angle_deg)) for v in m.scan.views]
+    V, F = read_mesh(session)
+    return build_contactmap.build_contactmap(
+        V, F, views, np.asarray(cam.K, dtype=float), np.asarray(cam.T_color_thermal, dtype=float),
+        _T_color_turntable(session), register_scan.T_turntable_o_scan, config,
+        image_size=(cam.width, cam.height),
+    )
+
+
 def _propagate_poses(
     session,
     config,
@@ -221,6 +234,9 @@ STAGES: dict[str, Stage] = {
               ("manifest", "object_mesh", "grasp_depth"), _estimate_adjustment),
         Stage("register_scan", register_scan.STAGE_VERSION, register_scan.PRESETS,
               ("load_session",), ("manifest", "object_mesh", "scan_depth"), _register_scan),
+        Stage("build_contactmap", build_contactmap.STAGE_VERSION, build_contactmap.PRESETS,
+              ("load_session", "register_scan"), ("manifest", "object_mesh", "scan_thermal"),
+              _build_contactmap),
         Stage("propagate_poses", propagate_poses.STAGE_VERSION, propagate_poses.PRESETS,
               ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
                "fit_hand", "register_object", "estimate_adjustment"),

@@ -51,6 +51,9 @@ def estimate_from_results(results: Mapping[str, Any]) -> dict[str, Any]:
         est["qa_crosscheck_mm"] = 1e3 * float(results["crosscheck_sfm"].max_joint_discrepancy_m)
     if get("fit_hand") is not None:
         est["joints_fit_w"] = results["fit_hand"].joints_fit_w
+    if get("build_contactmap") is not None:
+        est |= {"contact": results["build_contactmap"].contact,
+                "observed": results["build_contactmap"].observed}
     if get("propagate_poses") is not None:
         prop = results["propagate_poses"]
         est |= {"frame": np.asarray(prop.frame_indices), "T_c_o": prop.T_c_o}
@@ -89,6 +92,8 @@ def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
     ):
         if key in est:
             out |= _pose_metrics(prefix, est[key], truth[key])
+    if "contact" in est:
+        out |= _contact_metrics(est["contact"], est["observed"], session_dir)
     if "steady_from" not in est:
         return out
     steady_est = int(est["steady_from"])
@@ -109,6 +114,21 @@ def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
     if "T_c_o" in est:
         out |= _per_frame_object_errors(est["frame"], est["T_c_o"], truth)
     return out
+
+
+def _contact_metrics(contact: np.ndarray, observed: np.ndarray, session_dir: Path
+                     ) -> dict[str, float]:
+    """MAE on observed vertices, IoU of contact > 0.4, share of truly contacted (> 0.4)
+    vertices that were observed."""
+    truth = np.load(Path(session_dir) / "ground_truth" / "contact.npy")
+    observed = np.asarray(observed, dtype=bool)
+    est_on, true_on = (contact > 0.4) & observed, (truth > 0.4) & observed
+    union = (est_on | true_on).sum()
+    return {
+        "contact_mae": float(np.abs(contact[observed] - truth[observed]).mean()),
+        "contact_iou": float((est_on & true_on).sum() / union) if union else 1.0,
+        "contact_seen_share": float(observed[truth > 0.4].mean()) if (truth > 0.4).any() else 1.0,
+    }
 
 
 def _mpjpe_mm(
