@@ -1,6 +1,6 @@
 """Orchestration overhead of a dataset build (prints markdown; numbers in docs/architecture.md).
 
-    .venv/bin/python bench/build_overhead.py [--sessions 8] [--frames 12] [--preset fast]
+    .venv/bin/python bench/build_overhead.py [--sessions 8] [--frames 40] [--preset fast]
 
 1. Prefect's start-up in a fresh process (first trivial flow run, embedded ephemeral API);
 2. the bare baseline: ``tasks.pipeline.run_session`` for every session, sequentially;
@@ -24,7 +24,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sessions", type=int, default=8)
-    ap.add_argument("--frames", type=int, default=12)
+    ap.add_argument("--frames", type=int, default=40)
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--no-dask", action="store_true")
     args = ap.parse_args()
