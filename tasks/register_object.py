@@ -61,6 +61,9 @@ class RegisterObjectConfig(StageConfig):
     and principal axes, applied to the best pose; ``""`` probes only about the principal
     axes by ``registration.probe_angles_deg``. Pose errors that are not a turn about one
     axis (a mug lying on its side, handle up, for one standing) need the grid."""
+    grid_until: float = 0.97
+    """The grid probes run only while the best pose's fitness times depth agreement is below
+    this (a well-explained pose is not searched around; the axis probes still run)."""
     probe_rounds: int = 2
     """Probe again from the new best pose while probing keeps finding a better one, at most
     this many rounds."""
@@ -199,8 +202,11 @@ def register_object(
         if config.probe_grid:
             group = Rotation.create_group(config.probe_grid)
             grid = group[group.magnitude() > 1e-6].as_matrix()  # the identity is the best
-        for _ in range(config.probe_rounds):
+        candidates = ranked(probe_symmetry(scene, model, candidates, cfg))  # ambiguity
+        for _ in range(config.probe_rounds if grid is not None else 0):
             before = candidates[0]
+            if before.fitness * agreement.get(id(before), 1.0) >= config.grid_until:
+                break
             candidates = ranked(probe_symmetry(scene, model, candidates, cfg, grid))
             if candidates[0] is before:
                 break
