@@ -157,8 +157,11 @@ def _estimate_adjustment(
     kp = detect_keypoints.keypoints[s]
     bones = estimate_adjustment.hand_mask_from_keypoints(kp[:, :2], kp[:, 2], (h, w), 6.0)
     V, F = read_mesh(session)
+    # a stage-1 pose that could be another (near-symmetric object) is tried both ways
+    alt = register_object.T_w_o_runner_up if register_object.ambiguous else None
     return estimate_adjustment.estimate_adjustment(
-        depth, _K(session), V, F, register_object.T_w_o, (rendered.mesh_index >= 0) | bones, config
+        depth, _K(session), V, F, register_object.T_w_o, (rendered.mesh_index >= 0) | bones,
+        config, T_w_o_stage1_alt=alt,
     )
 
 
