@@ -16,6 +16,7 @@ model's principal axes.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -316,6 +317,11 @@ def refine(
     return Candidate(np.asarray(T).copy(), fit, rmse, origin)
 
 
+_RANSAC_LOCK = threading.Lock()
+"""Open3D's RANSAC draws from one process-wide RNG: stages running in threads of one build
+would race on it and make results depend on timing, so seeding and drawing are serialised."""
+
+
 def ransac(
     scene_down: o3d.geometry.PointCloud,
     scene_fpfh: reg.Feature,
@@ -330,11 +336,12 @@ def ransac(
         reg.CorrespondenceCheckerBasedOnDistance(dist),
     ]
     criteria = reg.RANSACConvergenceCriteria(cfg.ransac_max_iterations, cfg.ransac_confidence)
-    o3d.utility.random.seed(cfg.seed + restart)
-    res = reg.registration_ransac_based_on_feature_matching(
-        scene_down, model.down, scene_fpfh, model.fpfh, False, dist,
-        reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria,
-    )
+    with _RANSAC_LOCK:
+        o3d.utility.random.seed(cfg.seed + restart)
+        res = reg.registration_ransac_based_on_feature_matching(
+            scene_down, model.down, scene_fpfh, model.fpfh, False, dist,
+            reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria,
+        )
     return np.asarray(res.transformation).copy()
 
 

@@ -271,14 +271,41 @@ def test_dask_local_cluster_builds_the_same_tables(warm, synth_root, tmp_path):
 
     assert len(executions(tmp_path, "dask")) == len(warm[1].sessions) * len(STAGES)
     drop = ["build_id", "code_version"]
-    a = gc.open(warm[0]).table("sessions").drop(drop).sort_by("session_id")
-    b = gc.open(catalog).table("sessions").drop(drop).sort_by("session_id")
-    assert a.equals(b)
-    fa = gc.open(warm[0]).table("frames").drop(["build_id"]).sort_by([("session_id", "ascending"),
-                                                                      ("frame", "ascending")])
-    fb = gc.open(catalog).table("frames").drop(["build_id"]).sort_by([("session_id", "ascending"),
-                                                                     ("frame", "ascending")])
-    assert fa.equals(fb)
+    # array digests hash the bytes, which differ in the last bits like the floats below;
+    # the arrays themselves are compared up to rounding instead
+    drop += ["contact_digest", "hand_mesh_digest", "object_mesh_digest"]
+    cat_a, cat_b = gc.open(warm[0]), gc.open(catalog)
+    a = cat_a.table("sessions").drop(drop).sort_by("session_id")
+    b = cat_b.table("sessions").drop(drop).sort_by("session_id")
+    _assert_same_table(a, b)
+    for sid in a.column("session_id").to_pylist():
+        for x, y in zip((*cat_a.contactmap(sid), *cat_a.hand_mesh(sid)),
+                        (*cat_b.contactmap(sid), *cat_b.hand_mesh(sid)), strict=True):
+            np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
+    order = [("session_id", "ascending"), ("frame", "ascending")]
+    fa = gc.open(warm[0]).table("frames").drop(["build_id"]).sort_by(order)
+    fb = gc.open(catalog).table("frames").drop(["build_id"]).sort_by(order)
+    _assert_same_table(fa, fb)
+
+
+def _assert_same_table(a, b) -> None:
+    """Equal tables, floats up to rounding: worker processes and threads may sum in another
+    order (seen: differences in the 16th digit of pose entries), nothing more."""
+    import pyarrow as pa
+
+    assert a.schema == b.schema and a.num_rows == b.num_rows
+    for name in a.column_names:
+        ca, cb = a.column(name).combine_chunks(), b.column(name).combine_chunks()
+        t = ca.type
+        if pa.types.is_floating(t) or (hasattr(t, "value_type")
+                                       and pa.types.is_floating(t.value_type)):
+            va = np.asarray(ca.flatten() if hasattr(t, "value_type") else ca, dtype=float)
+            vb = np.asarray(cb.flatten() if hasattr(t, "value_type") else cb, dtype=float)
+            assert ca.is_null().equals(cb.is_null()), name
+            np.testing.assert_allclose(va, vb, rtol=1e-9, atol=1e-12, equal_nan=True,
+                                       err_msg=name)
+        else:
+            assert ca.equals(cb), name
 
 
 @pytest.mark.slow
