@@ -11,6 +11,10 @@ from pathlib import Path
 from graspcap.catalog.errors import CatalogFormatError
 from graspcap.schemas.tables import CATALOG_FORMAT_NAME, CATALOG_FORMAT_VERSION
 
+DEFAULT_CATALOG = Path("graspcap-catalog")
+"""Where ``graspcap build``, ``status`` and ``serve`` put the catalog unless told: a folder
+in the working directory that cannot be mistaken for the source tree's ``catalog/`` package."""
+
 
 @dataclass(frozen=True)
 class CatalogLayout:

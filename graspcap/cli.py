@@ -11,6 +11,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from graspcap.catalog.layout import DEFAULT_CATALOG
+
 
 def _cmd_synth(args: argparse.Namespace) -> int:
     from graspcap.synth import generate
@@ -112,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_demo)
     p = sub.add_parser("build", help="build or update the catalog from capture sessions")
     p.add_argument("roots", type=Path, nargs="+", help="session folders or roots holding many")
-    p.add_argument("--catalog", type=Path, default=Path("catalog"), help="catalog folder")
+    p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
     p.add_argument("--preset", default="default", help="stage preset (default, fast, ...)")
     p.add_argument("--dask", default=None, metavar="ADDRESS|local:N",
                    help="run on a Dask scheduler, or a local cluster of N worker processes")
@@ -121,13 +123,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_build)
 
     p = sub.add_parser("status", help="recent builds, failures with reasons, stage runs")
-    p.add_argument("--catalog", type=Path, default=Path("catalog"), help="catalog folder")
+    p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
     p.add_argument("--limit", type=int, default=5, help="number of builds to show")
     p.set_defaults(func=_cmd_status)
 
     p = sub.add_parser("serve", help="run the build on a schedule (Prefect serve)")
     p.add_argument("roots", type=Path, nargs="+", help="session folders or roots holding many")
-    p.add_argument("--catalog", type=Path, default=Path("catalog"), help="catalog folder")
+    p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
     p.add_argument("--preset", default="default", help="stage preset")
     when = p.add_mutually_exclusive_group(required=True)
     when.add_argument("--cron", help='cron schedule, e.g. "0 2 * * *"')
