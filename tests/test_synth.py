@@ -13,7 +13,6 @@ import trimesh
 
 from graspcap.synth import OBJECT_NAMES, PRESETS, generate, generate_session, procedural_object
 from graspcap.synth.objects import load_object
-from graspcap.synth.raycast import cast
 from graspcap.synth.sensors import detect_keypoints
 from graspcap.synth.session import participant_scale
 from graspcap.tasks.errors import StageError
@@ -21,6 +20,7 @@ from graspcap.tasks.geometry import inv_T, project, rot_z, transform_points
 from graspcap.tasks.hand_model import FINGERTIPS, SURFACE_OFFSET_M, HandModel
 from graspcap.tasks.load_session import validate_session
 from graspcap.tasks.render import render
+from graspcap.tasks.render import render as cast
 
 SMALL = PRESETS["realistic"].model_copy(
     update={"frames": 14, "scan_views": (6, 6), "adjust_fraction": (0.2, 0.25)}

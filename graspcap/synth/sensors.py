@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from graspcap.synth.config import SynthConfig
-from graspcap.synth.raycast import Hits
+from graspcap.tasks.render import RayHits
 
 # Albedo (RGB, 0-1) of the scene parts, by role.
 ALBEDO = {
@@ -45,7 +45,7 @@ def noisy_depth_mm(
     return mm.astype(np.uint16)
 
 
-def shaded_rgb(hits: Hits, albedo: list[tuple[float, float, float]],
+def shaded_rgb(hits: RayHits, albedo: list[tuple[float, float, float]],
                rng: np.random.Generator) -> np.ndarray:
     """A cheap Lambert-shaded colour image (h, w, 3) uint8 RGB; ``albedo`` per mesh index."""
     table = np.array([*albedo, BACKGROUND_RGB], dtype=np.float32) * 255.0  # -1 -> background
@@ -56,7 +56,7 @@ def shaded_rgb(hits: Hits, albedo: list[tuple[float, float, float]],
 
 
 def thermal_centikelvin(
-    hits: Hits, faces: np.ndarray, contact: np.ndarray,
+    hits: RayHits, faces: np.ndarray, contact: np.ndarray,
     cfg: SynthConfig, rng: np.random.Generator,
 ) -> np.ndarray:
     """Thermal image (h, w) uint16 in centi-kelvin: ambient plus heat left by the hand.

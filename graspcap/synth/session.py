@@ -19,7 +19,7 @@ from graspcap.synth.objects import (
     procedural_object,
     write_object,
 )
-from graspcap.synth.raycast import Hits, StaticCamera
+from graspcap.synth.raycast import StaticCamera
 from graspcap.synth.rig import (
     color_K,
     interpolate_pose,
@@ -43,6 +43,7 @@ from graspcap.synth.sensors import (
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import backproject, inv_T, make_T, project, transform_points
 from graspcap.tasks.hand_model import RIGID_PALM_POINTS, HandModel, HandSide
+from graspcap.tasks.render import RayHits
 
 COLOR_PATTERN = "grasp/color/{index:06d}.jpg"
 DEPTH_PATTERN = "grasp/depth/{index:06d}.png"
@@ -92,11 +93,13 @@ class _Scene:
         self.thermal = StaticCamera(thermal_K(cfg), cfg.thermal_width, cfg.thermal_height, static,
                                     [self.T_thermal_color @ T_color_tt] * 2)
 
-    def render(self, parts: list[tuple[tuple[np.ndarray, np.ndarray], np.ndarray]]) -> Hits:
+    def render(self, parts: list[tuple[tuple[np.ndarray, np.ndarray], np.ndarray]]) -> RayHits:
         """Colour-camera hits of ``parts`` (mesh, T_color_mesh), then platter, then table."""
         return self.color.render([m for m, _ in parts], [T for _, T in parts])
 
-    def render_thermal(self, parts: list[tuple[tuple[np.ndarray, np.ndarray], np.ndarray]]) -> Hits:
+    def render_thermal(
+        self, parts: list[tuple[tuple[np.ndarray, np.ndarray], np.ndarray]]
+    ) -> RayHits:
         """Thermal-camera hits of ``parts`` given in the colour frame."""
         return self.thermal.render([m for m, _ in parts],
                                    [self.T_thermal_color @ T for _, T in parts])
@@ -285,7 +288,9 @@ def _adjustment(grasp: Grasp, T_w_o1: np.ndarray, T_w_o_steady: np.ndarray,
     return T_w_o, T_w_o @ grasp.T_o_p @ back, angles
 
 
-def _occluded(hits: Hits, uv: np.ndarray, z_m: np.ndarray, margin_m: float = 0.003) -> np.ndarray:
+def _occluded(
+    hits: RayHits, uv: np.ndarray, z_m: np.ndarray, margin_m: float = 0.003
+) -> np.ndarray:
     """(21,) joints whose pixel shows the object (mesh 0) in front of them."""
     h, w = hits.depth_m.shape
     px = np.round(uv).astype(int)
