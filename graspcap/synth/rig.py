@@ -73,9 +73,20 @@ def _stable_poses(key: str, vertices: bytes, faces: bytes) -> tuple[np.ndarray, 
     return poses[keep], prob[keep] / prob[keep].sum()
 
 
-def rest_on_platter(obj: ObjectMesh, cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
-    """``T_turntable_o``: a stable resting pose, random yaw, small offset from the centre."""
+def rest_on_platter(
+    obj: ObjectMesh, cfg: SynthConfig, rng: np.random.Generator, avoid: np.ndarray | None = None
+) -> np.ndarray:
+    """``T_turntable_o``: a stable resting pose, random yaw, small offset from the centre.
+
+    ``avoid`` (n,) per-vertex weights (the contact map, for the scan): like an operator who
+    knows the protocol, put the object down on a face that hides as little of them as the
+    stable poses allow (no view from above sees the face on the platter).
+    """
     poses, prob = _stable_poses(obj.name, obj.vertices.tobytes(), obj.faces.tobytes())
+    if avoid is not None and avoid.sum() > 0:
+        hidden = np.array([_hidden_share(obj, T, avoid) for T in poses])
+        keep = hidden <= hidden.min() + 0.02
+        prob = np.where(keep, prob, 0.0) / prob[keep].sum()
     T_stable = poses[rng.choice(len(poses), p=prob)]
     r, a = cfg.object_offset_m * np.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
     T = make_T(np.eye(3), [r * np.cos(a), r * np.sin(a), 0.0]) @ rot_z(rng.uniform(0, 2 * np.pi))
@@ -83,6 +94,15 @@ def rest_on_platter(obj: ObjectMesh, cfg: SynthConfig, rng: np.random.Generator)
     # compute_stable_poses rests the hull on z = 0; settle exactly onto the mesh's lowest point
     T[2, 3] -= (obj.vertices @ T[:3, :3].T + T[:3, 3])[:, 2].min()
     return T
+
+
+def _hidden_share(obj: ObjectMesh, T: np.ndarray, weights: np.ndarray) -> float:
+    """Share of ``weights`` on vertices facing the platter or within 3 mm of it in pose ``T``."""
+    mesh = trimesh.Trimesh(obj.vertices, obj.faces, process=False)
+    normal_z = mesh.vertex_normals @ T[2, :3]
+    z = obj.vertices @ T[2, :3]
+    hidden = (normal_z < -0.5) | (z < z.min() + 0.003)
+    return float(weights[hidden].sum() / weights.sum())
 
 
 def smoothstep(x: np.ndarray | float) -> np.ndarray:

@@ -202,8 +202,8 @@ def generate_session(out: Path, session_seed: int | Sequence[int], config: Synth
         _write(root / KEYPOINTS_PATTERN.format(index=i), json.dumps(openpose_json(kp)).encode())
 
     # The scan: the object back on the platter in a new pose, rotated through 360 deg.
-    T_tt_o_scan = rest_on_platter(obj, cfg, rng)
     contact = hand_contact(obj, hand_o, hand_p.faces, hand_p.part)
+    T_tt_o_scan = rest_on_platter(obj, cfg, rng, avoid=contact)
     n_views = int(rng.integers(cfg.scan_views[0], cfg.scan_views[1] + 1))
     views = []
     for k in range(n_views):
