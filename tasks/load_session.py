@@ -5,6 +5,10 @@ A session is a directory with ``session.json`` laid out as in ``session-format.m
 the file and the field, and never stops at the first; :func:`load_session` raises
 :class:`SessionInvalid` with all of them or returns a :class:`Session` whose readers
 convert to the units of the code (metres, kelvin).
+
+A problem inside one grasp frame's colour image or keypoint file (corrupt or truncated
+JPEG, wrong size, keypoint JSON with bad values) is :attr:`Severity.FRAME`: reported, but
+the session loads and ``detect_keypoints`` treats that frame as a missing detection.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
@@ -59,6 +64,14 @@ MAX_LISTED = 20
 FrameKind = Literal["color", "depth", "keypoints"]
 
 
+class Severity(StrEnum):
+    ERROR = "error"
+    """The session cannot be built."""
+    FRAME = "frame"
+    """One grasp frame's colour image or keypoint file: that frame is a missing detection;
+    the session still loads and builds."""
+
+
 @dataclass(frozen=True)
 class Problem:
     """One thing wrong with a session, located by file (relative to the session) and field."""
@@ -67,9 +80,11 @@ class Problem:
     file: str
     field: str
     message: str
+    severity: Severity = Severity.ERROR
 
     def __str__(self) -> str:
-        return f"session {self.session}: file {self.file}: field {self.field}: {self.message}"
+        text = f"session {self.session}: file {self.file}: field {self.field}: {self.message}"
+        return text + (" (frame skipped)" if self.severity is Severity.FRAME else "")
 
 
 class SessionInvalid(StageError):
@@ -270,8 +285,9 @@ class _Checker:
     def __init__(self, root: Path, session: str):
         self.root, self.session, self.problems = root, session, []
 
-    def add(self, file: str, field: str, message: str) -> None:
-        self.problems.append(Problem(self.session, file, field, message))
+    def add(self, file: str, field: str, message: str,
+            severity: Severity = Severity.ERROR) -> None:
+        self.problems.append(Problem(self.session, file, field, message, severity))
 
     def existing(self, rel: str, field: str, report_missing: bool = True) -> Path | None:
         path, why = _inside(self.root, rel)
@@ -299,9 +315,11 @@ class _Checker:
             elif kind == "keypoints":
                 self.keypoints(path, rel, field)
             elif check:
+                # a bad colour frame is one missing detection; a bad depth frame stops stages
                 image_kind = ImageKind.COLOR if kind == "color" else ImageKind.DEPTH
+                severity = Severity.FRAME if kind == "color" else Severity.ERROR
                 for message in image_problems(path, image_kind, size):
-                    self.add(rel, field, message)
+                    self.add(rel, field, message, severity)
         pattern, count = getattr(grasp, kind), grasp.count
         if missing and missing == list(range(missing[0], count)):
             self.add(pattern.format(index=missing[0]), "grasp.count",
@@ -319,10 +337,10 @@ class _Checker:
     def keypoints(self, path: Path, rel: str, field: str) -> None:
         document = load_json(path)
         if isinstance(document, JsonSyntaxError):
-            self.add(rel, field, document.message)
+            self.add(rel, field, document.message, Severity.FRAME)
             return
         for inner, message in openpose_problems(document):
-            self.add(rel, inner, message)
+            self.add(rel, inner, message, Severity.FRAME)
 
 
 def _validate(directory: Path, check_images: bool) -> tuple[SessionManifest | None, list[Problem]]:
@@ -377,13 +395,16 @@ def validate_session(directory: Path, *, check_images: bool = True) -> list[Prob
     """Every problem of the session at ``directory``; empty when it meets the contract.
 
     ``check_images`` False skips decoding images (existence, paths, JSON still checked).
+    Problems of :attr:`Severity.FRAME` do not stop :func:`load_session`.
     """
     return _validate(directory, check_images)[1]
 
 
 def load_session(directory: Path, *, check_images: bool = True) -> Session:
-    """The validated session at ``directory``; raises :class:`SessionInvalid` with all problems."""
+    """The validated session at ``directory``; raises :class:`SessionInvalid` with every
+    problem of :attr:`Severity.ERROR` (frame-level ones are left to ``detect_keypoints``)."""
     manifest, problems = _validate(directory, check_images)
-    if problems or manifest is None:
-        raise SessionInvalid(problems)
+    errors = [p for p in problems if p.severity is Severity.ERROR]
+    if errors or manifest is None:
+        raise SessionInvalid(errors)
     return Session(root=Path(directory).resolve(), manifest=manifest)

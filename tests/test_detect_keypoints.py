@@ -66,12 +66,54 @@ def test_reads_real_openpose_output_with_confidences(shared_data, tmp_path):
     assert result.frames_with_hand == (2 if kept.any() else 0)
 
 
-def test_session_without_keypoint_files_fails_with_reason(tmp_path):
+def _with_files(tmp_path, documents):
+    directory = write_session(tmp_path / "s", frames=len(documents))
+    for i, doc in enumerate(documents):
+        text = doc if isinstance(doc, str) else json.dumps(doc)
+        (directory / f"grasp/keypoints/{i:06d}_keypoints.json").write_text(text)
+    return directory
+
+
+def test_bad_keypoint_files_are_missing_detections_with_notes_not_a_failed_session(tmp_path):
+    good = _hand(10.0, 0.7)
+    nan = good.copy()
+    nan[2, 0] = np.nan
+    flat = good.reshape(-1).tolist()
+    directory = _with_files(tmp_path, [
+        {"people": [{"hand_right_keypoints_2d": flat}]},
+        {"people": [{"hand_right_keypoints_2d": flat[:60]}]},
+        '{"people": [{"hand_right_keypoints_2d": ['
+        + ", ".join("NaN" if np.isnan(v) else str(float(v)) for v in nan.reshape(-1)) + "]}]}",
+        '{"people": [\n  {"hand_right',
+        {"people": [{"hand_right_keypoints_2d": (good * [1, 1, 2]).reshape(-1).tolist()}]},
+        {"people": []},
+    ])
+    result = detect_keypoints(load_session(directory), CONFIG)  # images checked too
+    kp = result.keypoints
+    assert np.allclose(kp[0], good)
+    assert (kp[1] == 0).all() and (kp[3] == 0).all() and (kp[4] == 0).all()
+    assert (kp[5] == 0).all()  # empty people: no detection, no note
+    assert kp[2, 2, 2] == 0 and np.allclose(np.delete(kp[2], 2, axis=0), np.delete(good, 2, 0))
+    notes = {n.frame: n.message for n in result.notes}
+    assert sorted(notes) == [1, 2, 3, 4]
+    assert "got 60" in notes[1] and "[2]" in notes[2] and "line 2 column" in notes[3]
+    assert "[0, 1]" in notes[4]
+    assert result.summary() == {"backend": "openpose_json", "frames": 6, "frames_with_hand": 2,
+                                "mean_confidence": 0.7, "frame_notes": 4}
+
+
+def test_backend_is_chosen_from_the_manifest(tmp_path):
+    from graspcap.tasks.detect_keypoints import choose_backend
+    from graspcap.tasks.errors import StageError
+
     directory = write_session(tmp_path / "s", frames=2)
     session = load_session(directory, check_images=False)
-    manifest = session.manifest.model_copy(
-        update={"grasp": session.manifest.grasp.model_copy(update={"keypoints": None})}
-    )
-    bare = type(session)(root=session.root, manifest=manifest)
-    with pytest.raises(Exception, match="no image detector"):
-        detect_keypoints(bare, CONFIG)
+    assert choose_backend(session, CONFIG) is Backend.OPENPOSE_JSON
+    forced = DetectKeypointsConfig(backend=Backend.MEDIAPIPE)
+    assert choose_backend(session, forced) is Backend.MEDIAPIPE
+    m = session.manifest
+    bare = type(session)(root=session.root, manifest=m.model_copy(
+        update={"grasp": m.grasp.model_copy(update={"keypoints": None})}))
+    assert choose_backend(bare, CONFIG) is Backend.MEDIAPIPE
+    with pytest.raises(StageError, match="needs grasp.keypoints"):
+        choose_backend(bare, DetectKeypointsConfig(backend=Backend.OPENPOSE_JSON))

@@ -1,0 +1,332 @@
+"""MediaPipe Hands, in-process, on colour frames: the image detector of ``detect_keypoints``.
+
+This module imports without MediaPipe; :func:`hands_module` imports it on first use
+(``mediapipe.solutions.hands``, the legacy API whose palm and landmark models ship inside
+the 0.10.21 wheel, so nothing is downloaded at run time) with its glog/absl chatter on
+stderr swallowed. See ``docs/detectors.md`` for the install and the measurements.
+
+Handedness: MediaPipe labels hands as if the image were a mirrored selfie; on an
+unmirrored camera image its "Left" is the person's right hand (checked on the shared
+photos, see the docs). :data:`TRUE_HAND` undoes that unless ``mirrored`` is set.
+
+Confidence: the legacy API leaves per-landmark visibility and presence at 0, so each of
+the 21 keypoints of a hand gets the hand's handedness score (the classifier's certainty of
+its label), the only per-hand score it returns.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import os
+import re
+import sys
+import tempfile
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from enum import StrEnum
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from graspcap.tasks.config import StageConfig
+from graspcap.tasks.session_files import _jpeg_problem
+
+log = logging.getLogger(__name__)
+N_KEYPOINTS = 21
+HandName = Literal["right", "left"]
+TRUE_HAND: dict[str, HandName] = {"Left": "right", "Right": "left"}
+"""MediaPipe's label on an unmirrored image -> the person's hand."""
+_NOISE = re.compile(
+    r"XNNPACK delegate|absl::InitializeLog|inference_feedback_manager|"
+    r"landmark_projection_calculator|^\s*$"
+)
+
+
+class FrameMode(StrEnum):
+    VIDEO = "video"
+    """MediaPipe's tracker: the landmarks of one frame seed the hand region of the next; palm
+    detection runs again only when the hand is lost (``static_image_mode=False``)."""
+    IMAGES = "images"
+    """Every frame on its own: palm detection + landmarks each time."""
+
+
+class HandednessPolicy(StrEnum):
+    PREFER = "prefer"
+    """The hand labelled as the manifest's hand when there is one, else the best other
+    (a single visible hand is kept even when MediaPipe calls it the other hand)."""
+    STRICT = "strict"
+    """Only a hand labelled as the manifest's hand; otherwise no detection."""
+
+
+class MediaPipeConfig(StageConfig):
+    model_complexity: int = Field(1, ge=0, le=1)
+    """0: lite landmark model, 1: full landmark model."""
+    min_detection_confidence: float = Field(0.5, ge=0.0, le=1.0)
+    """Palm detection threshold (MediaPipe's own)."""
+    min_tracking_confidence: float = Field(0.5, ge=0.0, le=1.0)
+    """Below this hand presence the tracker falls back to palm detection (video mode)."""
+    mode: FrameMode = FrameMode.VIDEO
+    """Track between consecutive frames or detect every frame on its own."""
+    handedness: HandednessPolicy = HandednessPolicy.PREFER
+    """How to use MediaPipe's left/right label to pick the manifest's hand."""
+    mirrored: bool = False
+    """Frames are mirrored (selfie) images: take MediaPipe's labels as they are."""
+    workers: int | None = Field(None, ge=1)
+    """Processes per session, each tracking its own chunk of consecutive frames; None: the
+    CPU count capped at 2."""
+    min_frames_per_worker: int = Field(60, ge=1)
+    """Chunks are at least this long (a worker costs about 1-2 s to start MediaPipe)."""
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One hand MediaPipe found in an image.
+
+    Attributes
+    ----------
+    xy_px : (21, 2) float
+        Landmarks in image pixels.
+    hand : str
+        The person's hand ("right"/"left"), MediaPipe's label un-mirrored.
+    score : float
+        MediaPipe's handedness score of its label.
+    """
+
+    xy_px: np.ndarray
+    hand: HandName
+    score: float
+
+    def keypoints(self) -> np.ndarray:
+        """``(21, 3)`` x_px, y_px, confidence (the hand's score on every keypoint)."""
+        return np.column_stack([self.xy_px, np.full(N_KEYPOINTS, self.score)])
+
+
+@dataclass(frozen=True)
+class FrameDetections:
+    """MediaPipe on a run of frames.
+
+    Attributes
+    ----------
+    keypoints : (n, 21, 3) float
+        x_px, y_px, confidence; all 0 where no hand was picked.
+    label_mismatch : (n,) bool
+        The picked hand carries the other hand's label (kept under ``prefer``).
+    notes : tuple of (int, str)
+        ``(frame, message)`` for frames that could not be read.
+    workers : int
+        Processes that ran.
+    """
+
+    keypoints: np.ndarray
+    label_mismatch: np.ndarray
+    notes: tuple[tuple[int, str], ...]
+    workers: int
+
+
+# --- MediaPipe, imported quietly ------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def quiet_stderr() -> Iterator[None]:
+    """Send fd 2 to a file while MediaPipe starts; lines that are not its known start-up
+    chatter are written back to stderr afterwards."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            for line in sink.read().decode(errors="replace").splitlines():
+                if not _NOISE.search(line):
+                    print(line, file=sys.stderr)
+
+
+_HANDS: Any = None
+
+
+def hands_module() -> Any:
+    """``mediapipe.solutions.hands``, imported on first call with its log chatter hidden."""
+    global _HANDS
+    if _HANDS is None:
+        os.environ.setdefault("GLOG_minloglevel", "2")
+        os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+        with quiet_stderr():
+            from mediapipe.python.solutions import hands
+        _HANDS = hands
+    return _HANDS
+
+
+class Detector:
+    """One MediaPipe ``Hands`` graph (it keeps tracking state between calls in video mode)."""
+
+    def __init__(self, config: MediaPipeConfig, *, video: bool, max_hands: int):
+        self.config = config
+        with quiet_stderr():
+            self._hands = hands_module().Hands(
+                static_image_mode=not video,
+                max_num_hands=max_hands,
+                model_complexity=config.model_complexity,
+                min_detection_confidence=config.min_detection_confidence,
+                min_tracking_confidence=config.min_tracking_confidence,
+            )
+        self._started = False
+
+    def __call__(self, rgb: np.ndarray) -> list[Candidate]:
+        """Hands in an ``(h, w, 3) uint8`` RGB image."""
+        h, w = rgb.shape[:2]
+        if not self._started:  # the graph logs once more on its first frame
+            with quiet_stderr():
+                result = self._hands.process(rgb)
+            self._started = True
+        else:
+            result = self._hands.process(rgb)
+        out = []
+        for lms, cls in zip(
+            result.multi_hand_landmarks or [], result.multi_handedness or [], strict=True
+        ):
+            xy = np.array([[p.x * w, p.y * h] for p in lms.landmark], dtype=float)
+            label = cls.classification[0]
+            hand = label.label.lower() if self.config.mirrored else TRUE_HAND[label.label]
+            out.append(Candidate(xy, hand, float(label.score)))
+        return out
+
+    def close(self) -> None:
+        self._hands.close()
+
+
+def _mean_distance_px(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.linalg.norm(a - b, axis=1).mean())
+
+
+def pick(
+    candidates: Sequence[Candidate],
+    hand: HandName,
+    previous: np.ndarray | None,
+    policy: HandednessPolicy,
+) -> Candidate | None:
+    """The manifest's hand among ``candidates``: labelled ``hand`` first (any under
+    ``prefer`` when none is), then nearest ``previous`` ((21, 3), conf > 0 used) or the
+    highest score."""
+    matching = [c for c in candidates if c.hand == hand]
+    pool = matching or (list(candidates) if policy is HandednessPolicy.PREFER else [])
+    if not pool:
+        return None
+    if previous is not None and (previous[:, 2] > 0).any():
+        seen = previous[:, 2] > 0
+        return min(pool, key=lambda c: _mean_distance_px(c.xy_px[seen], previous[seen, :2]))
+    return max(pool, key=lambda c: c.score)
+
+
+# --- frames -> keypoints ------------------------------------------------------------------
+
+
+def read_rgb(path: Path | str, size: tuple[int, int] | None) -> tuple[np.ndarray | None, str]:
+    """``(h, w, 3) uint8`` RGB of the image at ``path``, or None and why not.
+
+    ``size`` (width, height) is the colour camera's; another size is refused, since the
+    keypoints would not be in that camera's pixels.
+    """
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        return None, f"cannot read: {exc.strerror or exc}"
+    if Path(path).suffix.lower() in (".jpg", ".jpeg") or data.startswith(b"\xff\xd8"):
+        problem = _jpeg_problem(data)
+        if problem:
+            return None, problem
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        return None, "does not decode as an image (corrupt or unsupported)"
+    h, w = bgr.shape[:2]
+    if size is not None and (w, h) != tuple(size):
+        return None, f"size {w}x{h}, expected {size[0]}x{size[1]} (width x height)"
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), ""
+
+
+def _detect_chunk(
+    paths: Sequence[str], size: tuple[int, int] | None, hand: HandName, config: MediaPipeConfig
+) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
+    """One tracker over consecutive frames (runs in a worker process or in-process)."""
+    n = len(paths)
+    keypoints, mismatch, notes = np.zeros((n, N_KEYPOINTS, 3)), np.zeros(n, bool), []
+    video = config.mode is FrameMode.VIDEO
+    # Video: one hand tracked (palm detection only when it is lost); a second, two-hand
+    # detector looks again only when the tracked hand carries the other hand's label.
+    main = Detector(config, video=video, max_hands=1 if video else 2)
+    both: Detector | None = None
+    previous, settled = None, False  # settled: the tracked hand is the best there is
+    try:
+        for i, path in enumerate(paths):
+            rgb, why = read_rgb(path, size)
+            if rgb is None:
+                notes.append((i, why))
+                continue
+            candidates = main(rgb)
+            settled = settled and bool(candidates)
+            if video and candidates and not settled and all(c.hand != hand for c in candidates):
+                both = both or Detector(config, video=False, max_hands=2)
+                again = both(rgb)
+                if any(c.hand == hand for c in again):
+                    candidates = again
+                else:  # no hand with the right label in view: keep tracking this one
+                    settled = True
+            chosen = pick(candidates, hand, previous, config.handedness)
+            if chosen is not None:
+                keypoints[i] = chosen.keypoints()
+                mismatch[i] = chosen.hand != hand
+                previous = keypoints[i]
+    finally:
+        main.close()
+        if both is not None:
+            both.close()
+    return keypoints, mismatch, notes
+
+
+def worker_count(config: MediaPipeConfig, n_frames: int) -> int:
+    """Processes to use: ``workers`` (or the CPU count capped at 2), no more than chunks of
+    ``min_frames_per_worker``, and 1 inside a daemon process (which may not have children)."""
+    wanted = config.workers or min(os.cpu_count() or 1, 2)
+    by_length = max(1, n_frames // config.min_frames_per_worker)
+    if multiprocessing.current_process().daemon:
+        return 1
+    return max(1, min(wanted, by_length, n_frames))
+
+
+def detect_frames(
+    paths: Sequence[Path | str],
+    size: tuple[int, int] | None,
+    hand: HandName,
+    config: MediaPipeConfig,
+) -> FrameDetections:
+    """MediaPipe on the frames at ``paths`` (in video order) of a ``size`` (width, height)
+    camera; one hand per frame, the manifest's ``hand``. Frames that cannot be read are
+    missing detections with a note, never an exception."""
+    paths = [str(p) for p in paths]
+    workers = worker_count(config, len(paths))
+    if workers == 1:
+        kp, mismatch, notes = _detect_chunk(paths, size, hand, config)
+        return FrameDetections(kp, mismatch, tuple(notes), 1)
+    bounds = np.linspace(0, len(paths), workers + 1).round().astype(int)
+    chunks = [paths[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    ctx = multiprocessing.get_context("spawn")  # fork is unsafe under Prefect/Open3D threads
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        parts = list(pool.map(_detect_chunk, chunks, [size] * workers, [hand] * workers,
+                              [config] * workers))
+    notes = tuple((int(a) + i, m) for a, (_, _, ns) in zip(bounds, parts, strict=False)
+                  for i, m in ns)
+    return FrameDetections(
+        np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), notes,
+        workers,
+    )
+
