@@ -1,9 +1,9 @@
 """Stage results of one session -> catalog rows and arrays (no Prefect here).
 
 Maps the results of ``tasks.pipeline.STAGES`` onto the contract columns of
-``graspcap.schemas.tables``. Columns whose stage does not exist yet stay null (QA of
-penetration and contact agreement: refine_grasp and qa_metrics). See
-``docs/architecture.md``, "Orchestration".
+``graspcap.schemas.tables``. The ``qa_metrics`` stage decides ``status`` (ok, flagged, or
+failed with its reasons in ``error``) and fills the ``qa_*`` columns; a metric it could not
+compute stays null. See ``docs/architecture.md``, "Orchestration".
 """
 
 from __future__ import annotations
@@ -19,8 +19,13 @@ import numpy as np
 from graspcap.catalog.commit import ObjectMesh, SessionArrays
 from graspcap.schemas.tables import Status
 from graspcap.tasks.geometry import inv_T, transform_points
+from graspcap.tasks.qa_metrics import QaReport, qa_metrics
 
 IDENTITY_COLUMNS = ("participant", "object_id", "intent", "hand")
+QA_COLUMNS = ("reproj_rmse_px", "inlier_ratio", "crosscheck_mm", "registration_rmse_mm",
+              "fit_residual_mm", "penetration_max_mm", "penetration_mean_mm",
+              "contact_agreement", "contact_coverage")
+"""``qa_<name>`` columns of ``sessions``, filled from ``QaReport.metrics[<name>]``."""
 
 
 @dataclass(frozen=True)
@@ -38,27 +43,10 @@ def _flat(a: Any) -> list[float] | None:
     return None if a is None else np.asarray(a, dtype=float).reshape(-1).tolist()
 
 
-def _mm(value_m: float | None) -> float | None:
-    return None if value_m is None else float(value_m) * 1000.0
-
-
-def _get(results: Mapping[str, Any], stage: str, attr: str) -> Any:
-    result = results.get(stage)
-    return None if result is None else getattr(result, attr, None)
-
-
-def flag_reasons(results: Mapping[str, Any]) -> list[str]:
-    """Why a session that did not fail is ``flagged`` (empty: ``ok``)."""
-    reasons = []
-    if _get(results, "crosscheck_sfm", "flagged"):
-        reasons.append(f"crosscheck_sfm: {_get(results, 'crosscheck_sfm', 'reason')}")
-    if _get(results, "register_object", "ambiguous"):
-        reasons.append("register_object: symmetric object, registration ambiguous")
-    if _get(results, "estimate_adjustment", "ambiguous"):
-        reasons.append("estimate_adjustment: ambiguous")
-    if _get(results, "register_scan", "ambiguous"):
-        reasons.append("register_scan: symmetric object, scan registration ambiguous")
-    return reasons
+def qa_report(results: Mapping[str, Any]) -> QaReport:
+    """The session's QA verdict and metrics: the ``qa_metrics`` stage's result, or (when the
+    DAG has no such stage) computed from the results that are there."""
+    return results.get("qa_metrics") or qa_metrics(results)
 
 
 def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version: str,
@@ -75,26 +63,18 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
     T_adj = results["estimate_adjustment"].T_adj
     scan = results.get("register_scan")
     T_tt_o = None if scan is None else scan.T_turntable_o_scan
-    cross = results.get("crosscheck_sfm")
     contact = results.get("build_contactmap")
+    qa = qa_report(results)
     row = {
         "session_id": m.session_id, "participant": m.participant, "object_id": m.object_id,
         "intent": m.intent, "hand": str(m.hand),
-        "status": Status.FLAGGED.value if flag_reasons(results) else Status.OK.value,
-        "error": None,
+        "status": Status(qa.verdict).value, "error": qa.error,
         "steady_from": int(results["select_steady"].steady_from),
         "T_w_o_stage1": _flat(T_w_o1), "T_adj": _flat(T_adj), "T_w_p": _flat(fit.T_w_p),
         "T_turntable_o_scan": _flat(T_tt_o),
         "hand_scale": float(fit.scale), "joint_angles_rad": _flat(fit.angles_rad),
         "joints_w": _flat(sfm.joints_w), "joints_fit_w": _flat(fit.joints_fit_w),
-        "qa_reproj_rmse_px": float(sfm.reproj_rmse_px),
-        "qa_inlier_ratio": float(sfm.inlier_ratio),
-        "qa_crosscheck_mm": None if cross is None else _mm(cross.max_joint_discrepancy_m),
-        "qa_registration_rmse_mm": _mm(results["register_object"].inlier_rmse_m),
-        "qa_fit_residual_mm": float(fit.rmse_mm),
-        "qa_penetration_max_mm": None, "qa_penetration_mean_mm": None,
-        "qa_contact_agreement": None,
-        "qa_contact_coverage": None if contact is None else float(contact.coverage),
+        **{f"qa_{name}": qa.metrics.get(name) for name in QA_COLUMNS},
         "input_digest": input_digest, "code_version": code_version, "build_id": build_id,
         "config_digest": config_digest,
     }

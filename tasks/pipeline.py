@@ -28,13 +28,16 @@ from graspcap.tasks import (
     estimate_adjustment,
     fit_hand,
     load_session,
+    pictures,
     propagate_poses,
+    qa_metrics,
     reconstruct_hand,
     register_object,
     register_scan,
     select_steady,
 )
 from graspcap.tasks.config import StageConfig
+from graspcap.tasks.geometry import inv_T, project, transform_points
 from graspcap.tasks.hand_model import SURFACE_OFFSET_M, HandSide
 from graspcap.tasks.load_session import Session
 from graspcap.tasks.render import render
@@ -208,7 +211,45 @@ def _propagate_poses(
     )
 
 
+def final_hand(results: Mapping[str, Any]) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """The session's final hand: (vertices (k, 3) in the object frame, faces), and its joints
+    (21, 3) in the world; refined when ``refine_grasp`` ran, else the stage-3 fit."""
+    refined = results.get("refine_grasp")
+    if refined is not None:
+        return (refined.hand_vertices_o, refined.hand_faces), refined.joints_w
+    fit = results["fit_hand"]
+    hand = fit.mesh()
+    T_o_w = inv_T(results["estimate_adjustment"].T_w_o)  # object at the first steady frame
+    return (transform_points(T_o_w, hand.vertices), hand.faces), fit.joints_fit_w
+
+
+def _qa_metrics(session, config, **upstream):
+    return qa_metrics.qa_metrics(upstream, config, object_mesh=read_mesh(session),
+                                 hand_mesh_o=final_hand(upstream)[0])
+
+
+def _pictures(session, config, **up):
+    """The first steady frame (its camera is the world frame) and the final hand."""
+    f = up["select_steady"].steady_from
+    sfm, contact = up["reconstruct_hand"], up["build_contactmap"]
+    i = int(np.flatnonzero(np.asarray(sfm.frames) == f)[0])
+    hand_o, joints_w = final_hand(up)
+    image, background = pictures.read_frame(session, f)
+    return pictures.pictures(
+        image, background, up["detect_keypoints"].keypoints[f],
+        project(_K(session), transform_points(inv_T(sfm.T_w_c[i]), joints_w)), f,
+        session_id=session.session_id, outlier=~np.asarray(sfm.inlier[i], bool),
+        object_mesh=read_mesh(session), contact=contact.contact, observed=contact.observed,
+        hand_mesh_o=hand_o, up_o=up["register_scan"].T_turntable_o_scan[2, :3],
+        note=str(up["qa_metrics"].verdict), config=config,
+    )
+
+
 # --- the DAG ----------------------------------------------------------------------------------
+
+_REFINE: tuple[str, ...] = ()
+"""``("refine_grasp",)`` once stage 5 is in the DAG: qa_metrics and pictures then use the
+refined hand (``final_hand``); until then the stage-3 fit."""
 
 STAGES: dict[str, Stage] = {
     s.name: s
@@ -244,6 +285,15 @@ STAGES: dict[str, Stage] = {
               ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
                "fit_hand", "register_object", "estimate_adjustment"),
               ("manifest",), _propagate_poses),
+        Stage("qa_metrics", qa_metrics.STAGE_VERSION, qa_metrics.PRESETS,
+              ("load_session", "reconstruct_hand", "crosscheck_sfm", "fit_hand",
+               "register_object", "estimate_adjustment", "register_scan", "build_contactmap",
+               "propagate_poses") + _REFINE, ("manifest", "object_mesh"), _qa_metrics),
+        Stage("pictures", pictures.STAGE_VERSION, pictures.PRESETS,
+              ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
+               "fit_hand", "estimate_adjustment", "register_scan", "build_contactmap",
+               "qa_metrics") + _REFINE,
+              ("manifest", "object_mesh", "grasp_color", "grasp_depth"), _pictures),
     ]
 }  # fmt: skip
 

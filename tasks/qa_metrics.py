@@ -316,6 +316,10 @@ def stage_warnings(results: Mapping[str, Any]) -> list[str]:
         reasons.append("register_scan: symmetric object, scan registration ambiguous")
     if _attr(results, "build_contactmap", "all_ambient"):
         reasons.append("build_contactmap: no contact anywhere (the thermal scan is all ambient)")
+    n_behind = _attr(results, "propagate_poses", "n_behind")
+    if n_behind:
+        reasons.append(f"propagate_poses: {int(n_behind)} joint(s) at or behind a virtual "
+                       "camera (its pose is wrong)")
     if _attr(results, "refine_grasp", "accepted") is False:
         reasons.append(f"refine_grasp: refinement rejected, the stage-3 fit kept "
                        f"({_attr(results, 'refine_grasp', 'reason')})")

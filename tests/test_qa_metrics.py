@@ -48,6 +48,7 @@ def good_results(V: np.ndarray, contact: np.ndarray | None = None) -> dict:
                                                ambiguous=False),
         "register_scan": SimpleNamespace(fitness=0.95, inlier_rmse_m=0.001, ambiguous=False),
         "fit_hand": SimpleNamespace(rmse_mm=2.0),
+        "propagate_poses": SimpleNamespace(n_behind=0),
         "build_contactmap": SimpleNamespace(contact=contact, observed=observed,
                                             coverage=float(observed.mean()), all_ambient=False,
                                             n_degenerate_faces=0),
@@ -203,6 +204,7 @@ def test_stage_warnings_flag_the_session(scene):
         ("register_scan", "ambiguous", True): "register_scan: symmetric object",
         ("build_contactmap", "all_ambient", True): "build_contactmap: no contact anywhere",
         ("build_contactmap", "n_degenerate_faces", 3): "object mesh has 3 zero-area face(s)",
+        ("propagate_poses", "n_behind", 2): "propagate_poses: 2 joint(s) at or behind",
     }
     for (stage, attr, value), reason in cases.items():
         results = good_results(V, contact)
