@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from graspcap.catalog.layout import DEFAULT_CATALOG
+from graspcap.detect_cli import add_detect_parser
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -135,6 +136,8 @@ def build_parser() -> argparse.ArgumentParser:
     when.add_argument("--cron", help='cron schedule, e.g. "0 2 * * *"')
     when.add_argument("--interval", type=float, help="run every this many seconds")
     p.set_defaults(func=_cmd_serve)
+
+    add_detect_parser(sub)
     return parser
 
 

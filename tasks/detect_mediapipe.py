@@ -180,15 +180,15 @@ class Detector:
                 min_detection_confidence=config.min_detection_confidence,
                 min_tracking_confidence=config.min_tracking_confidence,
             )
-        self._started = False
+        self._calls = 0
 
     def __call__(self, rgb: np.ndarray) -> list[Candidate]:
         """Hands in an ``(h, w, 3) uint8`` RGB image."""
         h, w = rgb.shape[:2]
-        if not self._started:  # the graph logs once more on its first frame
+        self._calls += 1
+        if self._calls <= 3:  # graph threads log once more around the first frames
             with quiet_stderr():
                 result = self._hands.process(rgb)
-            self._started = True
         else:
             result = self._hands.process(rgb)
         out = []

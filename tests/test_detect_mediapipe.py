@@ -186,3 +186,28 @@ def test_strict_policy_drops_the_other_hand(photos, tmp_path):
     assert detect_keypoints(session, DetectKeypointsConfig(mediapipe=strict)).frames_with_hand == 0
     prefer = detect_keypoints(session, DetectKeypointsConfig(mediapipe=ONE))
     assert prefer.frames_with_hand == 1 and prefer.label_mismatch.tolist() == [True] + [False] * 3
+
+
+def test_detect_command_prints_keypoints_and_reports_bad_images(photos, tmp_path, capsys):
+    import argparse
+
+    from graspcap.detect_cli import BACKENDS, add_detect_parser
+
+    assert set(BACKENDS) == {b.value for b in Backend}
+    images, reference = photos
+    bad = tmp_path / "cut.jpg"
+    data = (images / "victory.jpg").read_bytes()
+    bad.write_bytes(data[: len(data) // 3])
+    parser = argparse.ArgumentParser()
+    add_detect_parser(parser.add_subparsers())
+    args = parser.parse_args(["detect", str(images / "victory.jpg"), str(bad), "--json"])
+    assert args.func(args) == 1  # one input could not be read
+    out = json.loads(capsys.readouterr().out)
+    assert [o["found"] for o in out] == [True, False] and "truncated" in out[1]["error"]
+    ref = np.asarray(reference["victory.jpg"]["model_complexity_1"][0]["landmarks_px"])
+    kp = np.asarray(out[0]["keypoints"])
+    assert kp.shape == (21, 3) and np.linalg.norm(kp[:, :2] - ref, axis=1).max() <= MAX_TOL_PX
+    args = parser.parse_args(["detect", str(images / "pointing_up.jpg"), "--hand", "left"])
+    assert args.func(args) == 0
+    text = capsys.readouterr().out
+    assert "left hand, 1 hand(s) found" in text and " 8 index_tip" in text
