@@ -27,7 +27,8 @@ $(STAMP): pyproject.toml constraints.txt
 	$(MAKE) system-libs
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -c constraints.txt -e '.[dev]'
+	$(PY) -m pip install -q -c constraints.txt -e '.[dev,mediapipe]'
+	$(PY) -m pip install -q -c constraints.txt --no-deps mediapipe==0.10.21
 	@touch $(STAMP)
 
 setup: $(STAMP)  ## Create .venv and install graspcap with everything it needs
