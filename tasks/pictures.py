@@ -3,7 +3,7 @@
 - :func:`keypoints_picture`: the detected 2D keypoints (dots coloured by confidence, red low
   to green high, with the hand skeleton) and the reprojected model joints (cyan crosses)
   drawn on a video frame, the colour frame when the session has one, else the depth frame
-  colourised (:func:`colorize_depth`); beside it a zoom on the hand.
+  colourised (:func:`~graspcap.tasks.drawing.colorize_depth`); beside it a zoom on the hand.
 - :func:`contact_picture`: the contact map on the object from a few viewpoints around it
   (top row), and the same views with the refined hand in a skin colour (bottom row).
   Ray cast offscreen with :func:`graspcap.tasks.render.cast_rays` (hit triangle and
@@ -23,6 +23,19 @@ import cv2
 import numpy as np
 
 from graspcap.tasks.config import StageConfig
+from graspcap.tasks.drawing import (
+    BACKGROUND_RGB,
+    MODEL_RGB,
+    OUTLIER_RGB,
+    SKIN_RGB,
+    UNOBSERVED_RGB,
+    colorize_depth,
+    confidence_rgb,
+    contact_rgb,
+    encode_png,
+    hand_depth_range,
+    label,
+)
 from graspcap.tasks.geometry import make_T
 from graspcap.tasks.render import cast_rays, pixel_rays
 
@@ -33,15 +46,6 @@ BONES = [(0, 1), (1, 2), (2, 3), (3, 4), (0, 5), (5, 6), (6, 7), (7, 8), (0, 9),
          (10, 11), (11, 12), (0, 13), (13, 14), (14, 15), (15, 16), (0, 17), (17, 18),
          (18, 19), (19, 20)]  # fmt: skip
 """The hand skeleton in the 21-keypoint layout."""
-
-BACKGROUND_RGB = (245, 245, 245)
-UNOBSERVED_RGB = (150, 150, 150)
-SKIN_RGB = (226, 188, 160)
-MODEL_RGB = (0, 230, 255)
-OUTLIER_RGB = (255, 0, 255)
-CONTACT_STOPS = np.array([[40, 90, 220], [250, 215, 50], [200, 20, 20]], dtype=float)
-"""Contact 0, 0.5 and 1 (blue, yellow, red); linear in between."""
-
 
 class Background(StrEnum):
     """What the keypoints are drawn on."""
@@ -96,76 +100,6 @@ class Pictures:
     contact_png: bytes | None
     frame: int
     background: Background
-
-
-def encode_png(image_rgb: np.ndarray) -> bytes:
-    """PNG bytes of an RGB ``(h, w, 3) uint8`` image."""
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(image_rgb),
-                                                cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise ValueError(f"cv2.imencode failed on an image of shape {image_rgb.shape}")
-    return buf.tobytes()
-
-
-def decode_png(data: bytes) -> np.ndarray:
-    """RGB ``(h, w, 3) uint8`` image from PNG bytes (the inverse of :func:`encode_png`)."""
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-
-
-def colorize_depth(depth_m: np.ndarray, range_m: tuple[float, float] | None = None
-                   ) -> np.ndarray:
-    """Depth ``(h, w)`` metres as RGB ``(h, w, 3) uint8``: near bright, far dark over
-    ``range_m`` (default: 2nd to 98th percentile of the measured depth; depth outside it is
-    clipped), no measurement black."""
-    depth = np.asarray(depth_m, dtype=float)
-    valid = np.isfinite(depth) & (depth > 0)
-    out = np.zeros((*depth.shape, 3), np.uint8)
-    if not valid.any():
-        return out
-    lo, hi = np.percentile(depth[valid], [2, 98]) if range_m is None else range_m
-    t = np.clip((hi - depth) / max(hi - lo, 1e-6), 0.0, 1.0)
-    gray = np.where(valid, 30 + 225 * t, 0).astype(np.uint8)
-    coloured = cv2.cvtColor(cv2.applyColorMap(gray, cv2.COLORMAP_BONE), cv2.COLOR_BGR2RGB)
-    out[valid] = coloured[valid]
-    return out
-
-
-def hand_depth_range(depth_m: np.ndarray, detected: np.ndarray, min_conf: float = 0.05,
-                     before_m: float = 0.05, behind_m: float = 0.15
-                     ) -> tuple[float, float] | None:
-    """A depth range around the detected hand (``detected`` (21, 3) x_px, y_px, conf): from
-    ``before_m`` nearer than its nearest keypoint to ``behind_m`` beyond its farthest;
-    None when no keypoint has a depth."""
-    depth = np.asarray(depth_m, dtype=float)
-    h, w = depth.shape
-    uv = np.rint(detected[detected[:, 2] > min_conf, :2]).astype(int)
-    uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)]
-    z = depth[uv[:, 1], uv[:, 0]] if len(uv) else np.zeros(0)
-    z = z[np.isfinite(z) & (z > 0)]
-    if not len(z):
-        return None
-    return float(z.min() - before_m), float(z.max() + behind_m)
-
-
-def confidence_rgb(conf: float) -> tuple[int, int, int]:
-    """Red (0) through yellow to green (1)."""
-    hue = int(round(60 * float(np.clip(conf, 0.0, 1.0))))
-    rgb = cv2.cvtColor(np.array([[[hue, 255, 255]]], np.uint8), cv2.COLOR_HSV2RGB)[0, 0]
-    return tuple(int(c) for c in rgb)
-
-
-def _text(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.45,
-          color: tuple[int, int, int] = (255, 255, 255), box: bool = True) -> None:
-    """``text`` with its baseline at ``org``; on a dark box unless ``box`` is False."""
-    if not text:
-        return
-    if box:
-        (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-        x0, y0 = max(org[0] - 3, 0), max(org[1] - th - 3, 0)
-        x1, y1 = min(org[0] + tw + 3, img.shape[1]), min(org[1] + base + 2, img.shape[0])
-        img[y0:y1, x0:x1] = (img[y0:y1, x0:x1] * 0.35).astype(np.uint8)
-    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, color, 1, cv2.LINE_AA)
 
 
 def _draw_hand(img: np.ndarray, detected: np.ndarray, model_px: np.ndarray | None,
@@ -255,25 +189,17 @@ def keypoints_picture(image_rgb: np.ndarray, detected: np.ndarray,
         p1 = tuple(int(v) for v in np.rint(offset + side))
         cv2.rectangle(frame, p0, p1, (255, 255, 255), 1)
     out = np.concatenate([frame, zoom], axis=1)
-    _text(out, title, (8, 20), 0.55)
+    label(out, title, (8, 20), 0.55)
     y = h - 30
     if outlier is not None:
         cv2.circle(out, (23, y - 24), 7, OUTLIER_RGB, 2, cv2.LINE_AA)
-        _text(out, "rejected as outlier by stage 2", (42, y - 20))
+        label(out, "rejected as outlier by stage 2", (42, y - 20))
     cv2.circle(out, (16, y - 4), 5, confidence_rgb(0.0), -1)
     cv2.circle(out, (30, y - 4), 5, confidence_rgb(1.0), -1)
-    _text(out, "detected keypoints (red: low, green: high confidence)", (42, y))
+    label(out, "detected keypoints (red: low, green: high confidence)", (42, y))
     cv2.drawMarker(out, (23, y + 16), MODEL_RGB, cv2.MARKER_TILTED_CROSS, 10, 2)
-    _text(out, "model joints, white line to their detection", (42, y + 20))
+    label(out, "model joints, white line to their detection", (42, y + 20))
     return out
-
-
-def contact_rgb(contact: np.ndarray) -> np.ndarray:
-    """Contact values (...) in [0, 1] -> RGB (..., 3) float in [0, 255] (``CONTACT_STOPS``)."""
-    t = np.clip(np.asarray(contact, dtype=float), 0.0, 1.0) * (len(CONTACT_STOPS) - 1)
-    i = np.minimum(t.astype(int), len(CONTACT_STOPS) - 2)
-    f = (t - i)[..., None]
-    return CONTACT_STOPS[i] * (1 - f) + CONTACT_STOPS[i + 1] * f
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -373,17 +299,17 @@ def contact_picture(object_vertices: np.ndarray, object_faces: np.ndarray,
     body = np.concatenate([np.concatenate(r, axis=1) for r in rows], axis=0)
     width = body.shape[1]
     head = np.full((30, width, 3), 40, np.uint8)
-    _text(head, title, (8, 20), 0.55, box=False)
+    label(head, title, (8, 20), 0.55, box=False)
     legend = np.full((34, width, 3), 255, np.uint8)
     bar = contact_rgb(np.linspace(0, 1, 120))[None].repeat(12, axis=0).astype(np.uint8)
     legend[4:16, 30:150] = bar
-    _text(legend, "0", (22, 29), 0.4, (0, 0, 0), box=False)
-    _text(legend, "1 contact", (144, 29), 0.4, (0, 0, 0), box=False)
+    label(legend, "0", (22, 29), 0.4, (0, 0, 0), box=False)
+    label(legend, "1 contact", (144, 29), 0.4, (0, 0, 0), box=False)
     legend[4:16, 230:250] = UNOBSERVED_RGB
-    _text(legend, "unobserved", (256, 15), 0.4, (0, 0, 0), box=False)
+    label(legend, "unobserved", (256, 15), 0.4, (0, 0, 0), box=False)
     if hand_mesh_o is not None:
         legend[4:16, 350:370] = SKIN_RGB
-        _text(legend, "hand", (376, 15), 0.4, (0, 0, 0), box=False)
+        label(legend, "hand", (376, 15), 0.4, (0, 0, 0), box=False)
     return np.concatenate([head, body, legend], axis=0)
 
 
@@ -429,6 +355,5 @@ def pictures(frame_image: np.ndarray, background: Background, detected: np.ndarr
 
 __all__ = [
     "BONES", "PRESETS", "STAGE_VERSION", "Background", "Pictures", "PicturesConfig",
-    "colorize_depth", "contact_picture", "contact_rgb", "decode_png", "encode_png",
-    "hand_depth_range", "keypoints_picture", "look_at", "pictures", "read_frame",
+    "contact_picture", "keypoints_picture", "look_at", "pictures", "read_frame",
 ]  # fmt: skip

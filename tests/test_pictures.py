@@ -7,18 +7,20 @@ import numpy as np
 import pytest
 import trimesh
 
-from graspcap.tasks.load_session import load_session
-from graspcap.tasks.pictures import (
+from graspcap.tasks.drawing import (
     MODEL_RGB,
-    PRESETS,
     SKIN_RGB,
     UNOBSERVED_RGB,
-    Background,
     colorize_depth,
     confidence_rgb,
-    contact_picture,
     decode_png,
     hand_depth_range,
+)
+from graspcap.tasks.load_session import load_session
+from graspcap.tasks.pictures import (
+    PRESETS,
+    Background,
+    contact_picture,
     keypoints_picture,
     pictures,
     read_frame,
