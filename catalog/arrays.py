@@ -4,19 +4,32 @@ The digest is the sha256 of the group's kind and, per array in ``ZARR_LAYOUT`` o
 dtype, shape and bytes: equal content gives the same group whatever the Zarr codecs, so a build
 that reproduces a session's arrays reuses the group already there. A group is written under
 ``arrays/.tmp/`` and renamed into place when complete, so a reader never sees half a group.
+
+Reading is the hot path of training (one group per item), so it costs one pass over the group's
+few small files and one decode: the files are read with the layout's fsspec filesystem (a local
+folder or an object store, where ``cat`` fetches them concurrently) into a Zarr ``MemoryStore``
+and decoded by zarr's async API on an event loop owned by the calling thread. Going through
+zarr's synchronous API instead hands every metadata and chunk read to zarr's I/O thread and
+back, which measured 3-10x slower on a loaded machine (``docs/architecture.md``).
 """
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import os
 import shutil
+import threading
 import uuid
 import warnings
 from collections.abc import Mapping
 
 import numpy as np
 import zarr
+import zarr.api.asynchronous as zarr_async
+from zarr.core.buffer import cpu
+from zarr.core.sync import sync as zarr_sync
+from zarr.storage import MemoryStore
 
 from graspcap.catalog.errors import CatalogError, CatalogSchemaError
 from graspcap.catalog.layout import CatalogLayout
@@ -100,17 +113,66 @@ def write_group(layout: CatalogLayout, kind: str, arrays: Mapping[str, np.ndarra
     return True
 
 
+_LOOPS = threading.local()
+
+
+def _run(coro):
+    """Run ``coro`` on this thread's own event loop (zarr's loop when one is running here)."""
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        pass
+    else:  # called from async code (a notebook): hand over to zarr's I/O thread
+        return zarr_sync(coro)
+    loop = getattr(_LOOPS, "loop", None)
+    if loop is None or _LOOPS.pid != os.getpid():  # a forked DataLoader worker gets its own
+        loop = _LOOPS.loop = asyncio.new_event_loop()
+        _LOOPS.pid = os.getpid()
+    return loop.run_until_complete(coro)
+
+
+def _group_files(layout: CatalogLayout, root: str, names: tuple[str, ...] | None
+                 ) -> dict[str, bytes]:
+    """The files of the group at ``root`` (the group's own and those of ``names``), by key."""
+    if layout.is_local:
+        out = {}
+        tops = [root] if names is None else [os.path.join(root, n) for n in names]
+        with open(os.path.join(root, "zarr.json"), "rb") as fh:
+            out["zarr.json"] = fh.read()
+        for top in tops:
+            for folder, _, files in os.walk(top):
+                for f in files:
+                    path = os.path.join(folder, f)
+                    with open(path, "rb") as fh:
+                        out[os.path.relpath(path, root)] = fh.read()
+        return out
+    fs = layout.fs
+    paths = fs.find(root) if names is None else [
+        root + "/zarr.json", *[p for n in names for p in fs.find(f"{root}/{n}")]]
+    return {p[len(root) + 1:]: data for p, data in fs.cat(paths).items()}
+
+
+async def _decode(files: dict[str, bytes], names: tuple[str, ...] | None
+                  ) -> dict[str, np.ndarray]:
+    store = MemoryStore({k: cpu.Buffer.from_bytes(v) for k, v in files.items()})
+    group = await zarr_async.open_group(store=store, mode="r", zarr_format=3)
+    if names is None:
+        names = tuple(ZARR_LAYOUT[group.attrs["kind"]].arrays)
+    arrays = await asyncio.gather(*(group.getitem(n) for n in names))
+    values = await asyncio.gather(*(a.getitem(...) for a in arrays))
+    return dict(zip(names, values, strict=True))
+
+
 def read_group(layout: CatalogLayout, digest: str,
                names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
     """The arrays of the group ``digest`` (all, or ``names`` in that order)."""
-    path = layout.array_group(digest)
-    if not path.is_dir():
-        raise CatalogError(f"array group {digest} is missing from {layout.arrays_dir}; "
-                           "it was removed by vacuum or the catalog is damaged")
-    group = zarr.open_group(str(path), mode="r", zarr_format=3, use_consolidated=True)
-    if names is None:
-        names = tuple(ZARR_LAYOUT[group.attrs["kind"]].arrays)
-    return {name: group[name][...] for name in names}
+    root = layout.group_fs_path(digest)
+    try:
+        files = _group_files(layout, root, names)
+    except FileNotFoundError:
+        raise CatalogError(f"array group {digest} is missing from {layout.uri}/arrays; "
+                           "it was removed by vacuum or the catalog is damaged") from None
+    return _run(_decode(files, names))
 
 
 def all_digests(layout: CatalogLayout) -> set[str]:

@@ -129,6 +129,7 @@ def _pause(point: str) -> None:
 @contextmanager
 def writer_lock(layout: CatalogLayout, timeout_s: float) -> Iterator[None]:
     """Hold the catalog's exclusive writer lock; wait up to ``timeout_s``, then fail clearly."""
+    layout.require_local("writing to a catalog")
     with open(layout.lock_file, "a+") as fh:
         deadline = time.monotonic() + timeout_s
         while True:
@@ -236,8 +237,13 @@ def _predicate(ids: list[str]) -> str:
     return f"session_id IN ({quoted})"
 
 
-def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: float) -> int:
-    """Run the commit protocol (module docstring); return the new catalog version."""
+def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: float,
+                 format_version: int = CATALOG_FORMAT_VERSION) -> int:
+    """Run the commit protocol (module docstring); return the new catalog version.
+
+    ``format_version`` goes into the versions row; only the golden catalog of an older format
+    passes another one.
+    """
     sessions, frames, groups = _prepare(commit)
     ids = sessions["session_id"].to_pylist()
     with writer_lock(layout, lock_timeout_s):
@@ -297,7 +303,7 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
         counts = {name: DeltaTable(str(layout.table(name))).count() for name in DATA_TABLES}
         versions_row = {
             "version": version, "time_utc": now, "build_id": commit.build.build_id,
-            "format_version": CATALOG_FORMAT_VERSION,
+            "format_version": format_version,
             "table_versions": json.dumps(pinned, sort_keys=True),
             **{f"rows_{name}": counts[name] for name in DATA_TABLES},
         }

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from pathlib import Path
+from functools import cached_property
+from pathlib import Path, PurePosixPath
+from typing import Any
 
-from graspcap.catalog.errors import CatalogFormatError
+import fsspec
+
+from graspcap.catalog.errors import CatalogError, CatalogFormatError
 from graspcap.schemas.tables import CATALOG_FORMAT_NAME, CATALOG_FORMAT_VERSION
 
 DEFAULT_CATALOG = Path("graspcap-catalog")
@@ -16,9 +20,36 @@ DEFAULT_CATALOG = Path("graspcap-catalog")
 in the working directory that cannot be mistaken for the source tree's ``catalog/`` package."""
 
 
+LOCAL_SCHEMES = ("", "file", "local")
+"""URL schemes that name a local folder: ``/data/cat``, ``file:///data/cat``."""
+DELTA_SCHEMES = ("s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl")
+"""Object stores deltalake reads itself (its storage_options take the credentials)."""
+MIGRATIONS_FROM = (1,)
+"""Older formats ``graspcap catalog migrate`` upgrades (``graspcap.catalog.migrate``)."""
+
+
+def parse_uri(uri: str | Path) -> tuple[Path | None, str | None]:
+    """``(local folder, None)`` for a path or ``file://`` URL, ``(None, url)`` for an object store.
+
+    Fails for schemes the catalog cannot serve: fsspec's ``memory://`` (deltalake keeps its
+    own in-memory store, invisible to fsspec) and anything deltalake has no store for.
+    """
+    text = str(uri)
+    scheme = text.split("://", 1)[0].lower() if "://" in text else ""
+    if scheme in LOCAL_SCHEMES:
+        local = text.split("://", 1)[1] if scheme else text
+        return Path(local).expanduser().resolve(), None
+    if scheme in DELTA_SCHEMES:
+        return None, text.rstrip("/")
+    raise CatalogError(
+        f"{text}: catalogs open from a local path, file://, or an object store deltalake "
+        f"supports ({', '.join(s + '://' for s in DELTA_SCHEMES)}); {scheme}:// is not one "
+        "(memory:// cannot work: deltalake's Delta tables never see fsspec's memory)")
+
+
 @dataclass(frozen=True)
 class CatalogLayout:
-    """Every path of a catalog, from its root (a local folder; fsspec URLs are a later step).
+    """Every path of a catalog, from its root: a local folder, or ``url`` on an object store.
 
     ```
     ROOT/catalog.json                              format stamp
@@ -27,9 +58,63 @@ class CatalogLayout:
     ROOT/arrays/.tmp/                              groups being written (renamed when complete)
     ROOT/.lock                                     writer lock (fcntl.flock)
     ```
+
+    Readers go through ``uri``-based paths and ``fs`` (fsspec), so the same code reads a local
+    folder and an object store; writers (commit, tag, vacuum, migrate) need a local folder
+    (``require_local``): their lock is ``fcntl.flock`` and their arrays are renamed into place.
     """
 
     root: Path
+    """The local folder (for an object store: the URL's path, never used for I/O)."""
+    url: str | None = None
+    """The object-store URL, None for a local catalog."""
+    storage_options: dict[str, str] = field(default_factory=dict, compare=False, hash=False)
+    """Credentials and settings for deltalake and fsspec (object stores only)."""
+
+    @classmethod
+    def from_uri(cls, uri: str | Path, storage_options: dict[str, str] | None = None
+                 ) -> CatalogLayout:
+        local, url = parse_uri(uri)
+        if local is not None:
+            return cls(local)
+        return cls(PurePosixPath(url.split("://", 1)[1]), url, dict(storage_options or {}))
+
+    @property
+    def is_local(self) -> bool:
+        return self.url is None
+
+    @property
+    def uri(self) -> str:
+        """The root as a string deltalake and fsspec both take."""
+        return str(self.root) if self.url is None else self.url
+
+    @cached_property
+    def fs(self) -> Any:
+        """An fsspec filesystem for the root (``LocalFileSystem`` for a local catalog)."""
+        if self.url is None:
+            return fsspec.filesystem("file")
+        return fsspec.core.url_to_fs(self.url, **self.storage_options)[0]
+
+    def fs_path(self, *parts: str) -> str:
+        """A path under the root as ``fs`` names it."""
+        base = str(self.root) if self.url is None else self.fs._strip_protocol(self.url)
+        return "/".join([base.rstrip("/"), *parts])
+
+    def table_uri(self, name: str) -> str:
+        """The Delta table of ``name`` as deltalake takes it (with ``storage_options``)."""
+        return f"{self.uri}/tables/{name}"
+
+    def group_fs_path(self, digest: str) -> str:
+        """The Zarr group of ``digest`` as ``fs`` names it."""
+        return self.fs_path("arrays", digest[:2], f"{digest}.zarr")
+
+    def require_local(self, action: str) -> None:
+        """Fail unless the catalog is a local folder (writers need ``flock`` and ``rename``)."""
+        if self.url is not None:
+            raise CatalogError(
+                f"{action} needs a local catalog (its writer lock is fcntl.flock and arrays "
+                f"are renamed into place); {self.url} is an object store, which this graspcap "
+                "only reads. Write to a local folder and sync it, see docs/architecture.md")
 
     @property
     def format_file(self) -> Path:
@@ -56,11 +141,12 @@ class CatalogLayout:
         return self.arrays_dir / digest[:2] / f"{digest}.zarr"
 
 
-def write_format_file(layout: CatalogLayout) -> None:
-    """Stamp a new catalog (atomically: temp file, then rename)."""
+def write_format_file(layout: CatalogLayout, version: int = CATALOG_FORMAT_VERSION) -> None:
+    """Stamp a catalog as format ``version`` (atomically: temp file, then rename)."""
+    layout.require_local("stamping a catalog")
     stamp = {
         "format": CATALOG_FORMAT_NAME,
-        "format_version": CATALOG_FORMAT_VERSION,
+        "format_version": version,
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     tmp = layout.format_file.with_suffix(".json.tmp")
@@ -68,32 +154,48 @@ def write_format_file(layout: CatalogLayout) -> None:
     os.replace(tmp, layout.format_file)
 
 
-def check_format(layout: CatalogLayout) -> dict:
-    """Read ``catalog.json`` and fail with the way forward unless this graspcap reads it."""
-    path = layout.format_file
-    if not path.is_file():
-        raise CatalogFormatError(
-            f"{layout.root} is not a graspcap catalog (no catalog.json); "
-            "open it with create=True to make a new one")
+def read_format(layout: CatalogLayout) -> dict:
+    """The stamp in ``catalog.json``, or ``CatalogFormatError`` when it is missing or unreadable."""
+    path = layout.fs_path("catalog.json")
     try:
-        stamp = json.loads(path.read_text())
+        text = layout.fs.cat_file(path).decode()
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+        raise CatalogFormatError(
+            f"{layout.uri} is not a graspcap catalog (no catalog.json); "
+            "open it with create=True to make a new one") from None
+    try:
+        stamp = json.loads(text)
     except json.JSONDecodeError as exc:
         raise CatalogFormatError(f"{path} is not valid JSON: {exc}") from exc
-    if stamp.get("format") != CATALOG_FORMAT_NAME:
+    if not isinstance(stamp, dict) or stamp.get("format") != CATALOG_FORMAT_NAME:
+        found = stamp.get("format") if isinstance(stamp, dict) else stamp
         raise CatalogFormatError(
-            f"{path}: format is {stamp.get('format')!r}, expected {CATALOG_FORMAT_NAME!r}")
-    found = stamp.get("format_version")
+            f"{path}: format is {found!r}, expected {CATALOG_FORMAT_NAME!r}")
+    if not isinstance(stamp.get("format_version"), int):
+        raise CatalogFormatError(
+            f"{path}: format_version is {stamp.get('format_version')!r}, expected an integer")
+    return stamp
+
+
+def check_format(layout: CatalogLayout) -> dict:
+    """Read ``catalog.json`` and fail with the way forward unless this graspcap reads it."""
+    stamp = read_format(layout)
+    found = stamp["format_version"]
     if found == CATALOG_FORMAT_VERSION:
         return stamp
-    if isinstance(found, int) and found < CATALOG_FORMAT_VERSION:
+    if found < CATALOG_FORMAT_VERSION and found in MIGRATIONS_FROM:
         raise CatalogFormatError(
-            f"catalog {layout.root} was written by catalog format {found}; this graspcap reads "
+            f"catalog {layout.uri} was written by catalog format {found}; this graspcap reads "
             f"format {CATALOG_FORMAT_VERSION}. Migrate it with `graspcap catalog migrate "
-            f"{layout.root}` (what changed: docs/data_changelog.md), or read it with the "
-            f"graspcap release that wrote format {found}")
-    if isinstance(found, int):
+            f"{layout.uri}` (in place; `--out NEW` upgrades a copy instead; what changed: "
+            f"docs/data_changelog.md), or read it with the graspcap release that wrote "
+            f"format {found}")
+    if found < CATALOG_FORMAT_VERSION:
         raise CatalogFormatError(
-            f"catalog {layout.root} was written by catalog format {found}, newer than this "
-            f"graspcap reads (format {CATALOG_FORMAT_VERSION}); upgrade graspcap "
-            "(`pip install -U graspcap`) to read it (docs/data_changelog.md lists the formats)")
-    raise CatalogFormatError(f"{path}: format_version is {found!r}, expected an integer")
+            f"catalog {layout.uri} was written by catalog format {found}, which no graspcap "
+            f"release migrates (formats {list(MIGRATIONS_FROM)} migrate); rebuild it from its "
+            "sessions with `graspcap build SESSIONS --catalog NEW` (docs/data_changelog.md)")
+    raise CatalogFormatError(
+        f"catalog {layout.uri} was written by catalog format {found}, newer than this "
+        f"graspcap reads (format {CATALOG_FORMAT_VERSION}); upgrade graspcap "
+        "(`pip install -U graspcap`) to read it (docs/data_changelog.md lists the formats)")

@@ -20,7 +20,13 @@ from deltalake import write_deltalake
 
 from graspcap.catalog.arrays import read_group
 from graspcap.catalog.commit import BuildCommit, commit_build, writer_lock
-from graspcap.catalog.delta import create_tables, read_latest, read_table, table_versions_of
+from graspcap.catalog.delta import (
+    create_tables,
+    read_files,
+    read_latest,
+    table_files,
+    table_versions_of,
+)
 from graspcap.catalog.diff import diff_sessions
 from graspcap.catalog.errors import CatalogError, VersionNotFound
 from graspcap.catalog.layout import CatalogLayout, check_format, write_format_file
@@ -31,14 +37,17 @@ from graspcap.schemas.tables import DATA_TABLES
 _TAG = re.compile(r"[A-Za-z][A-Za-z0-9._-]*")
 
 
-def open(uri: str | Path, *, create: bool = False, lock_timeout_s: float = 60.0) -> Catalog:  # noqa: A001
-    """Open the catalog at ``uri`` (a local folder); ``create`` makes it when absent.
+def open(uri: str | Path, *, create: bool = False, lock_timeout_s: float = 60.0,  # noqa: A001
+         storage_options: dict[str, str] | None = None) -> Catalog:
+    """Open the catalog at ``uri``; ``create`` makes it when absent (local folders only).
 
+    ``uri`` is a local path, a ``file://`` URL, or an object-store URL deltalake serves
+    (``s3://``, ``gs://``, ``az://``, ...; read-only here, credentials in ``storage_options``).
     Fails with ``CatalogFormatError`` naming the way forward when the folder holds a catalog of
     another format version.
     """
-    layout = CatalogLayout(Path(uri).expanduser().resolve())
-    if create and not layout.format_file.exists():
+    layout = CatalogLayout.from_uri(uri, storage_options)
+    if create and layout.is_local and not layout.format_file.exists():
         layout.root.mkdir(parents=True, exist_ok=True)
         create_tables(layout)
         write_format_file(layout)  # last: a half-created catalog has no stamp
@@ -53,11 +62,12 @@ class Catalog:
         self.layout = layout
         self.lock_timeout_s = lock_timeout_s
         self._pins: dict[int, dict[str, int]] = {}
+        self._files: dict[tuple[str, int], list[str]] = {}
         self._tables: dict[tuple[str, int], pa.Table] = {}
         self._index: dict[int, dict[str, dict]] = {}
 
     def __repr__(self) -> str:
-        return f"Catalog({str(self.layout.root)!r})"
+        return f"Catalog({self.layout.uri!r})"
 
     def __getstate__(self) -> dict:
         return {"layout": self.layout, "lock_timeout_s": self.lock_timeout_s}
@@ -94,7 +104,7 @@ class Catalog:
         if version is None:
             latest = self.latest_version()
             if latest is None:
-                raise VersionNotFound(f"catalog {self.layout.root} has no version yet")
+                raise VersionNotFound(f"catalog {self.layout.uri} has no version yet")
             return latest
         if isinstance(version, str):
             tags = self.tags()
@@ -109,7 +119,7 @@ class Catalog:
         if version not in self._pins:
             rows = self._versions_raw().filter(pc.equal(pc.field("version"), version))
             if rows.num_rows == 0:
-                raise VersionNotFound(f"catalog {self.layout.root} has no version {version} "
+                raise VersionNotFound(f"catalog {self.layout.uri} has no version {version} "
                                       f"(latest: {self.latest_version()})")
             self._pins[version] = table_versions_of(rows.to_pylist()[0])
         return self._pins[version]
@@ -125,6 +135,19 @@ class Catalog:
                             mode="append")
 
     # tables -----------------------------------------------------------------------------
+    def files(self, name: str, version: int | str | None = None) -> list[str]:
+        """The Parquet files (local paths, or URLs on an object store) of table ``name`` at
+        ``version``: hand them to ``pyarrow.parquet.read_table``, ``duckdb.read_parquet``,
+        ``polars.read_parquet`` / ``scan_parquet`` or ``pandas.read_parquet`` to read exactly
+        that version without graspcap (fixed-size lists come back as plain lists there)."""
+        if name not in DATA_TABLES:
+            raise ValueError(f"table {name!r}: one of {DATA_TABLES}")
+        v = self.resolve(version)
+        key = (name, v)
+        if key not in self._files:  # versions are immutable: list each once
+            self._files[key] = table_files(self.layout, name, self._pinned(v)[name])
+        return list(self._files[key])
+
     def table(self, name: str, version: int | str | None = None,
               columns: list[str] | None = None) -> pa.Table:
         """Table ``name`` (sessions, frames, builds) as of ``version``."""
@@ -134,7 +157,7 @@ class Catalog:
         key = (name, v)
         if columns is None and key in self._tables:
             return self._tables[key]
-        table = read_table(self.layout, name, self._pinned(v)[name], columns)
+        table = read_files(name, self.files(name, v), columns, self.layout)
         if columns is None and name != "frames":
             self._tables[key] = table
         return table

@@ -11,6 +11,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from graspcap.catalog.cli import add_catalog_parser
 from graspcap.catalog.layout import DEFAULT_CATALOG
 from graspcap.detect_cli import add_detect_parser
 
@@ -137,6 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     when.add_argument("--interval", type=float, help="run every this many seconds")
     p.set_defaults(func=_cmd_serve)
 
+    add_catalog_parser(sub)
     add_detect_parser(sub)
     return parser
 

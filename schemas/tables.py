@@ -21,8 +21,15 @@ from enum import StrEnum
 import numpy as np
 import pyarrow as pa
 
-CATALOG_FORMAT_VERSION = 1
-"""Bumped on any change of the tables' columns, their encodings or the Zarr layout."""
+CATALOG_FORMAT_VERSION = 2
+"""Bumped on any change of the tables' columns, their encodings, their Delta table properties or
+the Zarr layout (``docs/data_changelog.md``)."""
+
+DELTA_TABLE_PROPERTIES: dict[str, str] = {"delta.enableExpiredLogCleanup": "false"}
+"""Properties of every Delta table (format 2 on). Delta deletes log entries older than
+``delta.logRetentionDuration`` (30 days) whenever it writes a checkpoint (every 100 commits);
+a catalog version pins Delta versions, so that cleanup would make old (tagged) versions
+unreadable. With it off, only ``Catalog.vacuum`` removes what a version needs."""
 
 CATALOG_FORMAT_NAME = "graspcap-catalog"
 

@@ -220,8 +220,8 @@ def test_second_writer_times_out_with_a_clear_message(tmp_path):
     assert cat.commit(make_build(IDS_2, seed=0)) == 1
 
 
-def test_older_format_names_the_migration(tmp_path):
-    with pytest.raises(gc.CatalogFormatError, match=r"format 0.*graspcap catalog migrate"):
+def test_unmigratable_older_format_names_the_rebuild(tmp_path):
+    with pytest.raises(gc.CatalogFormatError, match=r"format 0.*no graspcap.*graspcap build"):
         gc.open(GOLDEN / "catalog_v0")
     with pytest.raises(gc.CatalogFormatError, match="not a graspcap catalog"):
         gc.open(tmp_path / "nothing")
@@ -238,10 +238,10 @@ def test_newer_format_says_upgrade_and_golden_build_reads_back(tmp_path):
     row = cat.table("sessions").to_pylist()[0]
     np.testing.assert_array_equal(np.reshape(row["T_w_p"], (4, 4)), e["T"])
     stamp = json.loads((root / "catalog.json").read_text())
-    assert stamp["format_version"] == 1
-    stamp["format_version"] = 2
+    assert stamp["format_version"] == 2
+    stamp["format_version"] = 3
     (root / "catalog.json").write_text(json.dumps(stamp))
-    with pytest.raises(gc.CatalogFormatError, match=r"format 2.*upgrade graspcap"):
+    with pytest.raises(gc.CatalogFormatError, match=r"format 3.*upgrade graspcap"):
         gc.open(root)
 
 

@@ -108,4 +108,4 @@ def test_duckdb_and_polars_read_the_parquet(catalog, module):
         assert pl.from_arrow(frames).height == 5 * FRAMES
     else:
         import duckdb
-        assert duckdb.sql("select count(*) from frames").fetchone()[0] == 5 * FRAMES
+        assert duckdb.sql("select count(*) from frames").fetchall()[0][0] == 5 * FRAMES

@@ -2,25 +2,36 @@
 
     .venv/bin/python tests/golden/make_golden.py
 
-- ``catalog_v0/``: the stamp of a catalog of format 0 (older than any reader here), for the
-  "names the way forward" error. A few hundred bytes.
+- ``catalog_v0/``: the stamp of a catalog of format 0 (never released, no migration leads from
+  it), for the "rebuild it" error. A few hundred bytes.
+- ``catalog_v1.tar.gz``: a real catalog of format 1, the format before the current one:
+  ``build()`` committed as version 1 and tagged ``golden``, written by today's commit code with
+  format 1's differences (Delta tables without ``DELTA_TABLE_PROPERTIES``, stamp and versions
+  row saying 1; docs/data_changelog.md). Unpacked it is ~80 KB in ~35 files (Delta logs, and
+  Parquet footers repeating the schema's docs), packed ~15 KB. Tests unpack it into a temporary
+  folder: opening fails naming ``graspcap catalog migrate``, migrating makes it readable.
 
-``build()`` and ``expected()`` describe one tiny format-1 build (one session, two frames, a
-4-vertex object); tests write it to a temporary catalog. A full format-1 catalog is not checked
-in: its Delta logs and Parquet footers (schema metadata repeated per file) come to ~86 KB in 33
-files; ``--v1 DIR`` writes one for inspection.
+``build()`` and ``expected()`` describe the tiny build (one session, two frames, a 4-vertex
+object), nothing random; ``--v1 DIR`` also writes the format-1 catalog unpacked for inspection.
 """
 
 from __future__ import annotations
 
 import argparse
+import gzip
+import io
 import json
 import shutil
+import tarfile
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 import graspcap.catalog as gc
+from graspcap.catalog.commit import commit_build
+from graspcap.catalog.delta import create_tables
+from graspcap.catalog.layout import CatalogLayout, write_format_file
 
 HERE = Path(__file__).resolve().parent
 SESSION = "p01-cube-use-00"
@@ -69,20 +80,49 @@ def build() -> gc.BuildCommit:
         object_meshes={"cube": gc.ObjectMesh(e["vertices"], e["faces"])})
 
 
-def write_v1(root: Path) -> gc.Catalog:
+def write_v1(root: Path) -> None:
     """A format-1 catalog at ``root`` holding ``build()`` as version 1, tagged ``golden``."""
-    cat = gc.open(root, create=True)
-    cat.commit(build())
-    cat.tag(1, "golden")
-    return cat
+    layout = CatalogLayout(root.resolve())
+    layout.root.mkdir(parents=True)
+    create_tables(layout, properties=None)  # format 1: Delta's default table properties
+    write_format_file(layout, 1)
+    commit_build(layout, build(), lock_timeout_s=10.0, format_version=1)
+    gc.Catalog(layout).tag(1, "golden")  # Catalog() skips the format check open() makes
+
+
+def pack(root: Path, archive: Path) -> None:
+    """``root`` as a .tar.gz with fixed owners and times (sorted members)."""
+    with (archive.open("wb") as raw,
+          gzip.GzipFile(fileobj=raw, mode="wb", mtime=0, compresslevel=9) as gz,
+          tarfile.open(fileobj=gz, mode="w") as tar):
+        for path in sorted(root.rglob("*")):
+            if path.name == ".lock":
+                continue
+            info = tar.gettarinfo(str(path), str(path.relative_to(root)))
+            info.mtime, info.uid, info.gid, info.uname, info.gname = 0, 0, 0, "", ""
+            if path.is_file():
+                tar.addfile(info, io.BytesIO(path.read_bytes()))
+            else:
+                tar.addfile(info)
+
+
+def unpack(archive: Path, dest: Path) -> Path:
+    """Unpack a golden archive into ``dest`` (created); return ``dest``."""
+    dest.mkdir(parents=True)
+    with tarfile.open(archive) as tar:
+        tar.extractall(dest, filter="data")
+    return dest
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--v1", type=Path, help="also write a format-1 catalog here")
+    parser.add_argument("--v1", type=Path, help="also write the format-1 catalog here")
     args = parser.parse_args()
     if args.v1:
         write_v1(args.v1)
+    with tempfile.TemporaryDirectory() as tmp:
+        write_v1(Path(tmp) / "v1")
+        pack(Path(tmp) / "v1", HERE / "catalog_v1.tar.gz")
     v0 = HERE / "catalog_v0"
     shutil.rmtree(v0, ignore_errors=True)
     v0.mkdir()

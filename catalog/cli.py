@@ -1,0 +1,239 @@
+"""`graspcap catalog versions|show|diff|tag|export|vacuum|migrate` on the command line.
+
+``add_catalog_parser(subparsers)`` adds the ``catalog`` command to graspcap's parser. Every
+subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL), prints text for a
+person or ``--json`` for a script, and exits 2 with the catalog's message on a catalog error
+(missing version or tag, older format, ...). Prefect-free, like every catalog reader.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+import numpy as np
+import pyarrow.compute as pc
+
+from graspcap.catalog.errors import CatalogError
+from graspcap.catalog.layout import DEFAULT_CATALOG
+from graspcap.schemas.tables import DATA_TABLES
+
+
+def _open(args: argparse.Namespace):
+    from graspcap.catalog.store import open as open_catalog
+
+    return open_catalog(args.catalog)
+
+
+def _version_arg(text: str | None) -> int | str | None:
+    """A version number, a tag, or None (latest)."""
+    if text is None:
+        return None
+    return int(text) if text.isdigit() else text
+
+
+def _print_json(obj: Any) -> None:
+    print(json.dumps(obj, indent=2, sort_keys=True, default=str))
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, float):
+        return round(value, 6)
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    return value
+
+
+def summary(cat, version: int | str | None = None) -> dict:
+    """A version's summary: number, build, tags, row counts, status counts, QA medians."""
+    v = cat.resolve(version)
+    info = next(r for r in cat.versions().to_pylist() if r["version"] == v)
+    sessions = cat.table("sessions", v)
+    build = [r for r in cat.table("builds", v).to_pylist() if r["catalog_version"] == v]
+    status = sessions.group_by("status").aggregate([([], "count_all")]).to_pylist()
+    qa = {}
+    for name in sessions.column_names:
+        if name.startswith("qa_"):
+            values = sessions[name].drop_null().to_numpy()
+            values = values[np.isfinite(values)]
+            qa[name] = float(np.median(values)) if len(values) else None
+    return {
+        "version": v, "time_utc": info["time_utc"].isoformat(), "build_id": info["build_id"],
+        "tags": info["tags"], "format_version": info["format_version"],
+        "rows": {name: info[f"rows_{name}"] for name in DATA_TABLES},
+        "status": {r["status"]: r["count_all"] for r in status},
+        "qa_median": qa,
+        "build": None if not build else {
+            k: build[0][k] for k in ("build_id", "code_version", "config_digest")} | {
+            k: len(build[0][k]) for k in ("sessions_added", "sessions_changed",
+                                          "sessions_unchanged", "sessions_removed",
+                                          "sessions_failed")},
+    }
+
+
+def _cmd_versions(args: argparse.Namespace) -> int:
+    table = _open(args).versions()
+    rows = [{"version": r["version"], "time_utc": r["time_utc"].isoformat(timespec="seconds"),
+             "build_id": r["build_id"], "tags": r["tags"], "format": r["format_version"],
+             **{f"rows_{n}": r[f"rows_{n}"] for n in DATA_TABLES}} for r in table.to_pylist()]
+    if args.json:
+        _print_json(rows)
+        return 0
+    if not rows:
+        print(f"catalog {args.catalog}: no versions yet")
+        return 0
+    print(f"{'version':>7}  {'committed (UTC)':<25}  {'build':<24} {'sessions':>8} "
+          f"{'frames':>9}  tags")
+    for r in rows:
+        print(f"{r['version']:>7}  {r['time_utc']:<25}  {r['build_id']:<24} "
+              f"{r['rows_sessions']:>8} {r['rows_frames']:>9}  {', '.join(r['tags'])}")
+    return 0
+
+
+def _cmd_show(args: argparse.Namespace) -> int:
+    cat = _open(args)
+    version = _version_arg(args.version)
+    if args.session is None:
+        out = summary(cat, version)
+        if args.json:
+            _print_json(out)
+            return 0
+        print(f"version {out['version']}  build {out['build_id']}  committed "
+              f"{out['time_utc']}  format {out['format_version']}  tags "
+              f"{', '.join(out['tags']) or '-'}")
+        print("rows:   " + ", ".join(f"{k} {v}" for k, v in out["rows"].items()))
+        print("status: " + ", ".join(f"{k} {v}" for k, v in sorted(out["status"].items())))
+        if out["build"]:
+            b = out["build"]
+            print(f"build:  code {b['code_version']}, config {b['config_digest'][:12]}, added "
+                  f"{b['sessions_added']}, changed {b['sessions_changed']}, unchanged "
+                  f"{b['sessions_unchanged']}, removed {b['sessions_removed']}, failed "
+                  f"{b['sessions_failed']}")
+        print("QA medians:")
+        for k, v in out["qa_median"].items():
+            print(f"  {k:<26} {'-' if v is None else f'{v:.4g}'}")
+        return 0
+    v = cat.resolve(version)
+    sessions = cat.table("sessions", v)
+    row = sessions.filter(pc.equal(sessions["session_id"], args.session)).to_pylist()
+    if not row:
+        print(f"session {args.session!r} is not in catalog version {v}", file=sys.stderr)
+        return 2
+    if args.json:
+        _print_json({"version": v, **row[0]})
+        return 0
+    print(f"session {args.session} in catalog version {v}")
+    for k, value in row[0].items():
+        print(f"  {k:<26} {_plain(value)}")
+    return 0
+
+
+def _cmd_diff(args: argparse.Namespace) -> int:
+    d = _open(args).diff(_version_arg(args.a), _version_arg(args.b))
+    if args.json:
+        _print_json(d)
+        return 0
+    print(f"added ({len(d['added'])}): {', '.join(d['added']) or '-'}")
+    print(f"removed ({len(d['removed'])}): {', '.join(d['removed']) or '-'}")
+    print(f"changed ({len(d['changed'])}):")
+    for sid, cols in sorted(d["changed"].items()):
+        print(f"  {sid}: {', '.join(cols)}")
+    return 0
+
+
+def _cmd_tag(args: argparse.Namespace) -> int:
+    cat = _open(args)
+    v = cat.resolve(_version_arg(args.version))
+    cat.tag(v, args.name)
+    print(f"tag {args.name} -> version {v}")
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from graspcap.catalog.export import export_version
+
+    report = export_version(_open(args), _version_arg(args.version), args.out, args.format)
+    print(f"exported version {report.version} to {report.out} ({report.bytes / 1e6:.2f} MB): "
+          + ", ".join(f"{k} {v}" for k, v in report.rows.items()))
+    return 0
+
+
+def _cmd_vacuum(args: argparse.Namespace) -> int:
+    r = _open(args).vacuum(args.keep)
+    print(f"kept versions {r.kept_versions}; dropped {r.dropped_versions or 'none'}; removed "
+          f"{r.removed_files} file(s) and {r.removed_arrays} array group(s), "
+          f"{r.freed_bytes / 1e6:.2f} MB")
+    return 0
+
+
+def _cmd_migrate(args: argparse.Namespace) -> int:
+    from graspcap.catalog.migrate import migrate_catalog
+
+    path = args.path if args.path is not None else args.catalog
+    r = migrate_catalog(path, args.out)
+    if r.from_format == r.to_format:
+        print(f"{r.root} is already format {r.to_format}; nothing to do")
+    else:
+        made = f"; new version {r.new_version} pins the upgraded tables" if r.new_version else ""
+        print(f"migrated {r.root} from format {r.from_format} to {r.to_format}{made}")
+    return 0
+
+
+def _guard(func):
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return func(args)
+        except (CatalogError, ValueError) as exc:
+            print(f"graspcap catalog {args.catalog_command}: {exc}", file=sys.stderr)
+            return 2
+    return run
+
+
+def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Add ``catalog`` and its subcommands to graspcap's ``subparsers``."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--catalog", default=str(DEFAULT_CATALOG),
+                        help="catalog folder or URL (file://, s3://, ... read-only)")
+    as_json = argparse.ArgumentParser(add_help=False)
+    as_json.add_argument("--json", action="store_true", help="print JSON")
+    parser = subparsers.add_parser("catalog", help="list, show, compare, tag, export, vacuum "
+                                   "and migrate catalog versions")
+    sub = parser.add_subparsers(dest="catalog_command", required=True)
+
+    p = sub.add_parser("versions", parents=[common, as_json], help="every version")
+    p.set_defaults(func=_guard(_cmd_versions))
+    p = sub.add_parser("show", parents=[common, as_json],
+                       help="a version's summary, or one session's row")
+    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
+    p.add_argument("--session", help="print this session's row instead")
+    p.set_defaults(func=_guard(_cmd_show))
+    p = sub.add_parser("diff", parents=[common, as_json],
+                       help="sessions added, removed and changed (with columns) from A to B")
+    p.add_argument("a", help="version number or tag")
+    p.add_argument("b", help="version number or tag")
+    p.set_defaults(func=_guard(_cmd_diff))
+    p = sub.add_parser("tag", parents=[common], help="point a tag at a version")
+    p.add_argument("version", help="version number (or a tag to copy)")
+    p.add_argument("name", help="tag name: a letter, then letters, digits, '.', '_', '-'")
+    p.set_defaults(func=_guard(_cmd_tag))
+    p = sub.add_parser("export", parents=[common],
+                       help="a version as plain Parquet (or CSV) files with its arrays")
+    p.add_argument("version", help="version number or tag")
+    p.add_argument("--out", required=True, help="new folder to write")
+    p.add_argument("--format", choices=["parquet", "csv"], default="parquet")
+    p.set_defaults(func=_guard(_cmd_export))
+    p = sub.add_parser("vacuum", parents=[common],
+                       help="delete files no kept version needs (newest N plus tagged)")
+    p.add_argument("--keep", type=int, required=True, help="newest versions to keep (>= 1)")
+    p.set_defaults(func=_guard(_cmd_vacuum))
+    p = sub.add_parser("migrate", parents=[common],
+                       help="upgrade an older-format catalog to this graspcap's format")
+    p.add_argument("path", nargs="?", help="the catalog (default: --catalog)")
+    p.add_argument("--out", help="upgrade a copy in this new folder, leaving PATH as it is")
+    p.set_defaults(func=_guard(_cmd_migrate))
+    return parser
+
+
+__all__ = ["add_catalog_parser", "summary"]

@@ -1,0 +1,147 @@
+"""Export one catalog version as plain files a collaborator reads with pyarrow (or a CSV reader).
+
+``OUT/`` gets, for the version:
+
+- ``sessions``, ``frames``, ``builds``: the tables in the catalog schema (Parquet keeps the
+  fixed-size lists and the field metadata with units; CSV writes every list cell as JSON text);
+- ``contact``, ``hand_mesh``, ``object_mesh``: one row per Zarr group the version's sessions
+  reference, keyed by ``digest`` (join on ``sessions.contact_digest`` etc.); arrays become list
+  columns (``vertices`` a list of ``[x, y, z]``, ``faces`` a list of ``[i, j, k]``);
+- ``manifest.json``: catalog, version, build, tags, format, files and row counts.
+
+Everything is written under ``OUT.partial/`` and renamed to ``OUT`` when complete.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from enum import StrEnum
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+
+from graspcap.catalog.arrays import read_group
+from graspcap.catalog.errors import CatalogError
+from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DATA_TABLES, ZARR_LAYOUT
+
+if TYPE_CHECKING:
+    from graspcap.catalog.store import Catalog
+
+_CSV_BATCH_ROWS = 20_000
+
+
+class ExportFormat(StrEnum):
+    """File format of an export."""
+
+    PARQUET = "parquet"
+    CSV = "csv"
+
+
+@dataclass(frozen=True)
+class ExportReport:
+    """What ``export_version`` wrote."""
+
+    out: Path
+    version: int
+    rows: dict[str, int]
+    """Rows per written file stem (tables and array kinds)."""
+    bytes: int
+
+
+def _array_type(a: np.ndarray) -> pa.DataType:
+    item = pa.from_numpy_dtype(a.dtype)
+    return pa.list_(item) if a.ndim == 1 else pa.list_(pa.list_(item, a.shape[1]))
+
+
+def _as_list_array(arrays: list[np.ndarray]) -> pa.Array:
+    """(n_i,) or (n_i, k) numpy arrays as one list column (nested fixed lists for 2-D)."""
+    first = arrays[0]
+    flat = np.concatenate([a.reshape(-1) for a in arrays])
+    values = pa.array(flat, type=pa.from_numpy_dtype(first.dtype))
+    if first.ndim == 2:
+        values = pa.FixedSizeListArray.from_arrays(values, first.shape[1])
+    offsets = np.concatenate([[0], np.cumsum([len(a) for a in arrays])]).astype(np.int32)
+    return pa.ListArray.from_arrays(pa.array(offsets), values, type=_array_type(first))
+
+
+def _array_tables(catalog: Catalog, version: int) -> dict[str, pa.Table]:
+    """One table per Zarr group kind: ``digest`` plus the group's arrays as list columns."""
+    sessions = catalog.table("sessions", version)
+    out = {}
+    for kind, spec in ZARR_LAYOUT.items():
+        digests = sorted(set(sessions[spec.digest_column].drop_null().to_pylist()))
+        groups = [read_group(catalog.layout, d, tuple(spec.arrays)) for d in digests]
+        columns = {"digest": pa.array(digests, pa.string())}
+        for name, a_spec in spec.arrays.items():
+            if not groups:
+                dims = len(a_spec.shape)
+                empty = np.zeros((0,) * dims if dims == 1 else (0, a_spec.shape[-1]),
+                                 a_spec.dtype)
+                columns[name] = pa.array([], _array_type(empty))
+            else:
+                columns[name] = _as_list_array([g[name] for g in groups])
+        out[kind] = pa.table(columns)
+    return out
+
+
+def _is_list(type_: pa.DataType) -> bool:
+    return pa.types.is_list(type_) or pa.types.is_fixed_size_list(type_)
+
+
+def _write_csv(table: pa.Table, path: Path) -> None:
+    """CSV with every list cell as JSON text, written in batches."""
+    schema = pa.schema([pa.field(f.name, pa.string() if _is_list(f.type) else f.type)
+                        for f in table.schema])
+    with pacsv.CSVWriter(path, schema) as writer:
+        for batch in table.to_batches(max_chunksize=_CSV_BATCH_ROWS):
+            cols = [pa.array([None if v is None else json.dumps(v) for v in col.to_pylist()],
+                             pa.string()) if _is_list(field.type) else col
+                    for field, col in zip(table.schema, batch.columns, strict=True)]
+            writer.write_batch(pa.RecordBatch.from_arrays(cols, schema=schema))
+
+
+def export_version(catalog: Catalog, version: int | str | None, out: str | Path,
+                   fmt: ExportFormat | str = ExportFormat.PARQUET) -> ExportReport:
+    """Write ``version`` of ``catalog`` to the new folder ``out`` (module docstring)."""
+    fmt = ExportFormat(fmt)
+    v = catalog.resolve(version)
+    out = Path(out).expanduser().resolve()
+    if out.exists():
+        raise CatalogError(f"{out} exists; export writes a new folder")
+    partial = out.with_name(out.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    tables = {name: catalog.table(name, v) for name in DATA_TABLES}
+    tables.update(_array_tables(catalog, v))
+    rows, files = {}, {}
+    for stem, table in tables.items():
+        path = partial / f"{stem}.{fmt.value}"
+        if fmt is ExportFormat.PARQUET:
+            pq.write_table(table, path, compression="zstd")
+        else:
+            _write_csv(table, path)
+        rows[stem] = table.num_rows
+        files[stem] = path.name
+    info = catalog.versions().to_pylist()[catalog.versions()["version"].to_pylist().index(v)]
+    manifest = {
+        "catalog": catalog.layout.uri, "version": v, "build_id": info["build_id"],
+        "tags": info["tags"], "committed_utc": info["time_utc"].isoformat(),
+        "format_version": CATALOG_FORMAT_VERSION, "file_format": fmt.value,
+        "exported_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "files": files, "rows": rows,
+        "join": {kind: f"sessions.{spec.digest_column} = {kind}.digest"
+                 for kind, spec in ZARR_LAYOUT.items()},
+        "encodings": "poses: 16 float64, row-major 4x4, p_a = T_a_b @ p_b; joints: 63 "
+                     "(21 x 3, m); 2D joints: 42 (21 x 2, px); arrays in the object frame (m)",
+    }
+    (partial / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    size = sum(p.stat().st_size for p in partial.iterdir())
+    partial.rename(out)
+    return ExportReport(out, v, rows, size)

@@ -1,0 +1,119 @@
+"""Upgrade a catalog of an older format to the current one (``graspcap catalog migrate``).
+
+Format 1 -> 2: every Delta table gets ``DELTA_TABLE_PROPERTIES`` (expired-log cleanup off, so
+Delta never deletes the log entries old catalog versions are pinned to). Setting a property is a
+Delta commit, and a catalog version pins Delta versions, so the migration of a catalog that has
+versions appends one more catalog version (``build_id`` ``migrate-1-to-2``, same rows) pinning
+the new Delta versions; every earlier version and tag still reads what it read before. An empty
+catalog's tables are simply created again. ``catalog.json`` is restamped last, under the writer
+lock: a migration that dies half way leaves a format-1 catalog that ``migrate`` finishes.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+from deltalake import DeltaTable, write_deltalake
+
+from graspcap.catalog.commit import last_version_row, recover, writer_lock
+from graspcap.catalog.delta import create_tables, delta_version
+from graspcap.catalog.errors import CatalogError, CatalogFormatError
+from graspcap.catalog.layout import (
+    MIGRATIONS_FROM,
+    CatalogLayout,
+    read_format,
+    write_format_file,
+)
+from graspcap.catalog.validate import to_table
+from graspcap.schemas.tables import (
+    CATALOG_FORMAT_VERSION,
+    DATA_TABLES,
+    DELTA_TABLE_PROPERTIES,
+    TABLE_SCHEMAS,
+)
+
+
+@dataclass(frozen=True)
+class MigrationReport:
+    """What ``migrate_catalog`` did."""
+
+    root: Path
+    """The migrated catalog (the copy when ``out`` was given)."""
+    from_format: int
+    to_format: int
+    new_version: int | None
+    """The catalog version the migration appended (None: nothing to pin, or already current)."""
+
+
+def _to_format_2(layout: CatalogLayout) -> int | None:
+    """Format 1 -> 2 under the writer lock (module docstring); the appended version or None."""
+    recover(layout)
+    row = last_version_row(layout)
+    if row is None:
+        for name in TABLE_SCHEMAS:
+            shutil.rmtree(layout.table(name))
+        create_tables(layout)
+        return None
+    changed = False
+    for name in TABLE_SCHEMAS:
+        dt = DeltaTable(str(layout.table(name)))
+        config = dt.metadata().configuration
+        if any(config.get(k) != v for k, v in DELTA_TABLE_PROPERTIES.items()):
+            dt.alter.set_table_properties(dict(DELTA_TABLE_PROPERTIES))
+            changed = True
+    pinned = {name: delta_version(layout, name) for name in DATA_TABLES}
+    if not changed and pinned == json.loads(row["table_versions"]):
+        return None
+    version = row["version"] + 1
+    new_row = {**row, "version": version, "time_utc": datetime.now(UTC),
+               "build_id": "migrate-1-to-2", "format_version": 2,
+               "table_versions": json.dumps(pinned, sort_keys=True)}
+    write_deltalake(str(layout.table("versions")), to_table("versions", [new_row]),
+                    mode="append")
+    return version
+
+
+_STEPS = {1: _to_format_2}
+"""``{from format: step to the next format}``; every format in MIGRATIONS_FROM has one."""
+
+
+def migrate_catalog(uri: str | Path, out: str | Path | None = None, *,
+                    lock_timeout_s: float = 60.0) -> MigrationReport:
+    """Upgrade the catalog at ``uri`` in place, or a copy of it at ``out`` (``uri`` untouched).
+
+    Fails with ``CatalogFormatError`` for a format no step leads from, and with
+    ``CatalogError`` when ``out`` exists or the catalog is not a local folder.
+    """
+    layout = CatalogLayout.from_uri(uri)
+    layout.require_local("migrate")
+    found = read_format(layout)["format_version"]
+    if found > CATALOG_FORMAT_VERSION:
+        raise CatalogFormatError(
+            f"catalog {layout.uri} is format {found}, newer than this graspcap (format "
+            f"{CATALOG_FORMAT_VERSION}); upgrade graspcap instead of migrating")
+    if found < CATALOG_FORMAT_VERSION and found not in MIGRATIONS_FROM:
+        raise CatalogFormatError(
+            f"catalog {layout.uri} is format {found}; no migration leads from it (formats "
+            f"{list(MIGRATIONS_FROM)} migrate): rebuild it with `graspcap build`")
+    if out is not None:
+        target = CatalogLayout.from_uri(out)
+        target.require_local("migrate --out")
+        if target.root.exists():
+            raise CatalogError(f"{target.root} exists; --out must name a new folder")
+        with writer_lock(layout, lock_timeout_s):  # a consistent copy: no writer meanwhile
+            shutil.copytree(layout.root, target.root,
+                            ignore=shutil.ignore_patterns(".lock", ".tmp"))
+        layout = target
+    new_version = None
+    with writer_lock(layout, lock_timeout_s):
+        current = read_format(layout)["format_version"]
+        while current < CATALOG_FORMAT_VERSION:
+            appended = _STEPS[current](layout)
+            new_version = appended if appended is not None else new_version
+            current += 1
+            write_format_file(layout, current)
+    return MigrationReport(layout.root, found, CATALOG_FORMAT_VERSION, new_version)

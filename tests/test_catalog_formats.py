@@ -1,0 +1,110 @@
+"""Catalog formats: the golden format-1 catalog fails to open naming `migrate`, and migrates."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from deltalake import DeltaTable
+
+import graspcap.catalog as gc
+from graspcap.catalog.delta import create_tables
+from graspcap.catalog.layout import CatalogLayout, write_format_file
+from graspcap.catalog.migrate import migrate_catalog
+from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DELTA_TABLE_PROPERTIES, TABLE_SCHEMAS
+from tests.catalog_factory import make_build
+from tests.conftest import REPO
+from tests.golden.make_golden import SESSION, expected, unpack
+
+ARCHIVE = REPO / "tests" / "golden" / "catalog_v1.tar.gz"
+
+
+def _properties(root) -> dict[str, dict[str, str]]:
+    return {name: DeltaTable(str(root / "tables" / name)).metadata().configuration
+            for name in TABLE_SCHEMAS}
+
+
+def _listing(root) -> list:
+    return sorted((str(p.relative_to(root)), p.stat().st_size) for p in root.rglob("*")
+                  if p.is_file() and p.name != ".lock")
+
+
+def _check_golden_content(cat: gc.Catalog, version) -> None:
+    e = expected()
+    values, observed = cat.contactmap(SESSION, version)
+    np.testing.assert_array_equal(values, e["contact"])
+    np.testing.assert_array_equal(observed, e["observed"])
+    verts, faces = cat.object_mesh("cube", version)
+    np.testing.assert_array_equal(verts, e["vertices"])
+    np.testing.assert_array_equal(faces, e["faces"])
+    row = cat.table("sessions", version).to_pylist()[0]
+    np.testing.assert_array_equal(np.reshape(row["T_w_p"], (4, 4)), e["T"])
+    np.testing.assert_array_equal(np.reshape(row["joints_w"], (21, 3)), e["joints"])
+    assert cat.table("frames", version)["frame"].to_pylist() == [3, 4]
+    assert cat.table("builds", version)["build_id"].to_pylist() == ["golden-1"]
+
+
+def test_current_format_tables_keep_their_delta_logs(tmp_path):
+    gc.open(tmp_path / "cat", create=True)
+    stamp = json.loads((tmp_path / "cat" / "catalog.json").read_text())
+    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 2
+    for name, config in _properties(tmp_path / "cat").items():
+        assert config == DELTA_TABLE_PROPERTIES, name
+
+
+def test_golden_v1_fails_naming_migrate_then_migrated_copy_reads(tmp_path):
+    src = unpack(ARCHIVE, tmp_path / "v1")
+    assert json.loads((src / "catalog.json").read_text())["format_version"] == 1
+    assert all(c == {} for c in _properties(src).values())  # really the old table properties
+    with pytest.raises(gc.CatalogFormatError,
+                       match=r"format 1.*graspcap catalog migrate .*--out NEW"):
+        gc.open(src)
+    before = _listing(src)
+
+    report = migrate_catalog(src, tmp_path / "v2")
+    assert (report.from_format, report.to_format, report.new_version) == (1, 2, 2)
+    assert _listing(src) == before  # source untouched (the copy is taken under its lock)
+    with pytest.raises(gc.CatalogFormatError, match="migrate"):
+        gc.open(src)
+
+    cat = gc.open(tmp_path / "v2")
+    assert cat.versions()["version"].to_pylist() == [1, 2]
+    assert cat.versions()["format_version"].to_pylist() == [1, 2]
+    assert cat.resolve("golden") == 1
+    for version in ("golden", 2, None):
+        _check_golden_content(cat, version)
+    assert cat.diff(1, 2) == {"added": [], "removed": [], "changed": {}}
+    assert all(c == DELTA_TABLE_PROPERTIES for c in _properties(tmp_path / "v2").values())
+
+    # the next build commits on top, and its recovery step keeps the migrated properties
+    assert cat.commit(make_build(["p05-mug-use-00"], seed=5, build_id="after")) == 3
+    assert sorted(cat.table("sessions", 3)["session_id"].to_pylist()) == [
+        SESSION, "p05-mug-use-00"]
+    assert all(c == DELTA_TABLE_PROPERTIES for c in _properties(tmp_path / "v2").values())
+    _check_golden_content(cat, 1)
+
+
+def test_migrate_in_place_is_idempotent_and_refuses_what_it_cannot(tmp_path):
+    src = unpack(ARCHIVE, tmp_path / "v1")
+    assert migrate_catalog(src).new_version == 2
+    again = migrate_catalog(src)
+    assert (again.from_format, again.new_version) == (2, None)
+    _check_golden_content(gc.open(src), 2)
+    with pytest.raises(gc.CatalogError, match="exists"):
+        migrate_catalog(src, tmp_path / "v1")
+    with pytest.raises(gc.CatalogFormatError, match="no migration leads from it"):
+        migrate_catalog(REPO / "tests" / "golden" / "catalog_v0", tmp_path / "x")
+    assert not (tmp_path / "x").exists()
+
+
+def test_empty_format_1_catalog_migrates_to_an_empty_current_one(tmp_path):
+    layout = CatalogLayout((tmp_path / "empty").resolve())
+    layout.root.mkdir()
+    create_tables(layout, properties=None)
+    write_format_file(layout, 1)
+    assert migrate_catalog(layout.root).new_version is None
+    cat = gc.open(layout.root)
+    assert cat.latest_version() is None
+    assert all(c == DELTA_TABLE_PROPERTIES for c in _properties(layout.root).values())
+    assert cat.commit(make_build(["p01-bowl-use-00"], seed=1)) == 1
