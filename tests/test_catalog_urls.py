@@ -3,6 +3,7 @@ given version with pandas, pyarrow, DuckDB and Polars, offline."""
 
 from __future__ import annotations
 
+import re
 from pathlib import PurePosixPath
 
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 import graspcap.catalog as gc
 from graspcap.catalog.layout import CatalogLayout
 from tests.catalog_factory import make_build
+from tests.conftest import REPO
 
 IDS_1 = ["p01-mug-use-00", "p02-drill-use-00"]
 IDS_2 = ["p01-mug-use-00", "p03-bowl-use-00"]  # p01 rewritten with other values
@@ -25,8 +27,9 @@ def two_versions(tmp_path_factory):
     root = tmp_path_factory.mktemp("urls") / "cat"
     url = root.as_uri()  # file:///...
     cat = gc.open(url, create=True)
-    builds = [make_build(IDS_1, seed=1, build_id="b1"), make_build(IDS_2, seed=2, build_id="b2")]
-    assert [cat.commit(b) for b in builds] == [1, 2]
+    builds = [make_build(IDS_1, seed=1, build_id="b1"), make_build(IDS_2, seed=2, build_id="b2"),
+              make_build(["p03-mug-use-01"], seed=3, build_id="b3")]
+    assert [cat.commit(b) for b in builds] == [1, 2, 3]
     return root, url, builds
 
 
@@ -103,9 +106,8 @@ def test_duckdb_one_liner_offline(two_versions):
                                  "autoload_known_extensions": False})
     for v in (1, 2):
         files = cat.files("frames", v)
-        got = con.read_parquet(files).select("session_id, frame, T_c_o").arrow()
-        assert _keyed(got.read_all() if hasattr(got, "read_all") else got) == _keyed(
-            cat.table("frames", v))
+        got = con.read_parquet(files).select("session_id, frame, T_c_o").to_arrow_table()
+        assert _keyed(got) == _keyed(cat.table("frames", v))
         n = con.sql(f"SELECT count(*) FROM read_parquet({files!r}) WHERE frame >= 6"
                     ).fetchall()[0][0]
         frames = cat.table("frames", v)["frame"]
@@ -124,3 +126,18 @@ def test_polars_one_liners(two_versions):
         sel = cat.table("frames", v).filter(pc.equal(cat.table("frames", v)["session_id"],
                                                      "p01-mug-use-00"))
         assert _keyed(lazy.to_arrow()) == _keyed(sel)
+
+
+def test_the_documented_one_liners_run_as_written(two_versions):
+    """The one-liner block of docs/catalog.md, run with the catalog's path substituted."""
+    pytest.importorskip("duckdb")
+    pytest.importorskip("polars")
+    root, _, _ = two_versions
+    text = (REPO / "docs" / "catalog.md").read_text()
+    block = re.search(r"## One-liners.*?```python\n(.*?)```", text, re.S).group(1)
+    assert 'files("frames", 3)' in block and "duckdb" in block and "polars" in block
+    namespace = {"gc": gc}
+    exec(block.replace('"my-catalog"', repr(str(root))), namespace)  # noqa: S102
+    want = gc.open(root).table("frames", 3)
+    assert namespace["frames"].height == want.num_rows  # the block ends with Polars
+    assert namespace["files"] == gc.open(root).files("frames", 3)
