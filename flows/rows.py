@@ -92,14 +92,19 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
             "build_id": build_id,
         })
     V, F = read_mesh(session)
-    T_o_w = inv_T(results["estimate_adjustment"].T_w_o)  # object at the first steady frame
-    hand = fit.mesh()
+    refined = results.get("refine_grasp")
+    if refined is not None:  # the refined hand (stage 5), object frame
+        hand_v, hand_f, joints_o = refined.hand_vertices_o, refined.hand_faces, refined.joints_o
+    else:  # the stage-3 fit, moved into the object at the first steady frame
+        T_o_w = inv_T(results["estimate_adjustment"].T_w_o)
+        hand = fit.mesh()
+        hand_v, hand_f = transform_points(T_o_w, hand.vertices), hand.faces
+        joints_o = transform_points(T_o_w, fit.joints_fit_w)
     arrays = SessionArrays(
         contact=np.zeros(len(V), np.float32) if contact is None else contact.contact,
         observed=np.zeros(len(V), bool) if contact is None else contact.observed,
-        hand_vertices=transform_points(T_o_w, hand.vertices).astype(np.float32),
-        hand_faces=np.asarray(hand.faces, np.int32),
-        joints=transform_points(T_o_w, fit.joints_fit_w).astype(np.float64),
+        hand_vertices=np.asarray(hand_v, np.float32), hand_faces=np.asarray(hand_f, np.int32),
+        joints=np.asarray(joints_o, np.float64),
     )
     mesh = ObjectMesh(V.astype(np.float32), F.astype(np.int32))
     return SessionRows(row, frames, arrays, m.object_id, mesh)

@@ -32,6 +32,7 @@ from graspcap.tasks import (
     propagate_poses,
     qa_metrics,
     reconstruct_hand,
+    refine_grasp,
     register_object,
     register_scan,
     select_steady,
@@ -191,6 +192,14 @@ def _build_contactmap(session, config, register_scan, **_):
     )
 
 
+def _refine_grasp(session, config, fit_hand, estimate_adjustment, build_contactmap, **_):
+    V, F = read_mesh(session)
+    return refine_grasp.refine_grasp(
+        fit_hand, HandSide(session.manifest.hand), estimate_adjustment.T_w_o, V, F,
+        build_contactmap.contact, build_contactmap.observed, config,
+    )
+
+
 def _propagate_poses(
     session,
     config,
@@ -247,7 +256,7 @@ def _pictures(session, config, **up):
 
 # --- the DAG ----------------------------------------------------------------------------------
 
-_REFINE: tuple[str, ...] = ()
+_REFINE: tuple[str, ...] = ("refine_grasp",)
 """``("refine_grasp",)`` once stage 5 is in the DAG: qa_metrics and pictures then use the
 refined hand (``final_hand``); until then the stage-3 fit."""
 
@@ -281,6 +290,9 @@ STAGES: dict[str, Stage] = {
         Stage("build_contactmap", build_contactmap.STAGE_VERSION, build_contactmap.PRESETS,
               ("load_session", "register_scan"), ("manifest", "object_mesh", "scan_thermal"),
               _build_contactmap),
+        Stage("refine_grasp", refine_grasp.STAGE_VERSION, refine_grasp.PRESETS,
+              ("load_session", "fit_hand", "estimate_adjustment", "build_contactmap"),
+              ("manifest", "object_mesh"), _refine_grasp),
         Stage("propagate_poses", propagate_poses.STAGE_VERSION, propagate_poses.PRESETS,
               ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
                "fit_hand", "register_object", "estimate_adjustment"),

@@ -27,9 +27,12 @@ def _pose_metrics(prefix: str, T_est: np.ndarray, T_true: np.ndarray) -> dict[st
     return {f"{prefix}_rot_deg": rot_deg, f"{prefix}_trans_mm": 1e3 * trans_m}
 
 
-def estimate_from_results(results: Mapping[str, Any]) -> dict[str, Any]:
+def estimate_from_results(
+    results: Mapping[str, Any], timings_s: Mapping[str, float] | None = None
+) -> dict[str, Any]:
     """Stage results (by stage name, as ``run_session`` returns them) -> the estimate dict
-    :func:`evaluate` takes, keyed by the catalog's column names."""
+    :func:`evaluate` takes, keyed by the catalog's column names (plus the refinement's hands
+    and, given ``run_session``'s ``timings_s``, its time)."""
     est: dict[str, Any] = {}
     get = results.get
     if get("register_object") is not None:
@@ -54,10 +57,29 @@ def estimate_from_results(results: Mapping[str, Any]) -> dict[str, Any]:
     if get("build_contactmap") is not None:
         est |= {"contact": results["build_contactmap"].contact,
                 "observed": results["build_contactmap"].observed}
+    if get("refine_grasp") is not None and get("estimate_adjustment") is not None:
+        est |= _refinement_estimate(results)
+        if timings_s is not None and "refine_grasp" in timings_s:
+            est["refine_time_s"] = float(timings_s["refine_grasp"])
     if get("propagate_poses") is not None:
         prop = results["propagate_poses"]
         est |= {"frame": np.asarray(prop.frame_indices), "T_c_o": prop.T_c_o}
     return est
+
+
+def _refinement_estimate(results: Mapping[str, Any]) -> dict[str, Any]:
+    """The refined and the stage-3 hands in the object frame, refined joints in the world."""
+    ref, fit = results["refine_grasp"], results["fit_hand"]
+    hand_fit = fit.mesh()
+    T_o_w = inv_T(results["estimate_adjustment"].T_w_o)
+    return {
+        "hand_vertices_o": ref.hand_vertices_o, "hand_faces": ref.hand_faces,
+        "hand_vertices_fit_o": transform_points(T_o_w, hand_fit.vertices),
+        "hand_faces_fit": hand_fit.faces, "joints_refined_w": ref.joints_w,
+        "penetration_max_mm_fit": ref.before.penetration_max_mm,
+        "penetration_max_mm_refined": ref.after.penetration_max_mm,
+        "refine_accepted": bool(ref.accepted),
+    }  # fmt: skip
 
 
 def estimate_from_catalog(session: Mapping[str, Any], frames: Any) -> dict[str, Any]:
@@ -94,6 +116,8 @@ def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
             out |= _pose_metrics(prefix, est[key], truth[key])
     if "contact" in est:
         out |= _contact_metrics(est["contact"], est["observed"], session_dir)
+    if "hand_vertices_o" in est:
+        out |= _refinement_metrics(est, session_dir)
     if "steady_from" not in est:
         return out
     steady_est = int(est["steady_from"])
@@ -105,6 +129,9 @@ def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
         out["camera_trans_mm"] = 1e3 * float(np.median(cams[:, 1]))
     if "joints_fit_w" in est:
         out["fit_joints_mm"] = _mpjpe_mm(est["joints_fit_w"], est["T_w_c"], steady_est, truth)
+    if "joints_refined_w" in est:
+        out["refined_joints_mm"] = _mpjpe_mm(est["joints_refined_w"], est["T_w_c"], steady_est,
+                                             truth)
     for key, name in (
         ("qa_reproj_rmse_px", "reproj_rmse_px"),
         ("qa_crosscheck_mm", "crosscheck_max_mm"),
@@ -129,6 +156,36 @@ def _contact_metrics(contact: np.ndarray, observed: np.ndarray, session_dir: Pat
         "contact_iou": float((est_on & true_on).sum() / union) if union else 1.0,
         "contact_seen_share": float(observed[truth > 0.4].mean()) if (truth > 0.4).any() else 1.0,
     }
+
+
+def _refinement_metrics(est: Mapping[str, Any], session_dir: Path,
+                        near_mm: float = 3.0) -> dict[str, float]:
+    """Share of truly contacted (> 0.4) vertices within ``near_mm`` of the refined and of the
+    stage-3 hand mesh (unsigned distance to the surface), penetration max before and after,
+    and the refinement time when the estimate has it."""
+    import open3d as o3d
+    import trimesh
+
+    truth = np.load(Path(session_dir) / "ground_truth" / "contact.npy")
+    manifest = json.loads((Path(session_dir) / "session.json").read_text())
+    mesh = trimesh.load(Path(session_dir) / manifest["object_mesh"], force="mesh", process=False)
+    V = np.asarray(mesh.vertices, dtype=float)
+    touched = V[truth > 0.4].astype(np.float32)
+    out: dict[str, float] = {}
+    for key, faces, name in (("hand_vertices_o", "hand_faces", "refined"),
+                             ("hand_vertices_fit_o", "hand_faces_fit", "fit")):
+        if key not in est or not len(touched):
+            continue
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(np.asarray(est[key], np.float32), np.asarray(est[faces], np.uint32))
+        d_mm = 1e3 * scene.compute_distance(o3d.core.Tensor(touched)).numpy()
+        out[f"contact_near_hand_{name}"] = float(np.mean(d_mm <= near_mm))
+    for key in ("penetration_max_mm_fit", "penetration_max_mm_refined", "refine_time_s"):
+        if est.get(key) is not None:
+            out[key] = float(est[key])
+    if "refine_accepted" in est:
+        out["refine_accepted"] = float(est["refine_accepted"])
+    return out
 
 
 def _mpjpe_mm(
