@@ -70,10 +70,15 @@ class Catalog:
         return f"Catalog({self.layout.uri!r})"
 
     def __getstate__(self) -> dict:
-        return {"layout": self.layout, "lock_timeout_s": self.lock_timeout_s}
+        # pins and file lists are small and immutable: a worker that has them reads tables with
+        # pyarrow alone (deltalake's tokio runtime panics in a fork of a process that used it)
+        return {"layout": self.layout, "lock_timeout_s": self.lock_timeout_s,
+                "pins": self._pins, "files": self._files}
 
     def __setstate__(self, state: dict) -> None:
         self.__init__(state["layout"], lock_timeout_s=state["lock_timeout_s"])
+        self._pins.update(state.get("pins", {}))
+        self._files.update(state.get("files", {}))
 
     # versions and tags ------------------------------------------------------------------
     def _versions_raw(self) -> pa.Table:
