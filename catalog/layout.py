@@ -57,6 +57,7 @@ class CatalogLayout:
     ROOT/arrays/<digest[:2]>/<digest>.zarr         content-addressed Zarr v3 groups
     ROOT/arrays/.tmp/                              groups being written (renamed when complete)
     ROOT/.lock                                     writer lock (fcntl.flock)
+    ROOT/pictures/<session_id>/*.png               QA pictures (latest build; not versioned)
     ```
 
     Readers go through ``uri``-based paths and ``fs`` (fsspec), so the same code reads a local
@@ -139,6 +140,11 @@ class CatalogLayout:
     def array_group(self, digest: str) -> Path:
         """The Zarr group holding the arrays of ``digest`` (a sha256 hex string)."""
         return self.arrays_dir / digest[:2] / f"{digest}.zarr"
+
+    def pictures_dir(self, session_id: str) -> Path:
+        """A session's QA pictures (``keypoints.png``, ``contact.png``): written by every
+        build that runs the session's ``pictures`` stage, the latest wins; not versioned."""
+        return self.root / "pictures" / session_id
 
 
 def write_format_file(layout: CatalogLayout, version: int = CATALOG_FORMAT_VERSION) -> None:

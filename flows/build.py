@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import subprocess
 import time
 import uuid
@@ -194,6 +195,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                 duplicate[str(d)], None
         else:
             refs, ran, cached, not_run, error, stage = outcomes[str(d)]
+        if "pictures" in refs:
+            _write_pictures(cat.layout.pictures_dir(sid), WorkArea.load(refs["pictures"]))
         retries = {st: n - 1 for (s, st), n in attempts.items() if s == sid and n > 1}
         info = dict(session_id=sid, session_dir=str(d), ran=tuple(ran), cached=tuple(cached),
                     not_run=tuple(not_run), retries=retries)
@@ -215,7 +218,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         arrays[sid] = sr.arrays
         meshes[sr.object_id] = sr.object_mesh
         reports.append(SessionReport(outcome=Outcome.CHANGED if prev else Outcome.ADDED,
-                                     status=sr.session["status"], **info))
+                                     status=sr.session["status"],
+                                     error=sr.session["error"], **info))
     t_rows = time.perf_counter()
 
     params = {"roots": [str(r) for r in roots], "catalog": str(cat.layout.root),
@@ -237,6 +241,18 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         log.write(json.dumps(report.record(), sort_keys=True) + "\n")
     _qa_artifact(report, rows)
     return report
+
+
+def _write_pictures(folder: Path, pictures: Any) -> None:
+    """A session's QA pictures (``tasks.pictures.Pictures``) as PNG files, each replaced
+    atomically (a reader sees the old picture or the new one)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, data in (("keypoints.png", pictures.keypoints_png),
+                       ("contact.png", pictures.contact_png)):
+        if data is not None:
+            tmp = folder / f".{name}.tmp"
+            tmp.write_bytes(data)
+            os.replace(tmp, folder / name)
 
 
 def _qa_artifact(report: BuildReport, rows: list[dict]) -> None:

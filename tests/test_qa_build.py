@@ -1,0 +1,54 @@
+# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
+"""The QA gate in a build: qa_metrics decides each row's status, the pictures land under
+``<catalog>/pictures/<session_id>/``, a QA-failed session is a failed row with its reasons
+(the build does not crash) and ``graspcap status`` says where its pictures are."""
+
+from __future__ import annotations
+
+import graspcap.catalog as gc
+from graspcap.flows.build import build_dataset
+from graspcap.tasks.drawing import decode_png
+from tests.flow_fixtures import (  # noqa: F401
+    PRESET,
+    copy_catalog,
+    executions,
+    prefect_harness,
+    synth_root,
+    warm,
+)
+
+
+def test_pictures_are_written_and_rows_carry_the_qa_verdict(warm):
+    catalog, report = warm
+    cat = gc.open(catalog)
+    rows = cat.table("sessions").to_pylist()
+    for r in rows:
+        folder = catalog / "pictures" / r["session_id"]
+        keypoints = decode_png((folder / "keypoints.png").read_bytes())
+        contact = decode_png((folder / "contact.png").read_bytes())
+        assert keypoints.shape[0] > 100 and keypoints.shape[1] > keypoints.shape[0]
+        assert contact.shape[1] > contact.shape[0] > 100
+        assert r["status"] in ("ok", "flagged") and r["error"] is None
+        for col in ("qa_reproj_rmse_px", "qa_penetration_max_mm", "qa_contact_agreement",
+                    "qa_contact_coverage"):
+            assert r[col] is not None, col
+
+
+def test_a_qa_failed_session_is_a_failed_row_with_its_reasons(warm, synth_root, tmp_path):
+    from graspcap.flows.commands import status_text
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    strict = {"reproj_rmse_px": {"flag": 0.0, "fail": 0.01}}
+    report = build_dataset([synth_root], catalog, PRESET, overrides={"qa_metrics": strict},
+                           build_id="strict-qa")
+    assert {st for _, st in executions(catalog, "strict-qa")} == {"qa_metrics", "pictures"}
+    rows = gc.open(catalog).table("sessions").to_pylist()
+    assert rows and all(r["status"] == "failed" for r in rows)
+    for r in rows:
+        assert r["error"].startswith("qa_metrics: reprojection RMSE ")
+        assert "> 0.01 px" in r["error"]
+        assert r["T_w_p"] is not None  # the results stay, for a person to look at
+    assert all(s.status == "failed" and s.error for s in report.sessions)
+    text = status_text(catalog)
+    for r in rows:
+        assert f"failed; pictures: {catalog.resolve() / 'pictures' / r['session_id']}" in text
