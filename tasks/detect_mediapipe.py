@@ -77,11 +77,13 @@ class MediaPipeConfig(StageConfig):
     """How to use MediaPipe's left/right label to pick the manifest's hand."""
     mirrored: bool = False
     """Frames are mirrored (selfie) images: take MediaPipe's labels as they are."""
-    workers: int | None = Field(None, ge=1)
+    workers: int | None = Field(1, ge=1)
     """Processes per session, each tracking its own chunk of consecutive frames; None: the
-    CPU count capped at 2."""
-    min_frames_per_worker: int = Field(60, ge=1)
-    """Chunks are at least this long (a worker costs about 1-2 s to start MediaPipe)."""
+    CPU count capped at 2. 1 by default: a worker costs ~3 s of CPU to start (about 90
+    frames of tracking), and a build already runs sessions side by side
+    (``bench/detect_speed.py``, ``docs/detectors.md``)."""
+    min_frames_per_worker: int = Field(200, ge=1)
+    """Chunks are at least this long, so a worker's start-up is paid back."""
 
 
 @dataclass(frozen=True)
@@ -96,15 +98,19 @@ class Candidate:
         The person's hand ("right"/"left"), MediaPipe's label un-mirrored.
     score : float
         MediaPipe's handedness score of its label.
+    inside : (21,) bool
+        Landmark inside the image (MediaPipe extrapolates the others).
     """
 
     xy_px: np.ndarray
     hand: HandName
     score: float
+    inside: np.ndarray
 
     def keypoints(self) -> np.ndarray:
-        """``(21, 3)`` x_px, y_px, confidence (the hand's score on every keypoint)."""
-        return np.column_stack([self.xy_px, np.full(N_KEYPOINTS, self.score)])
+        """``(21, 3)`` x_px, y_px, confidence: the hand's score on every keypoint inside the
+        image, 0 outside."""
+        return np.column_stack([self.xy_px, np.where(self.inside, self.score, 0.0)])
 
 
 @dataclass(frozen=True)
@@ -180,15 +186,21 @@ class Detector:
                 min_detection_confidence=config.min_detection_confidence,
                 min_tracking_confidence=config.min_tracking_confidence,
             )
-        self._calls = 0
+            # the graph opens its models (and logs) in its own threads after Hands() returns;
+            # a first frame waits for that
+            self._hands.process(np.zeros((64, 64, 3), np.uint8))
+        self._quiet_calls = 2
+        """The first frames with a hand log once more (landmark projection): stderr stays
+        hidden until two calls after the first hand."""
 
     def __call__(self, rgb: np.ndarray) -> list[Candidate]:
         """Hands in an ``(h, w, 3) uint8`` RGB image."""
         h, w = rgb.shape[:2]
-        self._calls += 1
-        if self._calls <= 3:  # graph threads log once more around the first frames
+        if self._quiet_calls > 0:
             with quiet_stderr():
                 result = self._hands.process(rgb)
+            if result.multi_hand_landmarks or self._quiet_calls < 2:
+                self._quiet_calls -= 1
         else:
             result = self._hands.process(rgb)
         out = []
@@ -198,7 +210,8 @@ class Detector:
             xy = np.array([[p.x * w, p.y * h] for p in lms.landmark], dtype=float)
             label = cls.classification[0]
             hand = label.label.lower() if self.config.mirrored else TRUE_HAND[label.label]
-            out.append(Candidate(xy, hand, float(label.score)))
+            inside = (xy >= 0).all(axis=1) & (xy[:, 0] < w) & (xy[:, 1] < h)
+            out.append(Candidate(xy, hand, float(label.score), inside))
         return out
 
     def close(self) -> None:

@@ -211,3 +211,16 @@ def test_detect_command_prints_keypoints_and_reports_bad_images(photos, tmp_path
     assert args.func(args) == 0
     text = capsys.readouterr().out
     assert "left hand, 1 hand(s) found" in text and " 8 index_tip" in text
+
+
+def test_landmarks_outside_the_image_get_zero_confidence(photos, detector):
+    images, reference = photos
+    rgb, _ = read_rgb(images / "thumbs_up.jpg", None)
+    ref = np.asarray(reference["thumbs_up.jpg"]["model_complexity_1"][0]["landmarks_px"])
+    top = int(ref[4, 1]) + 8  # crop the thumb tip (y 224) off the top
+    (found,) = detector(np.ascontiguousarray(rgb[top:]))
+    kp = found.keypoints()
+    assert kp[4, 1] < 0 and kp[4, 2] == 0
+    assert (kp[[0, 5, 9, 13, 17], 2] > 0.5).all()
+    palm = [0, 5, 9, 13, 17]
+    assert np.linalg.norm(kp[palm, :2] + [0, top] - ref[palm], axis=1).max() <= MAX_TOL_PX
