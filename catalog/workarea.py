@@ -8,6 +8,10 @@ other a small :class:`ResultRef` (path + content digest). Writes are atomic
 (``<key>.json``: digest, build, seconds) is written after the pickle, so a
 killed build never leaves a half result that a later lookup would trust.
 
+A deterministic failure (a ``StageError``) is remembered too, as ``<key>.failed.json`` (its
+reason): running the same stage version and config on the same bytes fails the same way, so an
+unchanged rebuild replays it instead of running the stage again; ``--retry-failed`` ignores it.
+
 ``executions.jsonl`` is the side channel of stage-body executions: one JSON line per
 attempt (stage, session, key, build, seconds, ok, error), appended with ``O_APPEND`` in
 one ``write``, so lines from concurrent workers never interleave.
@@ -84,10 +88,11 @@ class WorkArea:
 
     # --- file digests -----------------------------------------------------------------------
     def file_digest(self, path: Path) -> str:
-        """sha256 of a file's bytes, remembered by (path, size, mtime) so unchanged files are
-        not hashed again on every build."""
+        """sha256 of a file's bytes, remembered by (path, size, mtime_ns, inode) so unchanged
+        files are not hashed again on every build (a file replaced by a rename, even with the
+        same size and mtime, has a new inode)."""
         st = os.stat(path)
-        ident = f"{Path(path).resolve()}|{st.st_size}|{st.st_mtime_ns}"
+        ident = f"{os.path.abspath(path)}|{st.st_size}|{st.st_mtime_ns}|{st.st_ino}"
         name = hashlib.sha256(ident.encode()).hexdigest()[:32]
         if name in self._memo:
             return self._memo[name]
@@ -151,6 +156,27 @@ class WorkArea:
                 cls._loaded.popitem(last=False)
         return result
 
+    def save_failure(self, stage: str, key: str, stage_name: str, reason: str,
+                     session: str | None, build_id: str) -> None:
+        """Remember that ``(stage, key)`` failed deterministically (a ``StageError``)."""
+        record = {"stage": stage_name, "reason": reason, "session": session,
+                  "build_id": build_id}
+        _atomic_write(self._failure_path(stage, key), canonical_json(record).encode())
+
+    def lookup_failure(self, stage: str, key: str) -> dict | None:
+        """The remembered deterministic failure of ``(stage, key)`` (stage, reason, session,
+        build_id), or None."""
+        try:
+            return json.loads(self._failure_path(stage, key).read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            return None
+
+    def forget_failure(self, stage: str, key: str) -> None:
+        self._failure_path(stage, key).unlink(missing_ok=True)
+
+    def _failure_path(self, stage: str, key: str) -> Path:
+        return self.root / "results" / stage / f"{key}.failed.json"
+
     # --- the side channel of executions -----------------------------------------------------
     def record_execution(self, **fields: Any) -> None:
         """Append one JSON line to ``executions.jsonl`` (one ``write`` on an O_APPEND fd)."""
@@ -168,7 +194,10 @@ class WorkArea:
         except FileNotFoundError:
             return []
         out = []
+        needle = None if build_id is None else f'"build_id":{json.dumps(build_id)}'
         for line in lines:
+            if needle is not None and needle not in line:
+                continue
             try:
                 rec = json.loads(line)
             except json.JSONDecodeError:

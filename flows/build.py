@@ -19,22 +19,25 @@ without previous good rows it gets a ``status="failed"`` row with the reason.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
 import subprocess
 import time
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from prefect import flow
+from prefect.futures import as_completed
 
 import graspcap
 import graspcap.catalog as gc
 from graspcap.catalog.workarea import WorkArea
 from graspcap.flows.cached import reads_digest, session_files, session_id_of
+from graspcap.flows.progress import ProgressFn, Tracker, reporting_to
 from graspcap.flows.report import BuildReport, Outcome, SessionReport
 from graspcap.flows.rows import failed_row, session_rows
 from graspcap.flows.runtime import build_settings, task_runner, worker_api
@@ -45,11 +48,10 @@ from graspcap.tasks.errors import StageError
 from graspcap.tasks.load_session import discover_sessions
 
 BUILDS_LOG = "builds.jsonl"
-ProgressFn = Callable[[int, int, str, str, str], None]
-"""``progress(done, total, session_id, stage, state)`` after each task."""
-_progress: ProgressFn | None = None
+__all__ = ["ProgressFn", "build_dataset", "build_flow"]
 
 
+@functools.cache
 def code_version() -> str:
     """graspcap's version and, in a git checkout, its revision."""
     try:
@@ -101,6 +103,16 @@ def last_build_failures(cat: gc.Catalog, work: WorkArea) -> set[str]:
     return failed | set(record.get("summary", {}).get("failed", {}))
 
 
+def recorded_failures(cat: gc.Catalog) -> dict[str, str]:
+    """Failed sessions and their errors in the catalog's latest build record."""
+    if cat.latest_version() is None:
+        return {}
+    last = cat.table("builds").sort_by("catalog_version").to_pylist()[-1]
+    failed = {f["session_id"]: f["error"] for f in last["sessions_failed"]}
+    record = json.loads(last["parameters_json"]).get("report", {})
+    return {**failed, **record.get("summary", {}).get("failed", {})}
+
+
 def _input_digest(work: WorkArea, session_dir: Path) -> str:
     from graspcap.tasks.pipeline import ALL_FILES
 
@@ -113,7 +125,18 @@ def _input_digest(work: WorkArea, session_dir: Path) -> str:
         return hashlib.sha256(b"missing files").hexdigest()
 
 
-def _stage_outcomes(futures: Mapping[str, Any], done: list[int], total: int, sid: str):
+def _watch(submitted: Mapping[str, Mapping[str, Any]]) -> None:
+    """Wait for every task, reporting each as it finishes (``flows/progress.py``)."""
+    owner = {fut: (session_id_of(Path(d)), name)
+             for d, futures in submitted.items() for name, fut in futures.items()}
+    tracker = Tracker({session_id_of(Path(d)): len(f) for d, f in submitted.items()})
+    for fut in as_completed(list(owner)):
+        fut.wait()  # sets the future's final state; reading .state before may ask the API
+        state = fut.state
+        tracker.finished(*owner[fut], state.name or state.type.value)
+
+
+def _stage_outcomes(futures: Mapping[str, Any]):
     refs, ran, cached, not_run = {}, [], [], []
     error = failed_stage = None
     for name, fut in futures.items():
@@ -135,9 +158,6 @@ def _stage_outcomes(futures: Mapping[str, Any], done: list[int], total: int, sid
             if failed_stage is None:  # no failed upstream seen: say what Prefect said
                 failed_stage = name
                 error = f"{name} did not run ({state.type.value}: {state.message})"
-        done[0] += 1
-        if _progress is not None:
-            _progress(done[0], total, sid, name, state.name or state.type.value)
     return refs, ran, cached, not_run, error, failed_stage
 
 
@@ -169,27 +189,31 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         seen.setdefault(sid, d)
     t_discover = time.perf_counter()
 
-    submitted = {str(d): submit_session(d, configs, work, build_id, session_id=sid)
+    submitted = {str(d): submit_session(d, configs, work, build_id, session_id=sid,
+                                        replay_failures=not retry_failed)
                  for d, sid in zip(dirs, ids, strict=True) if str(d) not in duplicate}
-    done, total = [0], len(submitted) * len(STAGES)
-    outcomes = {d: _stage_outcomes(f, done, total, session_id_of(Path(d)))
-                for d, f in submitted.items()}
+    _watch(submitted)
+    outcomes = {d: _stage_outcomes(f) for d, f in submitted.items()}
     t_run = time.perf_counter()
 
     previous = cat.latest_version()
     prev_rows = ({r["session_id"]: r for r in cat.table("sessions").select(
-        ["session_id", "status", "input_digest", "config_digest"]).to_pylist()}
+        ["session_id", "status", "input_digest", "config_digest", "steady_from"]).to_pylist()}
         if previous is not None else {})
     attempts: dict[tuple[str, str], int] = {}
     for rec in work.executions(build_id):
         k = (rec["session_id"], rec["stage"])
         attempts[k] = attempts.get(k, 0) + 1
     reports, rows, frames, arrays, meshes = [], [], [], {}, {}
+    recorded: dict[str, str] | None = None
+    new_failures = False
     for d, sid in zip(dirs, ids, strict=True):
         common = {"input_digest": _input_digest(work, d), "code_version": version,
                   "build_id": build_id, "config_digest": cdigest}
         prev = prev_rows.get(sid)
-        good_prev = prev is not None and prev["status"] != Status.FAILED
+        # previous rows with results (ok, flagged, or failed by QA), not a failed build's row
+        good_prev = prev is not None and (prev["status"] != Status.FAILED
+                                          or prev["steady_from"] is not None)
         if str(d) in duplicate:
             refs, ran, cached, not_run, error, stage = {}, [], [], list(STAGES), \
                 duplicate[str(d)], None
@@ -201,7 +225,16 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         info = dict(session_id=sid, session_dir=str(d), ran=tuple(ran), cached=tuple(cached),
                     not_run=tuple(not_run), retries=retries)
         if error is not None:
-            if not good_prev:
+            # a failure replayed from the work area (no stage body ran) that the catalog's
+            # latest build already records needs no new version
+            if recorded is None:
+                recorded = recorded_failures(cat) if previous is not None else {}
+            replayed = (not any(s == sid for s, _ in attempts) and recorded.get(sid) == error
+                        and (good_prev or (prev is not None and prev["input_digest"]
+                                           == common["input_digest"]
+                                           and prev["config_digest"] == cdigest)))
+            new_failures |= not replayed
+            if not good_prev and not replayed:
                 rows.append(failed_row(d, sid, error, **common))
             reports.append(SessionReport(outcome=Outcome.FAILED, status=Status.FAILED.value,
                                          error=error, failed_stage=stage,
@@ -228,7 +261,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     seconds = {"discover": t_discover - t0, "run": t_run - t_discover, "rows": t_rows - t_run}
     draft = BuildReport(build_id, None, previous, tuple(reports), seconds, params)
     new_version = None
-    if rows or draft.failed:
+    if rows or new_failures:
         new_version = cat.commit(gc.BuildCommit(
             build=gc.BuildInfo(build_id, version, cdigest,
                                parameters={**params, "report": draft.record()},
@@ -283,13 +316,8 @@ def build_dataset(roots: Sequence[Path | str], catalog: Path | str, preset: str 
     overrides both. ``work``: the work area every worker can reach (default
     ``<catalog>/work``). ``overrides``: per stage a config or a dict of fields.
     """
-    global _progress
     runner = task_runner_ or task_runner(dask, workers)
-    _progress = progress
-    try:
-        with worker_api(dask) as api_url, build_settings(api_url):
-            return build_flow.with_options(task_runner=runner)(
-                [str(r) for r in roots], str(catalog), preset, dict(overrides or {}),
-                retry_failed, None if work is None else str(work), build_id)
-    finally:
-        _progress = None
+    with reporting_to(progress), worker_api(dask) as api_url, build_settings(api_url):
+        return build_flow.with_options(task_runner=runner)(
+            [str(r) for r in roots], str(catalog), preset, dict(overrides or {}),
+            retry_failed, None if work is None else str(work), build_id)

@@ -10,31 +10,76 @@ so a changed algorithm (its ``STAGE_VERSION``), a changed parameter, a changed i
 changed upstream result each give a new key, and nothing else does. On a hit the stored
 :class:`ResultRef` is returned and no stage body runs; on a miss the stage runs, its result is
 stored and every attempt is appended to ``executions.jsonl``.
+
+A :class:`StageError` is deterministic, so it is remembered under the key too, and a later run
+with the same key raises it again without running the stage body (an unchanged rebuild of a
+failed session runs nothing). ``replay_failures=False`` (``--retry-failed``) runs it again.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
+import threading
 import time
+from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
 
 from graspcap.catalog.workarea import ResultRef, WorkArea
 from graspcap.schemas.session import SessionManifest
 from graspcap.tasks.config import StageConfig
+from graspcap.tasks.errors import StageError
 from graspcap.tasks.load_session import MANIFEST, Session
+
+_FILES: OrderedDict[str, dict[str, list[Path]]] = OrderedDict()
+"""File lists by role, remembered per manifest identity or ``load_session`` result digest:
+listing them resolves every path (~130 per session, measured 0.2 s a session under load), and
+every stage task of every build needs the list for its key."""
+_FILES_LOCK = threading.Lock()
+_FILES_MAX = 512
+
+
+def _remembered(key: str, make) -> dict[str, list[Path]] | None:
+    with _FILES_LOCK:
+        if key in _FILES:
+            _FILES.move_to_end(key)
+            return {role: list(paths) for role, paths in _FILES[key].items()}
+    files = make()
+    if files is not None:
+        with _FILES_LOCK:
+            _FILES[key] = files
+            while len(_FILES) > _FILES_MAX:
+                _FILES.popitem(last=False)
+        files = {role: list(paths) for role, paths in files.items()}
+    return files
 
 
 def session_files(session_dir: Path) -> dict[str, list[Path]] | None:
     """The files of a session by role, read from its manifest without validating the session;
-    None when the manifest cannot say (then ``load_session`` runs and reports why)."""
+    None when the manifest cannot say (then ``load_session`` runs and reports why).
+    Remembered by the manifest's (path, size, mtime_ns, inode)."""
+
+    def make():
+        try:
+            raw = (Path(session_dir) / MANIFEST).read_text()
+            manifest = SessionManifest.model_validate_json(raw)
+            return Session(Path(session_dir).resolve(), manifest).input_files()
+        except Exception:  # noqa: BLE001 - anything wrong here is load_session's to report
+            return None
+
     try:
-        raw = (Path(session_dir) / MANIFEST).read_text()
-        manifest = SessionManifest.model_validate_json(raw)
-        return Session(Path(session_dir).resolve(), manifest).input_files()
-    except Exception:  # noqa: BLE001 - anything wrong here is load_session's to report
+        path = os.path.abspath(Path(session_dir) / MANIFEST)
+        st = os.stat(path)
+    except OSError:
         return None
+    return _remembered(f"m|{path}|{st.st_size}|{st.st_mtime_ns}|{st.st_ino}", make)
+
+
+def loaded_session_files(ref: ResultRef) -> dict[str, list[Path]]:
+    """The files of the session a ``load_session`` result holds, remembered by its digest."""
+    return _remembered(f"r|{ref.digest}", lambda: WorkArea.load(ref).input_files())
 
 
 def session_id_of(session_dir: Path) -> str:
@@ -70,8 +115,10 @@ def reads_digest(work: WorkArea, files: Mapping[str, list[Path]], roles: tuple[s
 
 
 def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config: StageConfig,
-               upstream: Mapping[str, ResultRef], work: WorkArea, build_id: str) -> ResultRef:
-    """The result of ``stage_name`` for one session: from the work area, or run and stored."""
+               upstream: Mapping[str, ResultRef], work: WorkArea, build_id: str,
+               replay_failures: bool = True) -> ResultRef:
+    """The result of ``stage_name`` for one session: from the work area, or run and stored;
+    a remembered deterministic failure is raised again unless ``replay_failures`` is False."""
     from graspcap.tasks.pipeline import STAGES, run_stage  # heavy: stage modules
 
     stage = STAGES[stage_name]
@@ -81,7 +128,7 @@ def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config
     if stage_name == "load_session":
         files = session_files(Path(session_dir))
     else:
-        files = WorkArea.load(upstream["load_session"]).input_files()
+        files = loaded_session_files(upstream["load_session"])
     key = None
     if files is not None:
         try:
@@ -91,6 +138,9 @@ def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config
             key = None  # a listed file is missing: load_session says which
     if key is not None and (ref := work.lookup(stage_name, key)) is not None:
         return ref
+    if key is not None and replay_failures and (
+            failure := work.lookup_failure(stage_name, key)) is not None:
+        raise StageError(failure["stage"], failure["reason"], session=failure["session"])
     results = {k: WorkArea.load(upstream[k]) for k in stage.upstream}
     t0 = time.perf_counter()
     record = {"stage": stage_name, "session_id": session_id, "key": key, "build_id": build_id}
@@ -99,9 +149,14 @@ def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config
     except BaseException as exc:
         work.record_execution(**record, seconds=round(time.perf_counter() - t0, 4), ok=False,
                               error=f"{type(exc).__name__}: {exc}"[:2000])
+        if key is not None and isinstance(exc, StageError):
+            work.save_failure(stage_name, key, exc.stage, exc.reason, exc.session, build_id)
         raise
     seconds = round(time.perf_counter() - t0, 4)
     work.record_execution(**record, seconds=seconds, ok=True, error=None)
     if key is None:  # no trustworthy key: never stored, but handed on
         key = "uncached-" + hashlib.sha256(f"{session_dir}{time.time_ns()}".encode()).hexdigest()
-    return work.save(stage_name, key, result, build_id, seconds=seconds)
+    ref = work.save(stage_name, key, result, build_id, seconds=seconds)
+    if not replay_failures:
+        work.forget_failure(stage_name, key)
+    return ref

@@ -9,37 +9,10 @@ from __future__ import annotations
 import json
 import os
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TextIO
 
 from graspcap.flows.runtime import configure
-
-
-class Progress:
-    """A progress bar over the build's tasks on a terminal; a line per session otherwise."""
-
-    def __init__(self, stream: TextIO = sys.stderr, stages: int = 10):
-        self.stream, self.tty, self.stages = stream, stream.isatty(), stages
-        self.per_session: dict[str, int] = {}
-        self.t0 = time.perf_counter()
-
-    def __call__(self, done: int, total: int, session_id: str, stage: str, state: str) -> None:
-        self.per_session[session_id] = self.per_session.get(session_id, 0) + 1
-        if self.tty:
-            width = 30
-            fill = int(width * done / max(total, 1))
-            sessions_done = sum(1 for n in self.per_session.values() if n >= self.stages)
-            self.stream.write(f"\r[{'#' * fill}{'.' * (width - fill)}] {done}/{total} tasks, "
-                              f"{sessions_done} session(s) done; {session_id}: {stage} "
-                              f"{state}\x1b[K")
-            if done == total:
-                self.stream.write("\n")
-        elif self.per_session[session_id] == self.stages:
-            self.stream.write(f"[{time.perf_counter() - self.t0:7.1f} s] {session_id}: "
-                              f"{self.stages} stages done ({done}/{total} tasks)\n")
-        self.stream.flush()
 
 
 def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
@@ -47,10 +20,11 @@ def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
     """``graspcap build``: exit status 0, or 1 when a session failed."""
     configure(Path(catalog) / "work")
     from graspcap.flows.build import build_dataset
-    from graspcap.tasks.pipeline import STAGES
+    from graspcap.flows.progress import ConsoleProgress
 
-    report = build_dataset(roots, catalog, preset, dask=dask, retry_failed=retry_failed,
-                           progress=Progress(stages=len(STAGES)))
+    with ConsoleProgress(sys.stdout) as progress:
+        report = build_dataset(roots, catalog, preset, dask=dask, retry_failed=retry_failed,
+                               progress=progress)
     print(report.summary())
     return 1 if report.failed else 0
 

@@ -54,9 +54,11 @@ def _retry_condition(task, task_run, state) -> bool:
       retry_delay_seconds=RETRY_DELAYS_S, retry_condition_fn=_retry_condition,
       log_prints=False)
 def run_stage_task(stage: str, session_dir: str, session_id: str, config: StageConfig,
-                   work: WorkArea, build_id: str, **upstream: ResultRef) -> ResultRef:
+                   work: WorkArea, build_id: str, replay_failures: bool = True,
+                   **upstream: ResultRef) -> ResultRef:
     """One stage of one session through the work area's cache (see ``flows/cached.py``)."""
-    return run_cached(stage, session_dir, session_id, config, upstream, work, build_id)
+    return run_cached(stage, session_dir, session_id, config, upstream, work, build_id,
+                      replay_failures)
 
 
 def stage_task(stage: str, session_id: str):
@@ -66,8 +68,10 @@ def stage_task(stage: str, session_id: str):
 
 def submit_session(session_dir: Path | str, configs: Mapping[str, StageConfig],
                    work: WorkArea, build_id: str, session_id: str | None = None,
-                   stages: Mapping | None = None) -> dict[str, PrefectFuture]:
+                   stages: Mapping | None = None, replay_failures: bool = True
+                   ) -> dict[str, PrefectFuture]:
     """Submit every stage of one session into the running flow; futures by stage name.
+    ``replay_failures=False`` runs stages whose remembered failure would be replayed.
 
     Upstream futures are passed as parameters, so Prefect resolves them to their refs and a
     task whose upstream failed does not run (it ends ``NotReady``).
@@ -80,7 +84,7 @@ def submit_session(session_dir: Path | str, configs: Mapping[str, StageConfig],
     futures: dict[str, PrefectFuture] = {}
     for name, stage in stages.items():
         futures[name] = stage_task(name, session_id).submit(
-            name, session_dir, session_id, configs[name], work, build_id,
+            name, session_dir, session_id, configs[name], work, build_id, replay_failures,
             **{up: futures[up] for up in stage.upstream},
         )
     return futures

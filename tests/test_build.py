@@ -197,6 +197,16 @@ def test_transient_fault_is_retried_and_recorded(warm, synth_root, tmp_path, mon
     assert len(bad) == 2 and all("OSError" in r["error"] for r in bad)
     scans = [s for s, st in executions(catalog, "flaky") if st == "register_scan"]
     assert sorted(scans) == sorted(_ids(synth_root))
+    # the retries are in the build record: the catalog's builds table and the work area log
+    builds = gc.open(catalog).table("builds").sort_by("catalog_version").to_pylist()
+    in_catalog = json.loads(builds[-1]["parameters_json"])["report"]
+    in_log = json.loads((catalog / "work" / "builds.jsonl").read_text().splitlines()[-1])
+    for rec in (in_catalog, in_log):
+        assert rec["build_id"] == "flaky"
+        assert sum(s["retries"].get("register_scan", 0) for s in rec["sessions"]) == 2
+    from graspcap.flows.commands import status_text
+
+    assert "retries: {'register_scan': " in status_text(catalog)
 
 
 def test_failed_session_keeps_its_previous_good_rows(warm, synth_root, tmp_path, monkeypatch):
@@ -343,3 +353,110 @@ def test_serve_runs_the_build_on_a_schedule_with_its_own_server(synth_root, tmp_
 
     with socket.socket() as s:  # the supervised server is gone
         assert s.connect_ex(("127.0.0.1", int(port))) != 0
+
+
+def test_progress_reports_every_task_and_the_qa_artifact_is_made(warm, synth_root, tmp_path):
+    import io
+
+    from graspcap.flows.progress import _SINK, ConsoleProgress
+    from graspcap.tasks.pipeline import STAGES
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    events = []
+    stream = io.StringIO()  # not a TTY: plain lines
+    console = ConsoleProgress(stream)
+
+    def sink(event):
+        events.append(event)
+        console(event)
+
+    with console:
+        report = build_dataset([synth_root], catalog, PRESET, build_id="progress",
+                               progress=sink)
+    assert _SINK.get() is None  # scoped to the call
+    ids = _ids(synth_root)
+    assert sorted((e.session_id, e.stage) for e in events) == sorted(
+        (s, st) for s in ids for st in STAGES)
+    assert [e.done for e in events] == list(range(1, len(events) + 1))
+    assert all(e.total == len(events) and e.sessions_total == len(ids) for e in events)
+    assert sorted(e.session_id for e in events if e.session_done) == sorted(ids)
+    assert events[-1].sessions_done == len(ids)
+    assert all(e.state == "Completed" for e in events)
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == len(ids) and all("all stages done" in ln for ln in lines)
+    assert not console.tty and "\x1b[" not in stream.getvalue()
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    with get_client(sync_client=True) as client:
+        arts = client.read_artifacts(artifact_filter=ArtifactFilter(
+            key=ArtifactFilterKey(any_=["graspcap-build-qa"])))
+    latest = max(arts, key=lambda a: a.created)
+    table = latest.data if isinstance(latest.data, list) else json.loads(latest.data)
+    assert sorted(r["session"] for r in table) == sorted(ids)
+    assert all(r["outcome"] == "unchanged" and r["cached"] == len(STAGES) for r in table)
+    assert report.build_id in latest.description
+
+
+def test_console_progress_draws_bars_on_a_terminal():
+    import io
+
+    from graspcap.flows.progress import ConsoleProgress, StageEvent
+
+    stream = io.StringIO()
+    with ConsoleProgress(stream, tty=True) as console:
+        for i, (sid, stage) in enumerate([("a", "s1"), ("b", "s1"), ("a", "s2"), ("b", "s2")]):
+            console(StageEvent(sid, stage, "Completed" if sid == "a" else "Failed", i + 1, 4,
+                               i >= 2, max(i - 1, 0), 2))
+    out = stream.getvalue()
+    assert "\x1b[" in out  # drawn with terminal control codes
+    assert "sessions" in out and "stages" in out and "2/2" in out and "4/4" in out
+    assert console.failed == {"b": "s1"}
+
+
+def test_retry_failed_reruns_only_the_tasks_that_did_not_complete(warm, synth_root, tmp_path,
+                                                                  monkeypatch):
+    from graspcap.tasks import pipeline
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    for stage in ("crosscheck_sfm", "fit_hand", "estimate_adjustment", "propagate_poses"):
+        shutil.rmtree(catalog / "work" / "results" / stage)
+    good, bad = _ids(synth_root)
+    original = pipeline.STAGES["fit_hand"]
+
+    def broken_for_one(session, config, **kw):
+        if session.session_id == bad:
+            raise StageError("fit_hand", "did not converge (injected)", session=bad)
+        return original.run(session, config, **kw)
+
+    with monkeypatch.context() as m:
+        m.setitem(pipeline.STAGES, "fit_hand", dataclasses.replace(original, run=broken_for_one))
+        first = build_dataset([synth_root], catalog, PRESET, build_id="half")
+    assert set(first.failed) == {bad}
+    ran_first = executions(catalog, "half")
+    assert (bad, "crosscheck_sfm") in ran_first  # completed in the failed session
+    assert (bad, "fit_hand") not in ran_first  # failed: recorded, but not ok
+
+    # unchanged: the deterministic failure is replayed from the work area, nothing runs
+    plain = build_dataset([synth_root], catalog, PRESET, build_id="plain")
+    assert executions(catalog, "plain") == [] and plain.failed == first.failed
+    assert plain.executed == 0
+    assert plain.catalog_version is None  # the failure is already recorded: no new version
+    recs = (catalog / "work" / "executions.jsonl").read_text()
+    assert '"build_id":"plain"' not in recs  # not even a failed attempt
+
+    retry = build_dataset([synth_root], catalog, PRESET, retry_failed=True, build_id="again")
+    assert [s.session_id for s in retry.sessions] == [bad] and retry.failed == {}
+    # only the failed task and the ones it kept from running (those whose stored result was
+    # removed must run; the others may hit the cache); the completed sibling is cached
+    downstream = {"fit_hand"}
+    for name, stage in pipeline.STAGES.items():  # topological order
+        if downstream & set(stage.upstream):
+            downstream.add(name)
+    ran = executions(catalog, "again")
+    assert {s for s, _ in ran} == {bad}
+    assert {"fit_hand", "estimate_adjustment", "propagate_poses"} <= {st for _, st in ran}
+    assert {st for _, st in ran} <= downstream
+    (s,) = retry.sessions
+    assert "crosscheck_sfm" in s.cached and "reconstruct_hand" in s.cached
