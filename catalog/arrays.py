@@ -10,7 +10,9 @@ few small files and one decode: the files are read with the layout's fsspec file
 folder or an object store, where ``cat`` fetches them concurrently) into a Zarr ``MemoryStore``
 and decoded by zarr's async API on an event loop owned by the calling thread. Going through
 zarr's synchronous API instead hands every metadata and chunk read to zarr's I/O thread and
-back, which measured 3-10x slower on a loaded machine (``docs/architecture.md``).
+back, which measured 3-10x slower on a loaded machine (``docs/architecture.md``). Writing
+is the mirror image: zarr encodes a group into a ``MemoryStore`` on the same loop, and its
+files are written out by plain Python.
 """
 
 from __future__ import annotations
@@ -25,9 +27,8 @@ import warnings
 from collections.abc import Mapping
 
 import numpy as np
-import zarr
 import zarr.api.asynchronous as zarr_async
-from zarr.core.buffer import cpu
+from zarr.core.buffer import cpu, default_buffer_prototype
 from zarr.core.sync import sync as zarr_sync
 from zarr.storage import MemoryStore
 
@@ -86,33 +87,6 @@ def array_digest(kind: str, arrays: Mapping[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def write_group(layout: CatalogLayout, kind: str, arrays: Mapping[str, np.ndarray],
-                digest: str) -> bool:
-    """Write a checked group under ``digest`` unless it exists; True when written."""
-    final = layout.array_group(digest)
-    if final.is_dir():
-        return False
-    layout.arrays_tmp.mkdir(parents=True, exist_ok=True)
-    tmp = layout.arrays_tmp / f"{digest}.{uuid.uuid4().hex}.zarr"
-    group = zarr.open_group(str(tmp), mode="w", zarr_format=3, attributes={
-        "kind": kind, "digest": digest, "format_version": CATALOG_FORMAT_VERSION})
-    for name, a_spec in ZARR_LAYOUT[kind].arrays.items():
-        a = arrays[name]
-        chunks = (max(1, min(a.shape[0], a_spec.chunk_rows)), *a.shape[1:])
-        group.create_array(name, data=a, chunks=chunks,
-                           attributes={"unit": a_spec.unit, "doc": a_spec.doc})
-    zarr.consolidate_metadata(str(tmp))
-    final.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.rename(tmp, final)
-    except OSError:  # written meanwhile by someone else: same digest, same content
-        shutil.rmtree(tmp, ignore_errors=True)
-        if not final.is_dir():
-            raise
-        return False
-    return True
-
-
 _LOOPS = threading.local()
 
 
@@ -161,6 +135,53 @@ async def _decode(files: dict[str, bytes], names: tuple[str, ...] | None
     arrays = await asyncio.gather(*(group.getitem(n) for n in names))
     values = await asyncio.gather(*(a.getitem(...) for a in arrays))
     return dict(zip(names, values, strict=True))
+
+
+async def _encode(kind: str, arrays: Mapping[str, np.ndarray], digest: str) -> dict[str, bytes]:
+    """The files of a group (key -> bytes), encoded by zarr in memory."""
+    store = MemoryStore()
+    group = await zarr_async.open_group(store=store, mode="w", zarr_format=3, attributes={
+        "kind": kind, "digest": digest, "format_version": CATALOG_FORMAT_VERSION})
+    for name, a_spec in ZARR_LAYOUT[kind].arrays.items():
+        a = arrays[name]
+        chunks = (max(1, min(a.shape[0], a_spec.chunk_rows)), *a.shape[1:])
+        codecs = {} if a_spec.compressed else {"compressors": None}
+        array = await group.create_array(name, shape=a.shape, dtype=a.dtype, chunks=chunks,
+                                         attributes={"unit": a_spec.unit, "doc": a_spec.doc},
+                                         **codecs)
+        await array.setitem(Ellipsis, a)
+    await zarr_async.consolidate_metadata(store)
+    proto = default_buffer_prototype()
+    return {key: (await store.get(key, prototype=proto)).to_bytes()
+            async for key in store.list()}
+
+
+def write_group(layout: CatalogLayout, kind: str, arrays: Mapping[str, np.ndarray],
+                digest: str) -> bool:
+    """Write a checked group under ``digest`` unless it exists; True when written.
+
+    zarr encodes the group into memory on this thread's loop (as reads decode, see the module
+    docstring); its files are written under ``arrays/.tmp/`` and the folder renamed into place.
+    """
+    final = layout.array_group(digest)
+    if final.is_dir():
+        return False
+    files = _run(_encode(kind, arrays, digest))
+    layout.arrays_tmp.mkdir(parents=True, exist_ok=True)
+    tmp = layout.arrays_tmp / f"{digest}.{uuid.uuid4().hex}.zarr"
+    for key, data in files.items():
+        path = tmp / key
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.rename(tmp, final)
+    except OSError:  # written meanwhile by someone else: same digest, same content
+        shutil.rmtree(tmp, ignore_errors=True)
+        if not final.is_dir():
+            raise
+        return False
+    return True
 
 
 def read_group(layout: CatalogLayout, digest: str,

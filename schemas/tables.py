@@ -185,6 +185,9 @@ class ZarrArraySpec:
     chunk_rows: int
     unit: str
     doc: str
+    compressed: bool = True
+    """zstd (zarr's default) when True; False stores raw bytes (decoding then needs no worker
+    thread: the contact map, read once per training item, reads ~25 % faster)."""
 
 
 @dataclass(frozen=True)
@@ -201,9 +204,10 @@ _ROWS = 65536
 ZARR_LAYOUT: dict[str, ZarrGroupSpec] = {
     "contact": ZarrGroupSpec("contact_digest", {
         "values": ZarrArraySpec(np.dtype("float32"), ("n",), _ROWS, "1",
-                                "Contact in [0, 1] per object vertex, mesh file order."),
+                                "Contact in [0, 1] per object vertex, mesh file order.",
+                                compressed=False),
         "observed": ZarrArraySpec(np.dtype("bool"), ("n",), _ROWS, "",
-                                  "True where a thermal view saw the vertex."),
+                                  "True where a thermal view saw the vertex.", compressed=False),
     }, "Per session: the contact map on the object mesh."),
     "hand_mesh": ZarrGroupSpec("hand_mesh_digest", {
         "vertices": ZarrArraySpec(np.dtype("float32"), ("n", 3), _ROWS, "m",

@@ -82,3 +82,27 @@ def test_missing_group_says_vacuum(catalog, tmp_path):
 
     with pytest.raises(gc.CatalogError, match="removed by vacuum"):
         read_group(cat.layout, "ab" * 32)
+
+
+def test_written_groups_follow_the_layout_codecs(catalog):
+    """Contact arrays are raw bytes (decoded without a worker thread), meshes zstd; the files
+    are a complete Zarr v3 group that zarr itself opens (consolidated metadata included)."""
+    import json
+
+    import zarr
+
+    cat, build = catalog
+    row = cat.table("sessions", 1).to_pylist()[0]
+    path = cat.layout.array_group(row["contact_digest"])
+    meta = json.loads((path / "zarr.json").read_text())
+    consolidated = meta["consolidated_metadata"]["metadata"]
+    assert set(consolidated) == {"values", "observed"}
+    for name in ("values", "observed"):
+        assert [c["name"] for c in consolidated[name]["codecs"]] == ["bytes"], name
+    hand = json.loads((cat.layout.array_group(row["hand_mesh_digest"]) / "zarr.json"
+                       ).read_text())["consolidated_metadata"]["metadata"]
+    assert "zstd" in [c["name"] for c in hand["vertices"]["codecs"]]
+    group = zarr.open_group(str(path), mode="r", zarr_format=3)
+    assert group.attrs["kind"] == "contact" and group.attrs["digest"] == row["contact_digest"]
+    np.testing.assert_array_equal(group["values"][...],
+                                  build.session_arrays[row["session_id"]].contact)
