@@ -107,17 +107,9 @@ def _write_csv(table: pa.Table, path: Path) -> None:
             writer.write_batch(pa.RecordBatch.from_arrays(cols, schema=schema))
 
 
-def export_version(catalog: Catalog, version: int | str | None, out: str | Path,
-                   fmt: ExportFormat | str = ExportFormat.PARQUET) -> ExportReport:
-    """Write ``version`` of ``catalog`` to the new folder ``out`` (module docstring)."""
-    fmt = ExportFormat(fmt)
-    v = catalog.resolve(version)
-    out = Path(out).expanduser().resolve()
-    if out.exists():
-        raise CatalogError(f"{out} exists; export writes a new folder")
-    partial = out.with_name(out.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
+def _write_all(catalog: Catalog, v: int, partial: Path, fmt: ExportFormat
+               ) -> tuple[dict[str, int], int]:
+    """Write every file of the export into ``partial``; return rows per stem and bytes."""
     tables = {name: catalog.table(name, v) for name in DATA_TABLES}
     tables.update(_array_tables(catalog, v))
     rows, files = {}, {}
@@ -143,5 +135,24 @@ def export_version(catalog: Catalog, version: int | str | None, out: str | Path,
     }
     (partial / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     size = sum(p.stat().st_size for p in partial.iterdir())
+    return rows, size
+
+
+def export_version(catalog: Catalog, version: int | str | None, out: str | Path,
+                   fmt: ExportFormat | str = ExportFormat.PARQUET) -> ExportReport:
+    """Write ``version`` of ``catalog`` to the new folder ``out`` (module docstring)."""
+    fmt = ExportFormat(fmt)
+    v = catalog.resolve(version)
+    out = Path(out).expanduser().resolve()
+    if out.exists():
+        raise CatalogError(f"{out} exists; export writes a new folder")
+    partial = out.with_name(out.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    try:
+        rows, size = _write_all(catalog, v, partial, fmt)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
     partial.rename(out)
     return ExportReport(out, v, rows, size)

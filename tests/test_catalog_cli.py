@@ -144,6 +144,10 @@ def test_vacuum(tmp_path, capsys):
         gc.open(cat.layout.root).table("frames", 1)
     code, _, err = run(capsys, "vacuum", "--keep", "0", "--catalog", str(cat.layout.root))
     assert code == 2 and "keep must be >= 1" in err
+    code, _, err = run(capsys, "export", "1", "--out", str(tmp_path / "e"),
+                       "--catalog", str(cat.layout.root))
+    assert code == 2 and "vacuum" in err
+    assert not (tmp_path / "e").exists() and not (tmp_path / "e.partial").exists()
 
 
 def test_the_command_the_format_error_names_migrates(tmp_path):
