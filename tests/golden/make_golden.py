@@ -7,7 +7,7 @@
 - ``catalog_v1.tar.gz``: a real catalog of format 1, the format before the current one:
   ``build()`` committed as version 1 and tagged ``golden``, written by today's commit code with
   format 1's differences (Delta tables without ``DELTA_TABLE_PROPERTIES``, stamp and versions
-  row saying 1; docs/data_changelog.md). Unpacked it is ~80 KB in ~35 files (Delta logs, and
+  row saying 1; docs/data_changelog.md). Unpacked it is ~86 KB in 33 files (Delta logs, and
   Parquet footers repeating the schema's docs), packed ~15 KB. Tests unpack it into a temporary
   folder: opening fails naming ``graspcap catalog migrate``, migrating makes it readable.
 
