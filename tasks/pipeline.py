@@ -83,10 +83,13 @@ def _T_color_turntable(session: Session) -> np.ndarray:
     return np.asarray(session.manifest.turntable.T_color_turntable, dtype=float)
 
 
-def depth_lookup(session: Session, window_px: int = 2):
+def depth_lookup(session: Session, window_px: int = 2, read: Callable | None = None):
     """``depth_at(frame, uv (k, 2)) -> (k,)`` metres, median of non-zero depth around each
-    pixel; frames are read lazily (a session's depth video does not fit in memory as float)."""
-    read = lru_cache(maxsize=4)(lambda i: session.read_depth_m(session.grasp_path("depth", i)))
+    pixel; frames are read lazily (a session's depth video does not fit in memory as float),
+    by ``read(frame) -> (h, w)`` metres when given (to share a cache)."""
+    read = read or lru_cache(maxsize=4)(
+        lambda i: session.read_depth_m(session.grasp_path("depth", i))
+    )
 
     def depth_at(frame: int, uv: np.ndarray) -> np.ndarray:
         depth = read(int(frame))
@@ -127,13 +130,16 @@ def _select_steady(session, config, detect_keypoints, **_):
 
 
 def _reconstruct_hand(session, config, detect_keypoints, select_steady, **_):
+    read = lru_cache(maxsize=4)(lambda i: session.read_depth_m(session.grasp_path("depth", i)))
     return reconstruct_hand.reconstruct_hand(
         detect_keypoints.keypoints,
         _K(session),
         select_steady.steady_from,
-        depth_lookup(session),
+        depth_lookup(session, read=read),
         np.asarray(SURFACE_OFFSET_M),
         config,
+        depth_frame=read,
+        T_c_tt=_T_color_turntable(session),
     )
 
 

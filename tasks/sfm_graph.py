@@ -8,6 +8,7 @@ GTSAM's Python wheel is built without TBB, so the solve is single-threaded and d
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import gtsam
@@ -15,6 +16,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from graspcap.tasks.geometry import inv_T, project
+from graspcap.tasks.sfm_depth_icp import DepthLink
 
 GAUGE_SIGMA = 1e-6
 """Sigma of the gauge priors (pose of the anchor camera, anchor-to-reference distance)."""
@@ -79,6 +81,8 @@ def bundle_adjust(
     scale_sigma_rel: float | None = None,
     min_observations: int = 4,
     max_iterations: int = 100,
+    links: Sequence[DepthLink] = (),
+    link_huber_k: float = 3.0,
 ) -> BundleResult:
     """Refine poses and joints by Levenberg-Marquardt.
 
@@ -97,6 +101,9 @@ def bundle_adjust(
         shape matters.
     range_m : (m, 21) float or None, measured distance from camera centre to joint (from the
         aligned depth), NaN where none; each gets a ``RangeFactor3D`` under a Huber loss.
+    links : relative poses of frame pairs from dense depth (``sfm_depth_icp``), each a
+        ``BetweenFactorPose3`` with the link's information under a Huber loss
+        (``link_huber_k`` whitened units); links touching a frame left out are skipped.
     """
     m, nj = use.shape
     posed = np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)
@@ -129,6 +136,15 @@ def bundle_adjust(
         has_range = use & np.isfinite(range_m)
         for i, j in zip(*np.nonzero(has_range), strict=True):
             graph.add(gtsam.RangeFactor3D(X(i), L(j), float(range_m[i, j]), range_noise))
+    huber_link = gtsam.noiseModel.mEstimator.Huber.Create(link_huber_k)
+    for link in links:
+        if frames[link.a] and frames[link.b]:
+            noise = gtsam.noiseModel.Robust.Create(
+                huber_link, gtsam.noiseModel.Gaussian.Information(link.information)
+            )
+            graph.add(
+                gtsam.BetweenFactorPose3(X(link.a), X(link.b), gtsam.Pose3(link.T_a_b), noise)
+            )
     gauge = gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA)
     graph.add(gtsam.PriorFactorPose3(X(anchor), gtsam.Pose3(inv_T(T_c_w[anchor])), gauge))
     if scale_ref is not None:

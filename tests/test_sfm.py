@@ -306,3 +306,29 @@ def test_implausible_reconstruction_raises(rig_session):
     behind = truth["joints_w"] - [0.0, 0.0, 1.0]
     assert "behind" in implausibility(behind, T_c_w, 3.0, 0.95, **limits)
     assert "RMSE" in implausibility(truth["joints_w"], T_c_w, 9.0, 0.95, **limits)
+
+
+def test_depth_links_sharpen_the_cameras_on_a_rig_session(rig_session):
+    """Dense depth links (ICP of the hand and held object between frames, the platter cut
+    with the manifest's turntable pose) against the keypoint-and-range-factor solve alone.
+    Measured: 1.93 deg / 14.4 mm / MPJPE 3.2 mm without, 0.35 deg / 2.2 mm / 2.2 mm with."""
+    from graspcap.synth.evaluate import evaluate
+    from graspcap.tasks.hand_model import SURFACE_OFFSET_M
+    from graspcap.tasks.load_session import load_session
+    from graspcap.tasks.reconstruct_hand import ReconstructConfig
+    from graspcap.tasks.sfm_depth_icp import DepthLinkConfig
+
+    d, kp, K, depth, truth = rig_session
+    onset = int(truth["steady_from"])
+    T_c_tt = np.asarray(load_session(d).manifest.turntable.T_color_turntable, dtype=float)
+    errors = {}
+    for enabled in (False, True):
+        cfg = ReconstructConfig(depth_links=DepthLinkConfig(enabled=enabled))
+        rec = reconstruct_hand(kp, K, onset, depth, np.asarray(SURFACE_OFFSET_M), cfg,
+                               T_c_tt=T_c_tt)  # fmt: skip
+        ev = evaluate(d, {"steady_from": onset, "joints_w": rec.joints_w, "T_w_c": rec.T_w_c})
+        errors[enabled] = (ev["camera_rot_deg"], ev["camera_trans_mm"], ev["joints_mpjpe_mm"])
+        assert (len(rec.diagnostics.depth_links) > len(kp) - onset) == enabled
+    (rot0, trans0, _), (rot1, trans1, mpjpe1) = errors[False], errors[True]
+    assert rot1 < 0.6 and trans1 < 5.0 and mpjpe1 < 4.0
+    assert rot1 < 0.5 * rot0 and trans1 < 0.5 * trans0

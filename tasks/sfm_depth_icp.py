@@ -1,0 +1,361 @@
+"""Dense depth links between virtual cameras: point-to-plane ICP of the hand and held object.
+
+A hand ~0.15 m across seen from 0.35-0.6 m pins each camera's tilt only to about a degree
+from 21 keypoints (rotation about an axis in the image plane and a sideways translation
+move the keypoints almost alike), and the skin readings at the keypoints carry a per-joint
+bias of several millimetres (the ray hits a neighbouring finger or the skin off the joint
+centre). The aligned depth of the whole static hand and the object it holds is a rigid
+surface thousands of pixels large: registering one frame's surface onto another's
+(point-to-plane ICP, Huber-weighted) measures their relative pose to about 0.1 deg, and no
+surface offset model enters it.
+
+Each accepted registration becomes a *link*: the relative pose ``T_a_b`` of two solve frames
+with a 6x6 information matrix (tangent order rotation, translation, right perturbation of
+``T_a_b`` as GTSAM's ``Pose3``) that ``sfm_graph.bundle_adjust`` adds as a
+``BetweenFactorPose3``. The information is the point-to-plane Gauss-Newton Hessian, scaled
+down to ``effective_points`` independent points (neighbouring depth pixels share their
+errors: sensor smoothing, the reference frame's own noise, surface sampling).
+
+The surface of a frame is its depth inside a sphere around the hand's current centre, minus
+the static scene: with the turntable pose known, everything less than ``min_height_m`` above
+the platter's top plane (the platter and the table) is dropped.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from scipy.spatial.transform import Rotation
+
+from graspcap.tasks.config import StageConfig
+from graspcap.tasks.geometry import backproject, inv_T
+
+DepthFrame = Callable[[int], np.ndarray]
+"""``depth_frame(frame) -> depth_m (h, w)``: aligned depth of a video frame in metres, 0 where
+the sensor has no reading."""
+
+
+class DepthLinkConfig(StageConfig):
+    """Dense depth links of ``reconstruct_hand`` (part of its config)."""
+
+    enabled: bool = True
+    """Register the frames' depth of the hand and held object and add the relative poses to
+    the final solve (needs the depth frames)."""
+    reference: int = 5
+    """Solve frame (counted from the steady frame) every other frame is registered onto: a
+    few frames in, so that it is steady even when the onset was detected a little early."""
+    rounds: int = 2
+    """Registrations from the first RGB-D solve, then again from the solve they improved."""
+    radius_m: float = 0.15
+    """Radius around the hand's centre of the surface registered."""
+    centre_below_skin_m: float = 0.01
+    """The hand's centre lies this far behind the median skin reading at its keypoints."""
+    stride_px: int = 3
+    """Every this many pixels of the depth are sampled (rows and columns)."""
+    min_height_m: float = 0.015
+    """Points less than this above the platter's top plane are the static scene."""
+    max_points: int = 300
+    """At most this many points of a frame are moved onto another (an even subsample)."""
+    max_distance_m: float = 0.01
+    """Farthest correspondence of an ICP iteration."""
+    huber_m: float = 0.003
+    """Huber threshold of the point-to-plane residuals."""
+    iterations: int = 12
+    """Most Gauss-Newton iterations of one registration."""
+    sigma_m: float = 0.0015
+    """Sigma of one point-to-plane residual."""
+    effective_points: float = 300.0
+    """A registration's information is that of at most this many independent points."""
+    min_overlap: float = 0.5
+    """Least share of a frame's surface that must find the other frame's."""
+    max_rmse_m: float = 0.004
+    """Largest RMS residual of an accepted registration."""
+    max_correction_deg: float = 5.0
+    """Largest rotation an accepted registration may apply to the keypoint solve."""
+    max_correction_m: float = 0.03
+    """Largest translation an accepted registration may apply to the keypoint solve."""
+
+
+@dataclass(frozen=True)
+class SurfaceCloud:
+    """Sampled surface of one frame, camera coordinates, on a pixel lattice.
+
+    index : (gh, gw) int32, row of ``points`` at each lattice node, -1 where none.
+    first_px : (u, v) pixel of lattice node (0, 0); stride_px : pixels between nodes.
+    points, normals : (n, 3) float; normals unit length and facing the camera.
+    """
+
+    index: np.ndarray
+    first_px: tuple[int, int]
+    stride_px: int
+    points: np.ndarray
+    normals: np.ndarray
+
+
+@dataclass(frozen=True)
+class DepthLink:
+    """A relative pose between solve frames ``a`` and ``b`` measured by ICP.
+
+    T_a_b : (4, 4) maps camera ``b`` into camera ``a``.
+    information : (6, 6) inverse covariance, tangent order (rotation, translation).
+    rmse_m : RMS point-to-plane residual of the inliers; overlap : share of source points
+        with a correspondence.
+    """
+
+    a: int
+    b: int
+    T_a_b: np.ndarray
+    information: np.ndarray
+    rmse_m: float
+    overlap: float
+
+
+def hand_centre(
+    K: np.ndarray, uv_px: np.ndarray, depth_m: np.ndarray, below_skin_m: float
+) -> np.ndarray | None:
+    """Rough hand centre (3,) in the camera from keypoints (k, 2) and their depth readings
+    (k,): the median pixel at the median valid reading plus ``below_skin_m``; None without
+    a reading."""
+    valid = np.isfinite(depth_m) & (depth_m > 0)
+    if not valid.any():
+        return None
+    uv = np.median(uv_px[valid], axis=0)[None]
+    return backproject(K, uv, np.array([np.median(depth_m[valid]) + below_skin_m]))[0]
+
+
+def surface_cloud(
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    centre_c: np.ndarray,
+    *,
+    radius_m: float,
+    stride_px: int,
+    T_c_tt: np.ndarray | None = None,
+    min_height_m: float = 0.015,
+    normal_step: int = 2,
+    max_jump_m: float = 0.01,
+    min_points: int = 50,
+) -> SurfaceCloud | None:
+    """Depth pixels on a lattice of ``stride_px`` within ``radius_m`` of ``centre_c`` (3,) and,
+    when the turntable pose ``T_c_tt`` (4, 4) is given, at least ``min_height_m`` above its
+    top plane. Normals from the lattice neighbours ``normal_step`` nodes away (central
+    differences), none across a depth jump over ``max_jump_m``. None with fewer than
+    ``min_points``."""
+    h, w = depth_m.shape
+    c = np.asarray(centre_c, dtype=float)
+    if not np.all(np.isfinite(c)) or c[2] <= radius_m * 0.5:
+        return None
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    z_near = max(c[2] - radius_m, 0.05)
+    u0 = int(np.clip(fx * (c[0] - radius_m) / z_near + cx, 0, w))
+    u1 = int(np.clip(fx * (c[0] + radius_m) / z_near + cx + 1, 0, w))
+    v0 = int(np.clip(fy * (c[1] - radius_m) / z_near + cy, 0, h))
+    v1 = int(np.clip(fy * (c[1] + radius_m) / z_near + cy + 1, 0, h))
+    z = depth_m[v0:v1:stride_px, u0:u1:stride_px].astype(float)
+    k = normal_step
+    if z.shape[0] <= 2 * k or z.shape[1] <= 2 * k:
+        return None
+    u = (np.arange(z.shape[1]) * stride_px + u0 - cx) / fx
+    v = (np.arange(z.shape[0]) * stride_px + v0 - cy) / fy
+    P = np.stack([u[None, :] * z, v[:, None] * z, z], axis=2)
+    keep = (z > 0) & (np.sum((P - c) ** 2, axis=2) < radius_m**2)
+    if T_c_tt is not None:
+        T_tt_c = inv_T(T_c_tt)
+        keep &= P @ T_tt_c[2, :3] + T_tt_c[2, 3] > min_height_m
+    du = P[k:-k, 2 * k :] - P[k:-k, : -2 * k]
+    dv = P[2 * k :, k:-k] - P[: -2 * k, k:-k]
+    keep = (
+        keep[k:-k, k:-k]
+        & (np.abs(du[..., 2]) < max_jump_m) & (np.abs(dv[..., 2]) < max_jump_m)
+        & (z[k:-k, 2 * k :] > 0) & (z[k:-k, : -2 * k] > 0)
+        & (z[2 * k :, k:-k] > 0) & (z[: -2 * k, k:-k] > 0)
+    )  # fmt: skip
+    if keep.sum() < min_points:
+        return None
+    n = np.cross(du[keep], dv[keep])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    pts = P[k:-k, k:-k][keep]
+    n *= -np.sign(np.sum(n * pts, axis=1))[:, None]
+    index = np.full(keep.shape, -1, dtype=np.int32)
+    index[keep] = np.arange(len(pts), dtype=np.int32)
+    return SurfaceCloud(index, (u0 + k * stride_px, v0 + k * stride_px), stride_px, pts, n)
+
+
+def _exp_batch(step: np.ndarray) -> np.ndarray:
+    """(k, 4, 4) transforms of (k, 6) steps (rotation vector, translation)."""
+    T = np.tile(np.eye(4), (len(step), 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(step[:, :3]).as_matrix()
+    T[:, :3, 3] = step[:, 3:]
+    return T
+
+
+def icp_batch(
+    clouds: Sequence[SurfaceCloud],
+    pairs: np.ndarray,
+    T_a_b: np.ndarray,
+    K: np.ndarray,
+    *,
+    max_points: int,
+    max_distance_m: float,
+    huber_m: float,
+    iterations: int,
+    sigma_m: float,
+    effective_points: float,
+    prior_rad: float = np.radians(2.0),
+    prior_m: float = 0.01,
+    damping: float = 1e-3,
+    max_step_rad: float = np.radians(2.0),
+    max_step_m: float = 0.01,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Point-to-plane ICP of many frame pairs at once: cloud ``b`` onto cloud ``a``.
+
+    Gauss-Newton on Huber-weighted point-to-plane residuals with projective data association
+    (each source point, moved into camera ``a``, is paired with the target's lattice node
+    at its pixel when that lies within ``max_distance_m``), re-found each iteration;
+    Levenberg damping ``damping`` and steps clamped to ``max_step_*``. ``K`` (3, 3) is the
+    camera of every cloud. A Gaussian prior (sigmas ``prior_rad``, ``prior_m``) holds the
+    pose near its start where the surface leaves it free (a rotation about the optical axis
+    of faces turned to the camera, a slide along a cylinder); the returned information is
+    that of the surface alone.
+
+    Parameters
+    ----------
+    clouds : the frames' surfaces.
+    pairs : (k, 2) int, indices (a, b) into ``clouds``.
+    T_a_b : (k, 4, 4) initial relative poses (cloud b into cloud a).
+    max_points : at most this many points of each source cloud (an even subsample).
+
+    Returns
+    -------
+    T_a_b : (k, 4, 4) refined; information : (k, 6, 6) (rotation, translation; the
+    Gauss-Newton Hessian over ``sigma_m``^2, scaled down to ``effective_points``);
+    rmse_m : (k,) RMS residual of the points within 3 Huber widths; overlap : (k,) share
+    of source points with a correspondence.
+    """
+    k = len(pairs)
+    shape = np.array([c.index.shape for c in clouds])
+    grid_base = np.concatenate([[0], np.cumsum(shape[:, 0] * shape[:, 1])])[:-1]
+    point_base = np.concatenate([[0], np.cumsum([len(c.points) for c in clouds])])[:-1]
+    index = np.concatenate(
+        [np.where(c.index >= 0, c.index + b, -1).ravel() for c, b in zip(clouds, point_base,
+                                                                         strict=True)]
+    )
+    first = np.array([c.first_px for c in clouds], dtype=float)
+    stride = np.array([c.stride_px for c in clouds], dtype=float)
+    pts = np.concatenate([c.points for c in clouds])
+    normals = np.concatenate([c.normals for c in clouds])
+    src, pid = [], []
+    for n, b in enumerate(pairs[:, 1]):
+        src.append(clouds[b].points[:: max(1, len(clouds[b].points) // max_points)])
+        pid.append(np.full(len(src[-1]), n))
+    p, pid = np.concatenate(src), np.concatenate(pid)
+    total = np.bincount(pid, minlength=k).astype(float)
+    tgt = pairs[pid, 0]
+    t_first, t_stride = first[tgt], stride[tgt][:, None]
+    t_shape, t_base = shape[tgt], grid_base[tgt]
+    f, c0 = np.array([K[0, 0], K[1, 1]]), np.array([K[0, 2], K[1, 2]])
+    T = np.array(T_a_b, dtype=float)
+    T0_inv = np.stack([inv_T(X) for X in T])
+    prior = np.diag([prior_rad**-2] * 3 + [prior_m**-2] * 3) * sigma_m**2  # in residual units
+    H = np.zeros((k, 6, 6))
+    rmse = np.full(k, np.inf)
+    used = np.zeros(k)
+    active = np.ones(k, bool)
+    for _ in range(iterations):
+        R = T[pid, :3, :3]
+        moved = np.einsum("nij,nj->ni", R, p) + T[pid, :3, 3]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            node = np.rint(((moved[:, :2] / moved[:, 2:]) * f + c0 - t_first) / t_stride)
+        ok = (moved[:, 2] > 0) & np.all((node >= 0) & (node < t_shape[:, ::-1]), axis=1)
+        row = np.full(len(p), -1)
+        row[ok] = index[t_base[ok] + node[ok, 1].astype(np.int64) * t_shape[ok, 1]
+                        + node[ok, 0].astype(np.int64)]
+        ok &= row >= 0
+        ok[ok] = np.sum((pts[row[ok]] - moved[ok]) ** 2, axis=1) < max_distance_m**2
+        q, nq = pts[row[ok]], normals[row[ok]]
+        r = np.sum(nq * (moved[ok] - q), axis=1)
+        a = np.abs(r)
+        wgt = np.where(a <= huber_m, 1.0, huber_m / np.maximum(a, 1e-12))
+        m = np.einsum("ni,nij->nj", nq, R[ok])  # target normal in the source frame
+        J = np.concatenate([np.cross(p[ok], m), m], axis=1)
+        sel = sparse.csr_matrix((wgt, (pid[ok], np.arange(len(r)))), shape=(k, len(r)))
+        H = np.asarray(sel @ (J[:, :, None] * J[:, None, :]).reshape(-1, 36)).reshape(k, 6, 6)
+        g = np.asarray(sel @ (J * r[:, None]))
+        used = np.bincount(pid[ok], minlength=k).astype(float)
+        inl = (a <= 3 * huber_m).astype(float)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rmse = np.sqrt(np.bincount(pid[ok], r**2 * inl, k) / np.bincount(pid[ok], inl, k))
+        active &= used >= 12
+        D = T0_inv @ T
+        delta = np.concatenate([Rotation.from_matrix(D[:, :3, :3]).as_rotvec(), D[:, :3, 3]], 1)
+        A = H + prior + damping * H * np.eye(6)
+        step = -np.linalg.solve(A, (g + delta @ prior)[:, :, None])[:, :, 0]
+        step[~active] = 0.0
+        big = np.maximum(
+            np.linalg.norm(step[:, :3], axis=1) / max_step_rad,
+            np.linalg.norm(step[:, 3:], axis=1) / max_step_m,
+        )
+        step /= np.maximum(big, 1.0)[:, None]
+        T = T @ _exp_batch(step)
+        if np.all(np.linalg.norm(step[:, :3], axis=1) < 1e-6) and np.all(
+            np.linalg.norm(step[:, 3:], axis=1) < 1e-7
+        ):
+            break
+    scale = np.minimum(1.0, effective_points / np.maximum(used, 1.0)) / sigma_m**2
+    info = H * scale[:, None, None]
+    info[~active] = 0.0
+    rmse[~active] = np.inf
+    return T, info, rmse, used / np.maximum(total, 1.0)
+
+
+def depth_links(
+    surfaces: Sequence[SurfaceCloud | None],
+    T_c_w: np.ndarray,
+    K: np.ndarray,
+    config: DepthLinkConfig,
+) -> list[DepthLink]:
+    """ICP links of every posed solve frame to the reference frame and to its predecessor.
+
+    Parameters
+    ----------
+    surfaces : (m) each solve frame's surface, None where it has none.
+    T_c_w : (m, 4, 4) current poses (NaN rows for unposed frames), initialising the ICP.
+    K : (3, 3) colour (and aligned depth) intrinsics.
+
+    A registration is kept when it overlaps by ``min_overlap``, fits within ``max_rmse_m``
+    and moves the initial relative pose by at most ``max_correction_*`` (a larger change is
+    a wrong basin, not a refinement of a keypoint solve).
+    """
+    cfg = config
+    m = len(T_c_w)
+    posed = np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)
+    have = np.array([i for i in range(m) if posed[i] and surfaces[i] is not None], dtype=int)
+    reference = min(cfg.reference, m - 1)
+    if reference not in have or len(have) < 2:
+        return []
+    pairs = {(reference, int(i)) for i in have if i != reference}
+    pairs |= {(int(a), int(b)) for a, b in zip(have[:-1], have[1:], strict=True)}
+    ab = np.array(sorted(pairs))
+    node = np.full(m, -1)
+    node[have] = np.arange(len(have))
+    T0 = np.einsum("nij,njk->nik", T_c_w[ab[:, 0]], np.stack([inv_T(T_c_w[b]) for b in ab[:, 1]]))
+    T, info, rmse, overlap = icp_batch(
+        [surfaces[i] for i in have], node[ab], T0, K, max_points=cfg.max_points,
+        max_distance_m=cfg.max_distance_m, huber_m=cfg.huber_m, iterations=cfg.iterations,
+        sigma_m=cfg.sigma_m, effective_points=cfg.effective_points,
+    )  # fmt: skip
+    links = []
+    for n, (a, b) in enumerate(ab):
+        dT = inv_T(T0[n]) @ T[n]
+        angle = np.degrees(np.arccos(np.clip((np.trace(dT[:3, :3]) - 1) / 2, -1, 1)))
+        if (
+            overlap[n] >= cfg.min_overlap
+            and rmse[n] <= cfg.max_rmse_m
+            and angle <= cfg.max_correction_deg
+            and np.linalg.norm(dT[:3, 3]) <= cfg.max_correction_m
+        ):
+            links.append(DepthLink(int(a), int(b), T[n], info[n], float(rmse[n]), overlap[n]))
+    return links
