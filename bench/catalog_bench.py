@@ -39,6 +39,7 @@ def make_build(ids: list[str], frames: int, seed: int, build_id: str) -> gc.Buil
         sessions.append({
             "session_id": sid, "participant": f"p{i % 20:02d}", "object_id": obj,
             "intent": "use", "hand": "right", "status": "ok", "error": None,
+            "keypoint_backend": "openpose_json", "keypoint_frames_detected": frames,
             "steady_from": 10, "T_w_o_stage1": T, "T_adj": T, "T_w_p": T,
             "T_turntable_o_scan": T, "hand_scale": 1.0, "joint_angles_rad": rng.normal(size=20),
             "joints_w": rng.normal(size=63), "joints_fit_w": rng.normal(size=63),

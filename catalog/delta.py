@@ -3,7 +3,11 @@
 Reads go through the version's file list (``DeltaTable(uri, version=k).file_uris()``) and
 ``pyarrow.parquet.read_table``: the same bytes deltalake would read, at the speed of plain
 Parquet. Delta stores fixed-size lists as plain lists, so what comes back is cast to the
-catalog schema (a metadata-only change) and gets the schema's field metadata back.
+catalog schema (a metadata-only change) and gets the schema's field metadata back. The files
+are read *as* the catalog schema, so the files of one version may differ in columns: a nullable
+column added by a migration reads as null from files written before it (schema evolution on
+read, here and nowhere else; without the explicit schema pyarrow would take the first file's
+columns and silently drop the new one).
 Table URIs and ``storage_options`` come from the layout, so the same calls read a local folder
 and an object store (deltalake has its own stores for s3, gs and az).
 """
@@ -57,9 +61,11 @@ def read_files(name: str, files: list[str], columns: list[str] | None = None,
                layout: CatalogLayout | None = None) -> pa.Table:
     """Read Parquet ``files`` of table ``name`` as its catalog schema.
 
-    ``layout`` is needed only for an object store (its fsspec filesystem reads the files).
+    Columns a file lacks (written before a migration added them) read as nulls; a missing
+    column that must not be null fails with ``CatalogError``. ``layout`` is needed only for an
+    object store (its fsspec filesystem reads the files).
     """
-    schema = TABLE_SCHEMAS[name]
+    full = schema = TABLE_SCHEMAS[name]
     if columns is not None:
         schema = pa.schema([schema.field(c) for c in columns], metadata=schema.metadata)
     if not files:
@@ -69,12 +75,18 @@ def read_files(name: str, files: list[str], columns: list[str] | None = None,
         filesystem = PyFileSystem(FSSpecHandler(layout.fs))
         files = [layout.fs._strip_protocol(f) for f in files]
     try:
-        table = pq.read_table(files, columns=columns, filesystem=filesystem)
+        table = pq.read_table(files, schema=full, columns=columns, filesystem=filesystem)
     except FileNotFoundError as exc:
         raise CatalogError(
             f"table {name!r}: a file of this version is gone ({exc.filename}); the version "
             "was removed by vacuum (read a kept version, see Catalog.versions())") from exc
-    return table.select(schema.names).cast(schema)
+    table = table.select(schema.names).cast(schema)
+    for field in schema:  # validated on write, so a null here is a column the files lack
+        if not field.nullable and table[field.name].null_count:
+            raise CatalogError(
+                f"table {name!r}: files of this version lack column {field.name!r}, which "
+                "must not be null; only nullable columns can be added to existing rows")
+    return table
 
 
 def read_table(layout: CatalogLayout, name: str, delta_version: int,

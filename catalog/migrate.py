@@ -1,8 +1,11 @@
 """Upgrade a catalog of an older format to the current one (``graspcap catalog migrate``).
 
 Format 1 -> 2: every Delta table gets ``DELTA_TABLE_PROPERTIES`` (expired-log cleanup off, so
-Delta never deletes the log entries old catalog versions are pinned to). Setting a property is a
-Delta commit, and a catalog version pins Delta versions, so the migration of a catalog that has
+Delta never deletes the log entries old catalog versions are pinned to), and the columns format 2
+added (``sessions``: ``keypoint_backend``, ``keypoint_frames_detected``; nullable) are added to
+the Delta table's schema, so later commits validate; rows written before read them as null
+(``graspcap.catalog.delta.read_files``). Setting a property or adding a column is a Delta
+commit, and a catalog version pins Delta versions, so the migration of a catalog that has
 versions appends one more catalog version (``build_id`` ``migrate-1-to-2``, same rows) pinning
 the new Delta versions; every earlier version and tag still reads what it read before. An empty
 catalog's tables are simply created again. ``catalog.json`` is restamped last, under the writer
@@ -17,7 +20,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
-from deltalake import DeltaTable, write_deltalake
+import pyarrow as pa
+from deltalake import DeltaTable, Field, write_deltalake
 
 from graspcap.catalog.commit import last_version_row, recover, writer_lock
 from graspcap.catalog.delta import create_tables, delta_version
@@ -49,6 +53,21 @@ class MigrationReport:
     """The catalog version the migration appended (None: nothing to pin, or already current)."""
 
 
+def add_missing_columns(dt: DeltaTable, schema: pa.Schema) -> list[str]:
+    """Add the columns of ``schema`` that Delta table ``dt`` lacks (one Delta commit, none when
+    nothing is missing); return their names. Only nullable columns can be added: the table's
+    existing rows read them as null."""
+    have = {f.name for f in dt.schema().fields}
+    missing = [f for f in schema if f.name not in have]
+    strict = [f.name for f in missing if not f.nullable]
+    if strict:
+        raise CatalogFormatError(f"cannot add column(s) {strict} to existing rows: they must "
+                                 "not be null (make them nullable, or rebuild the catalog)")
+    if missing:
+        dt.alter.add_columns([Field.from_arrow(f) for f in missing])
+    return [f.name for f in missing]
+
+
 def _to_format_2(layout: CatalogLayout) -> int | None:
     """Format 1 -> 2 under the writer lock (module docstring); the appended version or None."""
     recover(layout)
@@ -65,6 +84,8 @@ def _to_format_2(layout: CatalogLayout) -> int | None:
         if any(config.get(k) != v for k, v in DELTA_TABLE_PROPERTIES.items()):
             dt.alter.set_table_properties(dict(DELTA_TABLE_PROPERTIES))
             changed = True
+        changed |= bool(add_missing_columns(DeltaTable(str(layout.table(name))),
+                                            TABLE_SCHEMAS[name]))
     pinned = {name: delta_version(layout, name) for name in DATA_TABLES}
     if not changed and pinned == json.loads(row["table_versions"]):
         return None

@@ -198,7 +198,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
 
     previous = cat.latest_version()
     prev_rows = ({r["session_id"]: r for r in cat.table("sessions").select(
-        ["session_id", "status", "input_digest", "config_digest", "steady_from"]).to_pylist()}
+        ["session_id", "status", "input_digest", "config_digest", "steady_from",
+         "keypoint_backend"]).to_pylist()}
         if previous is not None else {})
     attempts: dict[tuple[str, str], int] = {}
     for rec in work.executions(build_id):
@@ -240,8 +241,9 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                                          error=error, failed_stage=stage,
                                          kept_previous=good_prev, **info))
             continue
+        # a row from before a column existed (null backend) is rewritten from cached results
         if (not ran and good_prev and prev["input_digest"] == common["input_digest"]
-                and prev["config_digest"] == cdigest):
+                and prev["config_digest"] == cdigest and prev["keypoint_backend"] is not None):
             reports.append(SessionReport(outcome=Outcome.UNCHANGED, status=prev["status"],
                                          **info))
             continue

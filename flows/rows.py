@@ -56,6 +56,7 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
 
     session = results["load_session"]
     m = session.manifest
+    detected = results["detect_keypoints"].summary()  # which backend, frames with a hand
     kp = results["detect_keypoints"].keypoints  # (n_frames, 21, 3)
     sfm = results["reconstruct_hand"]
     fit = results["fit_hand"]
@@ -69,6 +70,8 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         "session_id": m.session_id, "participant": m.participant, "object_id": m.object_id,
         "intent": m.intent, "hand": str(m.hand),
         "status": Status(qa.verdict).value, "error": qa.error,
+        "keypoint_backend": str(detected["backend"]),
+        "keypoint_frames_detected": int(detected["frames_with_hand"]),
         "steady_from": int(results["select_steady"].steady_from),
         "T_w_o_stage1": _flat(T_w_o1), "T_adj": _flat(T_adj), "T_w_p": _flat(fit.T_w_p),
         "T_turntable_o_scan": _flat(T_tt_o),

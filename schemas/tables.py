@@ -11,6 +11,11 @@ Encodings: a pose ``T_a_b`` is ``fixed_size_list<float64>[16]``, the 4x4 matrix 
 pixels), both in the 21-keypoint OpenPose/MediaPipe order. Field metadata carries ``unit``,
 ``shape`` and ``doc``; ``required`` = ``unless_failed`` marks columns that may be null only on a
 row whose ``status`` is ``failed``.
+
+Schema evolution: a column added to a table that already holds rows (a migration adds it to the
+Delta table, ``graspcap.catalog.migrate``) must be nullable; reading files written before it
+existed yields nulls there (``graspcap.catalog.delta.read_files``), so a catalog version pinned
+before the migration reads as the current schema.
 """
 
 from __future__ import annotations
@@ -82,6 +87,12 @@ SESSIONS_SCHEMA = pa.schema([
     _f("hand", _STR, "right or left."),
     _f("status", _STR, "ok, flagged or failed."),
     _f("error", _STR, "Null unless failed: the reason a person can act on.", nullable=True),
+    _f("keypoint_backend", _STR, "Backend that produced the session's 2D keypoints "
+       "(openpose_json or mediapipe). Null when failed, and on rows written before the "
+       "column existed.", nullable=True),
+    _f("keypoint_frames_detected", pa.int32(), "Video frames in which that backend found the "
+       "hand. Null when failed, and on rows written before the column existed.",
+       nullable=True, unit="frames"),
     _result(_f("steady_from", pa.int64(), "First steady video frame index.")),
     _result(_pose("T_w_o_stage1", "Object in the world (colour camera) frame, stage 1.")),
     _result(_pose("T_adj", "Object motion during grasp adjustment, world frame.")),

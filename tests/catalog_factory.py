@@ -32,6 +32,8 @@ def session_row(session_id: str, rng: np.random.Generator, *, status: str = "ok"
         "session_id": session_id, "participant": participant, "object_id": object_id,
         "intent": intent, "hand": "right", "status": status,
         "error": "register_object: no platter plane in stage1/depth.png" if failed else None,
+        "keypoint_backend": None if failed else "openpose_json",
+        "keypoint_frames_detected": None if failed else int(rng.integers(10, 40)),
         "steady_from": None if failed else int(rng.integers(0, 30)),
         "hand_scale": None if failed else float(rng.uniform(0.9, 1.1)),
         "joint_angles_rad": None if failed else rng.uniform(-1, 1, 20),

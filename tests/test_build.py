@@ -16,6 +16,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pyarrow as pa
 import pytest
 
 import graspcap.catalog as gc
@@ -60,6 +61,17 @@ def test_cold_build_runs_every_stage_and_commits_one_version(warm, synth_root):
     sessions = cat.table("sessions").to_pylist()
     assert sorted(r["session_id"] for r in sessions) == sorted(ids)
     assert all(r["status"] in ("ok", "flagged") and r["error"] is None for r in sessions)
+    # the fixture sessions carry OpenPose JSON, so that backend ran; its frames with a hand
+    from graspcap.tasks.detect_keypoints import PRESETS as DETECT_PRESETS
+    from graspcap.tasks.detect_keypoints import detect_keypoints
+    from graspcap.tasks.load_session import load_session
+
+    dirs = dict(zip(_ids(synth_root), _sessions(synth_root), strict=True))
+    for r in sessions:
+        kp = detect_keypoints(load_session(dirs[r["session_id"]]),
+                              DETECT_PRESETS.get(PRESET, DETECT_PRESETS["default"]))
+        assert r["keypoint_backend"] == "openpose_json" == str(kp.backend)
+        assert r["keypoint_frames_detected"] == kp.frames_with_hand > 0
     frames = cat.table("frames")
     for r in sessions:
         count = json.loads((synth_root / r["session_id"] / "session.json").read_text()
@@ -82,6 +94,30 @@ def test_unchanged_rebuild_runs_nothing_and_makes_no_version(warm, synth_root, t
     assert sorted(report.unchanged) == sorted(_ids(synth_root))
     assert "nothing changed" in report.summary()
     assert gc.open(catalog).latest_version() == 1
+
+
+def test_rows_from_before_the_keypoint_columns_are_rewritten_from_cached_results(
+        warm, synth_root, tmp_path):
+    """Rows of a migrated catalog have null keypoint columns; the next build fills them in
+    without running a stage (the results are in the work area)."""
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    cat = gc.open(catalog)
+    filled = cat.table("sessions")
+    old = filled
+    for col in ("keypoint_backend", "keypoint_frames_detected"):
+        i = old.schema.get_field_index(col)
+        old = old.set_column(i, old.schema.field(i), pa.nulls(old.num_rows, old.schema[i].type))
+    v = cat.commit(gc.BuildCommit(gc.BuildInfo("pre-columns", "old", "x" * 64), sessions=old,
+                                  frames=cat.table("frames")))
+    assert cat.table("sessions", v)["keypoint_backend"].null_count == old.num_rows
+    report = build_dataset([synth_root], catalog, PRESET, build_id="fill")
+    assert executions(catalog, "fill") == []
+    assert report.catalog_version == v + 1 and sorted(report.changed) == sorted(_ids(synth_root))
+    new = cat.table("sessions", v + 1).sort_by("session_id")
+    filled = filled.sort_by("session_id")
+    for col in ("keypoint_backend", "keypoint_frames_detected"):
+        assert new[col].to_pylist() == filled[col].to_pylist(), col
+    assert set(new["keypoint_backend"].to_pylist()) == {"openpose_json"}
 
 
 def test_config_change_reruns_that_stage_and_downstream_only(warm, synth_root, tmp_path):

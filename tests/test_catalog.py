@@ -285,6 +285,7 @@ CONTRACT = {
         **dict.fromkeys(["session_id", "participant", "object_id", "intent", "hand", "status",
                          "error", "input_digest", "code_version", "build_id"], pa.string()),
         "steady_from": pa.int64(),
+        "keypoint_backend": pa.string(), "keypoint_frames_detected": pa.int32(),
         **dict.fromkeys(["T_w_o_stage1", "T_adj", "T_w_p", "T_turntable_o_scan"],
                         pa.list_(pa.float64(), 16)),
         "hand_scale": pa.float64(), "joint_angles_rad": pa.list_(pa.float64(), 20),
@@ -311,6 +312,14 @@ def test_contract_columns_have_the_documented_types(three_versions):
             assert schema.field(col).type == type_, (name, col)
     units = cat.table("sessions", 1).schema.field("qa_crosscheck_mm").metadata
     assert units[b"unit"] == b"mm"
+    sessions = cat.table("sessions", 1)
+    for col in ("keypoint_backend", "keypoint_frames_detected"):  # null on the failed row
+        assert sessions.schema.field(col).nullable and b"doc" in sessions.schema.field(
+            col).metadata
+        by_status = dict(zip(sessions["status"].to_pylist(), sessions[col].to_pylist(),
+                             strict=True))
+        assert by_status["failed"] is None and by_status["ok"] is not None, col
+    assert set(sessions["keypoint_backend"].drop_null().to_pylist()) == {"openpose_json"}
 
 
 @pytest.mark.parametrize("mutate, column, message", [

@@ -5,17 +5,23 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pyarrow as pa
 import pytest
 from deltalake import DeltaTable
 
 import graspcap.catalog as gc
 from graspcap.catalog.delta import create_tables
 from graspcap.catalog.layout import CatalogLayout, write_format_file
-from graspcap.catalog.migrate import migrate_catalog
-from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DELTA_TABLE_PROPERTIES, TABLE_SCHEMAS
+from graspcap.catalog.migrate import add_missing_columns, migrate_catalog
+from graspcap.schemas.tables import (
+    CATALOG_FORMAT_VERSION,
+    DELTA_TABLE_PROPERTIES,
+    SESSIONS_SCHEMA,
+    TABLE_SCHEMAS,
+)
 from tests.catalog_factory import make_build
 from tests.conftest import REPO
-from tests.golden.make_golden import SESSION, expected, unpack
+from tests.golden.make_golden import FORMAT_2_COLUMNS, SESSION, expected, unpack, write_v1
 
 ARCHIVE = REPO / "tests" / "golden" / "catalog_v1.tar.gz"
 
@@ -108,3 +114,62 @@ def test_empty_format_1_catalog_migrates_to_an_empty_current_one(tmp_path):
     assert cat.latest_version() is None
     assert all(c == DELTA_TABLE_PROPERTIES for c in _properties(layout.root).values())
     assert cat.commit(make_build(["p01-bowl-use-00"], seed=1)) == 1
+
+
+def _delta_columns(root, name="sessions") -> list[str]:
+    return [f.name for f in DeltaTable(str(root / "tables" / name)).schema().fields]
+
+
+def test_migrate_adds_format_2_columns_and_old_versions_read_them_as_null(tmp_path):
+    src = unpack(ARCHIVE, tmp_path / "v1")
+    new_cols = list(FORMAT_2_COLUMNS["sessions"])
+    assert not set(new_cols) & set(_delta_columns(src))  # the golden really lacks them
+    migrate_catalog(src)
+    assert _delta_columns(src)[-2:] == new_cols
+    cat = gc.open(src)
+    for version in (1, "golden", 2):  # pinned before, and made by, the migration
+        old = cat.table("sessions", version)
+        assert old.schema == SESSIONS_SCHEMA  # conformed on read (field docs included)
+        assert old["keypoint_backend"].to_pylist() == [None]
+        assert old["keypoint_frames_detected"].to_pylist() == [None]
+        assert old["session_id"].to_pylist() == [SESSION]
+    assert cat.diff(1, 2) == {"added": [], "removed": [], "changed": {}}
+
+    # the next build validates against the migrated table; its version mixes files written
+    # before the migration (the golden row) and after (the new rows), in either read order
+    build = make_build(["p05-mug-use-00", "p06-bowl-use-00"], seed=5, build_id="after")
+    assert cat.commit(build) == 3
+    rows = {r["session_id"]: r for r in cat.table("sessions", 3).to_pylist()}
+    assert {s: r["keypoint_backend"] for s, r in rows.items()} == {
+        SESSION: None, "p05-mug-use-00": "openpose_json", "p06-bowl-use-00": "openpose_json"}
+    for r in build.sessions:
+        assert rows[r["session_id"]]["keypoint_frames_detected"] == r["keypoint_frames_detected"]
+    files = cat.files("sessions", 3)
+    assert len(files) == 2
+    for order in (files, files[::-1]):
+        some = gc.Catalog(cat.layout)
+        some._files[("sessions", 3)] = order  # the read must not depend on the file order
+        assert some.table("sessions", 3, columns=["session_id", "keypoint_backend"])[
+            "keypoint_backend"].null_count == 1
+    assert cat.table("sessions", 1)["keypoint_backend"].to_pylist() == [None]
+    _check_golden_content(cat, 1)
+
+
+def test_golden_script_still_writes_format_1_columns(tmp_path):
+    golden = unpack(ARCHIVE, tmp_path / "golden")
+    write_v1(tmp_path / "fresh")
+    for name in TABLE_SCHEMAS:
+        assert _delta_columns(tmp_path / "fresh", name) == _delta_columns(golden, name), name
+    assert set(FORMAT_2_COLUMNS["sessions"]) <= set(SESSIONS_SCHEMA.names)
+    assert "keypoint_backend" in TABLE_SCHEMAS["sessions"].names  # the swap was undone
+
+
+def test_only_nullable_columns_can_be_added_to_existing_rows(tmp_path):
+    cat = gc.open(tmp_path / "cat", create=True)
+    cat.commit(make_build(["p01-bowl-use-00"], seed=1))
+    dt = DeltaTable(str(tmp_path / "cat" / "tables" / "sessions"))
+    assert add_missing_columns(dt, SESSIONS_SCHEMA) == []
+    strict = SESSIONS_SCHEMA.append(pa.field("must_have", pa.string(), nullable=False))
+    with pytest.raises(gc.CatalogFormatError, match="must_have"):
+        add_missing_columns(dt, strict)
+    assert "must_have" not in _delta_columns(tmp_path / "cat")

@@ -6,9 +6,10 @@
   it), for the "rebuild it" error. A few hundred bytes.
 - ``catalog_v1.tar.gz``: a real catalog of format 1, the format before the current one:
   ``build()`` committed as version 1 and tagged ``golden``, written by today's commit code with
-  format 1's differences (Delta tables without ``DELTA_TABLE_PROPERTIES``, stamp and versions
-  row saying 1; docs/data_changelog.md). Unpacked it is ~86 KB in 33 files (Delta logs, and
-  Parquet footers repeating the schema's docs), packed ~15 KB. Tests unpack it into a temporary
+  format 1's differences (Delta tables without ``DELTA_TABLE_PROPERTIES``, no
+  ``FORMAT_2_COLUMNS``, stamp and versions row saying 1; docs/data_changelog.md). Unpacked it
+  is ~86 KB in 33 files (Delta logs, and Parquet footers repeating the schema's docs), packed
+  ~15 KB. Tests unpack it into a temporary
   folder: opening fails naming ``graspcap catalog migrate``, migrating makes it readable.
 
 ``build()`` and ``expected()`` describe the tiny build (one session, two frames, a 4-vertex
@@ -18,23 +19,30 @@ object), nothing random; ``--v1 DIR`` also writes the format-1 catalog unpacked 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gzip
 import io
 import json
 import shutil
 import tarfile
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 
 import graspcap.catalog as gc
 from graspcap.catalog.commit import commit_build
 from graspcap.catalog.delta import create_tables
 from graspcap.catalog.layout import CatalogLayout, write_format_file
+from graspcap.schemas.tables import TABLE_SCHEMAS
 
 HERE = Path(__file__).resolve().parent
 SESSION = "p01-cube-use-00"
+FORMAT_2_COLUMNS = {"sessions": ("keypoint_backend", "keypoint_frames_detected")}
+"""Columns format 2 added (docs/data_changelog.md): a format-1 catalog's tables lack them."""
 
 
 def expected() -> dict:
@@ -55,6 +63,7 @@ def build() -> gc.BuildCommit:
     session = {
         "session_id": SESSION, "participant": "p01", "object_id": "cube", "intent": "use",
         "hand": "right", "status": "ok", "error": None, "steady_from": 3,
+        "keypoint_backend": "openpose_json", "keypoint_frames_detected": 2,
         "T_w_o_stage1": e["T"], "T_adj": e["T"], "T_w_p": e["T"], "T_turntable_o_scan": e["T"],
         "hand_scale": 1.0, "joint_angles_rad": np.zeros(20), "joints_w": e["joints"],
         "joints_fit_w": e["joints"], "input_digest": "0" * 64, "code_version": "golden",
@@ -80,14 +89,34 @@ def build() -> gc.BuildCommit:
         object_meshes={"cube": gc.ObjectMesh(e["vertices"], e["faces"])})
 
 
+@contextmanager
+def format_1_schemas() -> Iterator[None]:
+    """Within: ``TABLE_SCHEMAS`` without ``FORMAT_2_COLUMNS`` (the writer code reads it at call
+    time), so today's create and commit code writes format 1's columns."""
+    saved = dict(TABLE_SCHEMAS)
+    for name, cols in FORMAT_2_COLUMNS.items():
+        schema = TABLE_SCHEMAS[name]
+        TABLE_SCHEMAS[name] = pa.schema([f for f in schema if f.name not in cols],
+                                        metadata=schema.metadata)
+    try:
+        yield
+    finally:
+        TABLE_SCHEMAS.update(saved)
+
+
 def write_v1(root: Path) -> None:
     """A format-1 catalog at ``root`` holding ``build()`` as version 1, tagged ``golden``."""
     layout = CatalogLayout(root.resolve())
     layout.root.mkdir(parents=True)
-    create_tables(layout, properties=None)  # format 1: Delta's default table properties
-    write_format_file(layout, 1)
-    commit_build(layout, build(), lock_timeout_s=10.0, format_version=1)
-    gc.Catalog(layout).tag(1, "golden")  # Catalog() skips the format check open() makes
+    commit = build()
+    rows = [{k: v for k, v in r.items() if k not in FORMAT_2_COLUMNS["sessions"]}
+            for r in commit.sessions]
+    with format_1_schemas():
+        create_tables(layout, properties=None)  # format 1: Delta's default table properties
+        write_format_file(layout, 1)
+        commit_build(layout, dataclasses.replace(commit, sessions=rows), lock_timeout_s=10.0,
+                     format_version=1)
+        gc.Catalog(layout).tag(1, "golden")  # Catalog() skips the format check open() makes
 
 
 def pack(root: Path, archive: Path) -> None:
