@@ -41,7 +41,7 @@ from graspcap.tasks.registration import (
 )
 from graspcap.tasks.render import render
 
-STAGE_VERSION = "estimate_adjustment/2"
+STAGE_VERSION = "estimate_adjustment/3"
 STAGE = "estimate_adjustment"
 
 HAND_BONES = (
@@ -227,26 +227,30 @@ def _near_hand(
         return points
     tree = cKDTree(_largest_cluster(hand_pts, cfg))
     reach = radius_m + cfg.region_margin_m
-    region = points[tree.query(points, k=1)[0] <= 2 * reach]
-    if len(region) == 0:
-        return region
-    down = to_pcd(region).voxel_down_sample(cfg.cluster_voxel_m)
-    labels = np.asarray(down.cluster_dbscan(cfg.cluster_eps_m, 4))
-    pts = np.asarray(down.points)
+    # clusters on the voxel grid; full-resolution points only inside the kept clusters' box
+    # (KD queries of a whole frame's points cost seconds)
+    grid = np.asarray(to_pcd(points).voxel_down_sample(cfg.cluster_voxel_m).points)
+    pts = grid[tree.query(grid, k=1)[0] <= 2 * reach]
+    if len(pts) == 0:
+        return points[:0]
+    labels = np.asarray(to_pcd(pts).cluster_dbscan(cfg.cluster_eps_m, 4))
     clustered = labels >= 0
     if not clustered.any():
-        return region
-    gap = tree.query(pts, k=1)[0]
-    object_like = []
-    for label in range(labels.max() + 1):
-        piece = labels == label
-        width = np.linalg.norm(pts[piece] - pts[piece].mean(0), axis=1).max()
-        if width <= reach and gap[piece].min() <= reach:
-            object_like.append(label)
-    touching = object_like or labels[clustered][[np.argmin(gap[clustered])]]
-    kept = pts[np.isin(labels, touching)]
-    near = cKDTree(kept).query(region, k=1)[0] <= cfg.cluster_voxel_m * 1.5
-    return region[near]
+        kept = pts
+    else:
+        gap = tree.query(pts, k=1)[0]
+        object_like = []
+        for label in range(labels.max() + 1):
+            piece = labels == label
+            width = np.linalg.norm(pts[piece] - pts[piece].mean(0), axis=1).max()
+            if width <= reach and gap[piece].min() <= reach:
+                object_like.append(label)
+        touching = object_like or labels[clustered][[np.argmin(gap[clustered])]]
+        kept = pts[np.isin(labels, touching)]
+    tol = cfg.cluster_voxel_m * 1.5
+    box = np.all((points >= kept.min(0) - tol) & (points <= kept.max(0) + tol), axis=1)
+    cand = points[box]
+    return cand[cKDTree(kept).query(cand, k=1)[0] <= tol]
 
 
 def estimate_adjustment(

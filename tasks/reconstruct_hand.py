@@ -86,6 +86,9 @@ class ReconstructConfig(StageConfig):
     """Iterations of each reprojection-only solve when range factors follow (which then
     refine everything): pixels alone leave each camera's tilt weakly determined and LM can
     crawl along it for hundreds of iterations without changing the inliers or the scale."""
+    visual_relative_tol: float = 1e-7
+    """Levenberg-Marquardt's relative error decrease at which each reprojection-only solve
+    stops when range factors follow."""
     scale_prior_rel: float = 1e-3
     """Relative sigma of the soft prior holding the distance between the initial pair's cameras
     in the reprojection-only solves (the gauge of scale). A stiff prior makes LM crawl along
@@ -276,6 +279,9 @@ def _solve_visual(cfg, uv, ok, sigma, K, T_c_w, X, pair):
                 cfg.visual_max_iterations
                 if cfg.depth_use is DepthUse.FACTORS
                 else cfg.max_iterations
+            ),
+            relative_tol=(
+                cfg.visual_relative_tol if cfg.depth_use is DepthUse.FACTORS else 1e-7
             ),
         )
         T_c_w, X = ba.T_c_w, ba.points_w
