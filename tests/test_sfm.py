@@ -332,3 +332,13 @@ def test_depth_links_sharpen_the_cameras_on_a_rig_session(rig_session):
     (rot0, trans0, _), (rot1, trans1, mpjpe1) = errors[False], errors[True]
     assert rot1 < 0.6 and trans1 < 5.0 and mpjpe1 < 4.0
     assert rot1 < 0.5 * rot0 and trans1 < 0.5 * trans0
+
+
+def test_too_little_turn_raises_an_actionable_error():
+    """A hand turned by at most ~6 deg: the rays are too parallel to triangulate from, and
+    the stage says so (how far it turned, what the participant should do)."""
+    video = make_hand_video(n_frames=40, steady_from=10, seed=3, max_rotation_deg=12.0)
+    with pytest.raises(StageError, match=r"turned only .* deg .* turn the hand"):
+        reconstruct_hand(
+            video.keypoints, video.K, video.steady_from, video.depth_at, video.surface_offset_m
+        )
