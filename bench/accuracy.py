@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graspcap.synth import generate
+from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import estimate_from_results, evaluate
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.pipeline import STAGES, run_session
@@ -47,15 +47,26 @@ TARGETS = {
 }
 
 
+POSE_STAGES = ("register_object", "select_steady", "reconstruct_hand", "crosscheck_sfm",
+               "fit_hand", "estimate_adjustment", "propagate_poses")  # fmt: skip
+"""The stages of issue 3, whose total per session has the 6 s target."""
+
+
+def _sessions(root: Path, difficulty: str, sessions: int, frames: int) -> tuple[list[Path], int]:
+    """Session i of seed ``[SEED, i]``, one at a time (a rig that cannot place a grasp for a
+    seed raises; in a process pool that error would take the whole pool down)."""
+    cfg = config_for(difficulty, frames)
+    dirs, skipped = [], 0
+    for i in range(sessions):
+        try:
+            dirs.append(generate_session(root / difficulty, [SEED, i], cfg, None))
+        except StageError:
+            skipped += 1
+    return dirs, skipped
+
+
 def run(difficulty: str, sessions: int, frames: int, root: Path) -> None:
-    dirs = generate(
-        root / difficulty,
-        sessions=sessions,
-        seed=SEED,
-        difficulty=difficulty,
-        frames=frames,
-        workers=2,
-    )
+    dirs, skipped = _sessions(root, difficulty, sessions, frames)
     metrics: dict[str, list[float]] = defaultdict(list)
     timings: dict[str, list[float]] = defaultdict(list)
     failures: Counter[str] = Counter()
@@ -74,7 +85,8 @@ def run(difficulty: str, sessions: int, frames: int, root: Path) -> None:
             timings[k].append(v)
 
     ok = len(dirs) - sum(failures.values())
-    print(f"\n### {difficulty}: {len(dirs)} sessions x {frames} frames, {ok} ran every stage\n")
+    print(f"\n### {difficulty}: {len(dirs)} sessions x {frames} frames, {ok} ran every stage"
+          + (f" ({skipped} seeds the rig could not stage)" if skipped else "") + "\n")
     print("| metric | median | p90 | target | met |")
     print("|---|---|---|---|---|")
     for k, (target, op) in TARGETS.items():
@@ -102,6 +114,9 @@ def run(difficulty: str, sessions: int, frames: int, root: Path) -> None:
             med = float(np.median(timings[name]))
             total += med if name != "load_session" else 0.0
             print(f"| {name} | {med:.3f} |")
+    pose = [sum(t) for t in zip(*(timings[n] for n in POSE_STAGES), strict=True)]
+    if pose:
+        print(f"| pose stages (issue 3) per session, median | {float(np.median(pose)):.2f} |")
     print(f"| all but load_session | {total:.2f} |")
     for reason, n in failures.items():
         print(f"\nfailed x{n}: {reason}")
