@@ -17,17 +17,14 @@ the registered surface pins it to a few tenths (rig sessions: 1.6-2.2 deg -> 0.2
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import StrEnum
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.depth_scale import (
     DepthLookup,
     depth_lookup_from_frames,
     estimate_scale,
-    ratio_mode,
 )
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T
@@ -39,22 +36,20 @@ from graspcap.tasks.sfm_depth_icp import (
     hand_centre,
     surface_cloud,
 )
-from graspcap.tasks.sfm_graph import bundle_adjust, reprojection_residuals
-from graspcap.tasks.sfm_init import initialise, normalise
+from graspcap.tasks.sfm_init import initialise
 from graspcap.tasks.sfm_sanity import implausibility
+from graspcap.tasks.sfm_solve import (
+    STAGE,
+    DepthUse,
+    depth_scorer,
+    fill_poses,
+    rotation_span_deg,
+    sample_depth,
+    solve_rgbd,
+    solve_visual,
+)
 
-STAGE = "reconstruct_hand"
 STAGE_VERSION = "reconstruct_hand/4"
-
-
-class DepthUse(StrEnum):
-    """How the aligned depth enters the solve."""
-
-    SCALE = "scale"
-    """Only the metric scale (the paper's reprojection-only SfM, then scaled)."""
-    FACTORS = "factors"
-    """Also one range factor per inlier keypoint with valid depth (RGB-D bundle adjustment);
-    per-frame poses of a small, distant hand are ill-conditioned from pixels alone."""
 
 
 class ReconstructConfig(StageConfig):
@@ -204,171 +199,6 @@ class HandReconstruction:
     diagnostics: SfmDiagnostics
 
 
-def _fill_poses(T_c_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Interpolate missing poses (NaN) from their neighbours (slerp); hold at the ends."""
-    m = len(T_c_w)
-    valid = np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)
-    if valid.all():
-        return T_c_w, valid
-    idx = np.flatnonzero(valid)
-    T_w_c = np.stack([inv_T(T) for T in T_c_w[idx]])
-    t = np.clip(np.arange(m), idx[0], idx[-1])
-    rot = Slerp(idx, Rotation.from_matrix(T_w_c[:, :3, :3]))(t).as_matrix()
-    out = np.tile(np.eye(4), (m, 1, 1))
-    out[:, :3, :3] = rot
-    out[:, :3, 3] = np.stack([np.interp(t, idx, T_w_c[:, k, 3]) for k in range(3)], axis=1)
-    return np.stack([inv_T(T) for T in out]), valid
-
-
-def _sample_depth(cfg, uv, conf, inlier, T_c_w, X, depth_at, steady_from, surface_at=None):
-    """Depth readings (m, 21) (NaN where not sampled), camera-frame joint z (m, 21) and, with
-    ``surface_at(i, uv (k, 2), depth (k,))``, each frame's surface (list, None where none),
-    built in the same sweep over the frames (each depth frame is read once)."""
-    m = len(uv)
-    sample = inlier & (conf >= cfg.depth_min_confidence)
-    depth = np.full((m, 21), np.nan)
-    surfaces: list = [None] * m
-    for i in np.flatnonzero(sample.any(1)):
-        j = np.flatnonzero(sample[i])
-        depth[i, j] = np.asarray(depth_at(steady_from + int(i), uv[i, j]), dtype=float)
-        if surface_at is not None:
-            surfaces[i] = surface_at(int(i), uv[i, j], depth[i, j])
-    z = np.einsum("mb,jb->mj", T_c_w[:, 2, :3], X) + T_c_w[:, 2, 3][:, None]
-    return depth, z, surfaces
-
-
-def _depth_scorer(cfg, uv, conf, ok, depth_at, offset, steady_from):
-    """``score(frames, T_c_w, X)``: share of depth readings within ``scale_rel_tol`` / 2 of the
-    densest ratio ``(depth + offset) / z`` (scale-free, so it applies before the scale)."""
-    cache: dict[int, np.ndarray] = {}
-    sample = ok & (conf >= cfg.depth_min_confidence)
-
-    def score(frames: np.ndarray, T_c_w: np.ndarray, X: np.ndarray) -> float:
-        ratios = []
-        for i, T in zip(frames, T_c_w, strict=True):
-            if not np.all(np.isfinite(T)):
-                continue
-            if int(i) not in cache:
-                cache[int(i)] = np.where(
-                    sample[i], depth_at(steady_from + int(i), uv[i]), np.nan
-                ).astype(float)
-            z = X @ T[2, :3] + T[2, 3]
-            ratios.append((cache[int(i)] + offset) / z)
-        r = np.concatenate(ratios) if ratios else np.zeros(0)
-        r = r[np.isfinite(r) & (r > 0)]
-        if len(r) < cfg.min_scale_samples:
-            return 0.0
-        tol = cfg.scale_rel_tol / 2
-        return float(np.mean(np.abs(r / ratio_mode(r, tol) - 1.0) < tol))
-
-    return score
-
-
-def _solve_visual(cfg, uv, ok, sigma, K, T_c_w, X, pair):
-    """Robust reprojection-only solve, then reject-and-re-solve rounds -> (ba, res, inlier, n)."""
-    use, huber = ok.copy(), cfg.huber_k
-    for rounds in range(1, cfg.outlier_rounds + 2):  # noqa: B007 (returned)
-        ba = bundle_adjust(
-            uv,
-            use,
-            sigma,
-            K,
-            T_c_w,
-            X,
-            anchor=pair.a,
-            scale_ref=pair.b,
-            huber_k=huber,
-            scale_sigma_rel=cfg.scale_prior_rel,
-            min_observations=cfg.min_points_per_frame // 2 + 1,
-            max_iterations=(
-                cfg.visual_max_iterations
-                if cfg.depth_use is DepthUse.FACTORS
-                else cfg.max_iterations
-            ),
-            relative_tol=(
-                cfg.visual_relative_tol if cfg.depth_use is DepthUse.FACTORS else 1e-7
-            ),
-        )
-        T_c_w, X = ba.T_c_w, ba.points_w
-        res = reprojection_residuals(K, T_c_w, X, uv)
-        inlier = ok & (res < cfg.outlier_px)
-        if not inlier.any():
-            raise StageError(
-                STAGE,
-                f"every detection is an outlier (residual >= {cfg.outlier_px} px "
-                "after the robust solve): the keypoints are not those of one static hand",
-            )
-        if np.array_equal(inlier, use) and huber is None:
-            break
-        use, huber = inlier, None
-    return ba, res, inlier, rounds
-
-
-def _rotation_span_deg(T_c_w: np.ndarray) -> float:
-    """Largest rotation (degrees) of a posed camera (m, 4, 4) away from the first posed one."""
-    posed = np.all(np.isfinite(T_c_w.reshape(len(T_c_w), -1)), axis=1)
-    R = T_c_w[posed, :3, :3]
-    if len(R) < 2:
-        return 0.0
-    cos = (np.einsum("mij,ij->m", R, R[0]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max())
-
-
-def _ranges(T_c_w, X):
-    """Distance (m, 21) from each camera centre to each joint."""
-    return np.linalg.norm(
-        np.einsum("mab,jb->mja", T_c_w[:, :3, :3], X) + T_c_w[:, None, :3, 3], axis=2
-    )
-
-
-def _solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, link_fn=None):
-    """Reprojection + range factors, metric. Each round gates every reading afresh against
-    the current solution: ``depth_gate_m`` against the scaled visual solve, then
-    ``range_gate_sigmas`` sigmas against the previous RGB-D solve. With ``link_fn``
-    (``(T_c_w) -> links``) rounds 2 .. 1 + ``depth_links.rounds`` also get dense depth
-    links measured from the previous round's solution (later rounds keep the last)."""
-    m = len(uv)
-    rays = np.concatenate(
-        [normalise(K, uv.reshape(-1, 2)).reshape(m, 21, 2), np.ones((m, 21, 1))], 2
-    )
-    measured = np.where(
-        np.isfinite(depth) & (depth > 0), (depth + offset) * np.linalg.norm(rays, axis=2), np.nan
-    )
-    gate = cfg.depth_gate_m
-    used = np.zeros((m, 21), bool)
-    links: list = []
-    link_rounds = cfg.depth_links.rounds if link_fn is not None else 0
-    for rounds in range(1, max(cfg.range_rounds, 1 + link_rounds) + 1):  # noqa: B007
-        with np.errstate(invalid="ignore"):
-            keep = np.abs(measured - _ranges(T_c_w, X)) <= gate
-        link_round = 2 <= rounds <= 1 + link_rounds
-        if rounds > 1 and np.array_equal(keep, used) and not link_round:
-            break
-        used = keep
-        if link_round:
-            links = link_fn(T_c_w)
-        ba = bundle_adjust(
-            uv,
-            inlier,
-            sigma,
-            K,
-            T_c_w,
-            X,
-            anchor=anchor,
-            scale_ref=None,
-            huber_k=None,
-            range_m=np.where(used, measured, np.nan),
-            range_sigma_m=cfg.depth_sigma_m,
-            min_observations=cfg.min_points_per_frame // 2 + 1,
-            max_iterations=cfg.max_iterations,
-            links=links,
-        )
-        T_c_w, X = ba.T_c_w, ba.points_w
-        gate = cfg.range_gate_sigmas * cfg.depth_sigma_m
-    res = reprojection_residuals(K, T_c_w, X, uv)
-    return T_c_w, X, res, ok & (res < cfg.outlier_px), rounds, used, links
-
-
 def reconstruct_hand(
     keypoints: np.ndarray,
     K: np.ndarray,
@@ -428,7 +258,7 @@ def reconstruct_hand(
         min_points=cfg.min_points_per_frame,
         min_parallax_deg=cfg.min_parallax_deg,
         depth_score=(
-            _depth_scorer(cfg, uv, conf, ok, depth_at, offset, steady_from)
+            depth_scorer(cfg, uv, conf, ok, depth_at, offset, steady_from)
             if cfg.depth_init_score
             else None
         ),
@@ -444,7 +274,7 @@ def reconstruct_hand(
     pair = init.pair
 
     sigma = cfg.sigma_px / np.maximum(conf, cfg.min_sigma_confidence)
-    ba, res, inlier, rounds = _solve_visual(cfg, uv, ok, sigma, K, init.T_c_w, init.points_w, pair)
+    ba, res, inlier, rounds = solve_visual(cfg, uv, ok, sigma, K, init.T_c_w, init.points_w, pair)
     T_c_w, X = ba.T_c_w, ba.points_w
     posed_frames = int(np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1).sum())
     if posed_frames < cfg.min_frames:
@@ -471,7 +301,7 @@ def reconstruct_hand(
             stride_px=link_cfg.stride_px, T_c_tt=T_c_tt, min_height_m=link_cfg.min_height_m,
         )  # fmt: skip
 
-    depth, z, surfaces = _sample_depth(
+    depth, z, surfaces = sample_depth(
         cfg, uv, conf, inlier, T_c_w, X, depth_at, steady_from, surface_at if use_links else None
     )
     sampled = np.isfinite(depth)
@@ -503,14 +333,14 @@ def reconstruct_hand(
             def link_fn(T: np.ndarray) -> list[DepthLink]:
                 return depth_links(surfaces, T, K, link_cfg)
 
-        T_c_w, X, res, inlier, n, range_used, links = _solve_rgbd(
+        T_c_w, X, res, inlier, n, range_used, links = solve_rgbd(
             cfg, K, uv, ok, inlier, sigma, T_vis, X_vis, depth, offset, pair.a, link_fn
         )
         rounds += n
     else:
         T_c_w, X = T_vis, X_vis
 
-    turn_deg = _rotation_span_deg(T_c_w)
+    turn_deg = rotation_span_deg(T_c_w)
     if turn_deg < cfg.min_rotation_deg:
         raise StageError(
             STAGE,
@@ -532,7 +362,7 @@ def reconstruct_hand(
     )
     if reason:
         raise StageError(STAGE, reason)
-    T_c_w, pose_valid = _fill_poses(T_c_w)
+    T_c_w, pose_valid = fill_poses(T_c_w)
     T_0_w = T_c_w[0].copy()
 
     def to_output(T_c_w_any: np.ndarray, X_any: np.ndarray, factor: float = 1.0):
@@ -546,8 +376,8 @@ def reconstruct_hand(
 
     T_w_c, joints_w = to_output(T_c_w, X)
     T_w_c[0] = np.eye(4)
-    T_w_c_init, joints_w_init = to_output(_fill_poses(init.T_c_w)[0], init.points_w, s)
-    T_w_c_vis, joints_w_vis = to_output(_fill_poses(T_vis)[0], X_vis)
+    T_w_c_init, joints_w_init = to_output(fill_poses(init.T_c_w)[0], init.points_w, s)
+    T_w_c_vis, joints_w_vis = to_output(fill_poses(T_vis)[0], X_vis)
 
     residuals = np.where(ok, res, np.nan)
     residuals[~pose_valid] = np.nan
