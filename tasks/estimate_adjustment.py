@@ -41,7 +41,7 @@ from graspcap.tasks.registration import (
 )
 from graspcap.tasks.render import render
 
-STAGE_VERSION = "estimate_adjustment/3"
+STAGE_VERSION = "estimate_adjustment/4"
 STAGE = "estimate_adjustment"
 
 HAND_BONES = (
@@ -72,6 +72,11 @@ class EstimateAdjustmentConfig(StageConfig):
 
     max_range_m: float = 3.0
     """Depth beyond this is treated as invalid."""
+    frames_after_onset: int = 5
+    """When the first steady frame fails or fits below ``accept_fitness``, the pipeline also
+    registers the object in the frame this many later (the onset is often detected a few
+    frames early, while the object still settles), carries that pose back with the frame's
+    virtual camera and keeps the better fit."""
     mask_dilate_px: int = 3
     """The hand mask is grown by this many pixels before its pixels are dropped."""
     region_margin_m: float = 0.02

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -38,6 +38,7 @@ from graspcap.tasks import (
     select_steady,
 )
 from graspcap.tasks.config import StageConfig
+from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T, project, transform_points
 from graspcap.tasks.hand_model import SURFACE_OFFSET_M, HandSide
 from graspcap.tasks.load_session import Session
@@ -154,25 +155,48 @@ def _fit_hand(session, config, reconstruct_hand, **_):
 
 
 def _estimate_adjustment(
-    session, config, register_object, detect_keypoints, select_steady, fit_hand, **_
+    session, config, register_object, detect_keypoints, select_steady, reconstruct_hand,
+    fit_hand, **_,
 ):
     """Depth of the first steady frame with the hand masked out: the fitted hand rendered
-    into that frame (the world frame is that frame's camera), plus the detected keypoints'
-    bones in case the fit misses a finger."""
+    into that frame, plus the detected keypoints' bones in case the fit misses a finger.
+    When that fails or fits below ``config.accept_fitness`` (the onset is often detected a
+    few frames early, while the object still settles), also the frame
+    ``config.frames_after_onset`` later, its pose carried back by that frame's virtual
+    camera; the better fit is kept."""
     s = select_steady.steady_from
-    depth = session.read_depth_m(session.grasp_path("depth", s))
-    h, w = depth.shape
-    hand = fit_hand.mesh()
-    rendered = render([(hand.vertices, hand.faces)], [np.eye(4)], _K(session), w, h)
-    kp = detect_keypoints.keypoints[s]
-    bones = estimate_adjustment.hand_mask_from_keypoints(kp[:, :2], kp[:, 2], (h, w), 6.0)
     V, F = read_mesh(session)
+    hand = fit_hand.mesh()
     # a stage-1 pose that could be another (near-symmetric object) is tried both ways
     alt = register_object.T_w_o_runner_up if register_object.ambiguous else None
-    return estimate_adjustment.estimate_adjustment(
-        depth, _K(session), V, F, register_object.T_w_o, (rendered.mesh_index >= 0) | bones,
-        config, T_w_o_stage1_alt=alt,
-    )
+
+    def attempt(k: int):
+        T_w_ck = reconstruct_hand.T_w_c[k]
+        depth = session.read_depth_m(session.grasp_path("depth", s + k))
+        h, w = depth.shape
+        rendered = render([(hand.vertices, hand.faces)], [inv_T(T_w_ck)], _K(session), w, h)
+        kp = detect_keypoints.keypoints[s + k]
+        bones = estimate_adjustment.hand_mask_from_keypoints(kp[:, :2], kp[:, 2], (h, w), 6.0)
+        adj = estimate_adjustment.estimate_adjustment(
+            depth, _K(session), V, F, register_object.T_w_o, (rendered.mesh_index >= 0) | bones,
+            config, T_w_o_stage1_alt=alt,
+        )  # fmt: skip
+        return replace(adj, T_adj=T_w_ck @ adj.T_adj, T_w_o=T_w_ck @ adj.T_w_o)
+
+    k = min(config.frames_after_onset, len(reconstruct_hand.T_w_c) - 1)
+    try:
+        first = attempt(0)
+    except StageError:
+        if k == 0 or not reconstruct_hand.pose_valid[k]:
+            raise
+        return attempt(k)
+    if first.fitness >= config.accept_fitness or k == 0 or not reconstruct_hand.pose_valid[k]:
+        return first
+    try:
+        later = attempt(k)
+    except StageError:
+        return first
+    return later if later.fitness > first.fitness else first
 
 
 def _register_scan(session, config, **_):
@@ -289,7 +313,7 @@ STAGES: dict[str, Stage] = {
         Stage("estimate_adjustment", estimate_adjustment.STAGE_VERSION,
               estimate_adjustment.PRESETS,
               ("load_session", "register_object", "detect_keypoints", "select_steady",
-               "fit_hand"),
+               "reconstruct_hand", "fit_hand"),
               ("manifest", "object_mesh", "grasp_depth"), _estimate_adjustment),
         Stage("register_scan", register_scan.STAGE_VERSION, register_scan.PRESETS,
               ("load_session",), ("manifest", "object_mesh", "scan_depth"), _register_scan),

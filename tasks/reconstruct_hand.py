@@ -49,7 +49,7 @@ from graspcap.tasks.sfm_solve import (
     solve_visual,
 )
 
-STAGE_VERSION = "reconstruct_hand/4"
+STAGE_VERSION = "reconstruct_hand/5"
 
 
 class ReconstructConfig(StageConfig):
@@ -112,11 +112,13 @@ class ReconstructConfig(StageConfig):
     outside it the stage raises instead of returning a diverged hand."""
     distance_range_m: tuple[float, float] = (0.1, 2.5)
     """Plausible camera-to-joint distances (metres) of the result, else the stage raises."""
-    min_rotation_deg: float = 20.0
+    min_rotation_deg: float = 12.0
     """The stage raises when no camera of the result is turned this far from the first: with
-    less, the keypoints' rays are too nearly parallel to triangulate the joints from. Measured
-    on rig sessions: a hand truly turned 8 deg is solved as turned 16 deg with a bone of
-    187 mm; sessions turned 23-53 deg solve to 0.1-0.4 deg per camera."""
+    less, the keypoints' rays are too nearly parallel to triangulate the joints from."""
+    little_rotation_deg: float = 25.0
+    """An implausible result of a hand turned less than this names the little motion as the
+    likely cause (measured on a rig session: a hand truly turned 8 deg was solved as turned
+    16 deg with a 187 mm bone; sessions turned 23-53 deg solve to 0.1-0.4 deg per camera)."""
     max_reproj_rmse_px: float = 8.0
     """The stage raises when the final inlier reprojection RMSE exceeds this."""
     min_inlier_ratio: float = 0.6
@@ -341,14 +343,13 @@ def reconstruct_hand(
         T_c_w, X = T_vis, X_vis
 
     turn_deg = rotation_span_deg(T_c_w)
+    little = (
+        f"the hand turned only {turn_deg:.1f} deg relative to the camera from frame "
+        f"{steady_from} on: too little motion to triangulate the joints from; the participant "
+        "should turn the hand and object while holding the grasp"
+    )
     if turn_deg < cfg.min_rotation_deg:
-        raise StageError(
-            STAGE,
-            f"the hand turned only {turn_deg:.1f} deg relative to the camera from frame "
-            f"{steady_from} on (need >= {cfg.min_rotation_deg:g} deg): too little motion to "
-            "triangulate the joints from; the participant should turn the hand and object "
-            "while holding the grasp",
-        )
+        raise StageError(STAGE, f"{little} (need >= {cfg.min_rotation_deg:g} deg)")
     n_inl = int((inlier & np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)[:, None]).sum())
     reason = implausibility(
         X,
@@ -361,7 +362,10 @@ def reconstruct_hand(
         min_inlier_ratio=cfg.min_inlier_ratio,
     )
     if reason:
-        raise StageError(STAGE, reason)
+        raise StageError(
+            STAGE, reason if turn_deg >= cfg.little_rotation_deg else f"{reason}; likely cause: "
+            f"{little}",
+        )
     T_c_w, pose_valid = fill_poses(T_c_w)
     T_0_w = T_c_w[0].copy()
 
