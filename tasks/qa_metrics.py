@@ -19,24 +19,20 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Any
 
 import numpy as np
 import open3d as o3d
 
+from graspcap.schemas.tables import Status
 from graspcap.tasks.config import StageConfig
 
 STAGE_VERSION = "qa_metrics/1"
 STAGE = "qa_metrics"
 
 
-class Verdict(StrEnum):
-    """A session's QA verdict (the ``status`` of its catalog row)."""
-
-    OK = "ok"
-    FLAGGED = "flagged"
-    FAILED = "failed"
+Verdict = Status
+"""A session's QA verdict: the ``status`` of its catalog row (one enum for both)."""
 
 
 class Bound(StageConfig):
