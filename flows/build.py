@@ -125,11 +125,12 @@ def _input_digest(work: WorkArea, session_dir: Path) -> str:
         return hashlib.sha256(b"missing files").hexdigest()
 
 
-def _watch(submitted: Mapping[str, Mapping[str, Any]]) -> None:
-    """Wait for every task, reporting each as it finishes (``flows/progress.py``)."""
-    owner = {fut: (session_id_of(Path(d)), name)
+def _watch(submitted: Mapping[str, Mapping[str, Any]], session_ids: Mapping[str, str]) -> None:
+    """Wait for every task, reporting each as it finishes (``flows/progress.py``);
+    ``session_ids`` by session directory, as in ``submitted``."""
+    owner = {fut: (session_ids[d], name)
              for d, futures in submitted.items() for name, fut in futures.items()}
-    tracker = Tracker({session_id_of(Path(d)): len(f) for d, f in submitted.items()})
+    tracker = Tracker({session_ids[d]: len(f) for d, f in submitted.items()})
     for fut in as_completed(list(owner)):
         fut.wait()  # sets the future's final state; reading .state before may ask the API
         state = fut.state
@@ -192,7 +193,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     submitted = {str(d): submit_session(d, configs, work, build_id, session_id=sid,
                                         replay_failures=not retry_failed)
                  for d, sid in zip(dirs, ids, strict=True) if str(d) not in duplicate}
-    _watch(submitted)
+    _watch(submitted, {str(d): sid for d, sid in zip(dirs, ids, strict=True)})
     outcomes = {d: _stage_outcomes(f) for d, f in submitted.items()}
     t_run = time.perf_counter()
 
