@@ -84,6 +84,21 @@ def palm_grid(side: HandSide) -> Grid:
     return Grid(lo, _PALM_GRID_STEP_M, values)
 
 
+def penetration_mm(
+    object_vertices: np.ndarray, object_faces: np.ndarray, points: np.ndarray
+) -> tuple[float, float]:
+    """How deep ``points`` (k, 3) lie inside a closed mesh, by Open3D's signed distance with a
+    3-ray vote on the sign: (deepest, mean over the points inside; 0 when none is), in mm."""
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(np.asarray(object_vertices, np.float32),
+                        np.asarray(object_faces, np.uint32))
+    q = o3d.core.Tensor(np.asarray(points, np.float32))
+    depth_mm = np.maximum(-1e3 * scene.compute_signed_distance(q, nsamples=3).numpy()
+                          .astype(float), 0.0)
+    inside = depth_mm > 0
+    return float(depth_mm.max(initial=0.0)), float(depth_mm[inside].mean()) if inside.any() else 0.0
+
+
 def object_sdf_grid(
     vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray, step_m: float,
     band_m: float,

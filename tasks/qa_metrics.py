@@ -26,6 +26,7 @@ import open3d as o3d
 
 from graspcap.schemas.tables import Status
 from graspcap.tasks.config import StageConfig
+from graspcap.tasks.hand_surface import penetration_mm
 
 STAGE_VERSION = "qa_metrics/1"
 STAGE = "qa_metrics"
@@ -246,16 +247,8 @@ def hand_object_metrics(
     missing : dict
         Agreements that have no denominator (nothing contacted, nothing near the hand).
     """
-    obj = o3d.t.geometry.RaycastingScene()
-    obj.add_triangles(np.asarray(object_vertices, np.float32),
-                      np.asarray(object_faces, np.uint32))
-    sd = obj.compute_signed_distance(np.asarray(hand_vertices, np.float32), nsamples=3).numpy()
-    depth_mm = np.clip(-sd, 0.0, None) * 1000.0
-    inside = depth_mm > 0
-    metrics = {
-        "penetration_max_mm": float(depth_mm.max(initial=0.0)),
-        "penetration_mean_mm": float(depth_mm[inside].mean()) if inside.any() else 0.0,
-    }
+    pen_max_mm, pen_mean_mm = penetration_mm(object_vertices, object_faces, hand_vertices)
+    metrics = {"penetration_max_mm": pen_max_mm, "penetration_mean_mm": pen_mean_mm}
     missing: dict[str, str] = {}
     if contact is None or observed is None:
         why = "no contact map (build_contactmap did not run)"

@@ -35,7 +35,7 @@ from graspcap.tasks.errors import StageError
 from graspcap.tasks.fit_hand import HandFit
 from graspcap.tasks.geometry import inv_T, make_T, transform_points
 from graspcap.tasks.hand_model import HandModel, HandSide
-from graspcap.tasks.hand_surface import HandSurface, object_sdf_grid
+from graspcap.tasks.hand_surface import HandSurface, object_sdf_grid, penetration_mm
 
 STAGE_VERSION = "refine_grasp/1"
 STAGE = "refine_grasp"
@@ -267,12 +267,7 @@ def _forward_jacobian(fun, x: np.ndarray, step: np.ndarray, lo, hi) -> np.ndarra
 
 def _metrics(V, F, contact, observed, hand_v, hand_f, surface_d_m, config) -> GraspMetrics:
     """Penetration of the hand mesh into the object, contact agreement by the hand mesh."""
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(V.astype(np.float32), F.astype(np.uint32))
-    q = o3d.core.Tensor(hand_v.astype(np.float32))
-    sd = scene.compute_signed_distance(q, nsamples=3).numpy()  # 3-ray vote on the sign
-    depth_mm = np.maximum(-1e3 * sd.astype(float), 0.0)
-    inside = depth_mm > 0
+    pen_max_mm, pen_mean_mm = penetration_mm(V, F, hand_v)
     near_tol_m = 1e-3 * config.agreement_dist_mm
     d_m = np.full(len(V), np.inf)
     cand = np.flatnonzero(observed & (surface_d_m < near_tol_m + 0.005))
@@ -285,8 +280,8 @@ def _metrics(V, F, contact, observed, hand_v, hand_f, surface_d_m, config) -> Gr
     touched = d_m <= near_tol_m
     contacted = observed & (contact >= config.contact_threshold)
     return GraspMetrics(
-        penetration_max_mm=float(depth_mm.max()),
-        penetration_mean_mm=float(depth_mm[inside].mean()) if inside.any() else 0.0,
+        penetration_max_mm=pen_max_mm,
+        penetration_mean_mm=pen_mean_mm,
         contact_near_share=float(touched[contacted].mean()) if contacted.any() else float("nan"),
         touch_contacted_share=float(contacted[touched].mean()) if touched.any() else float("nan"),
     )
