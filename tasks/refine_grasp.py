@@ -17,8 +17,9 @@ inside the joint limits, minimising
 - prior: joints (mm), angles and palm pose stay near the stage-3 fit.
 
 Distances to the hand are the model's own (``hand_surface``); penetration and contact
-agreement before and after are measured on the hand mesh. A result that penetrates deeper
-than the fit (beyond ``penetration_tol_mm``) is rejected in favour of the fit.
+agreement before and after are measured on the hand mesh. The refinement never penetrates
+deeper than the fit: when the optimum does, the move from the fit is scaled back (bisection on
+the share of the move kept) until its deepest hand vertex is no deeper than the fit's.
 """
 
 from __future__ import annotations
@@ -26,7 +27,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
@@ -35,9 +35,14 @@ from graspcap.tasks.errors import StageError
 from graspcap.tasks.fit_hand import HandFit
 from graspcap.tasks.geometry import inv_T, make_T, transform_points
 from graspcap.tasks.hand_model import HandModel, HandSide
-from graspcap.tasks.hand_surface import HandSurface, object_sdf_grid, penetration_mm
+from graspcap.tasks.hand_surface import (
+    HandSurface,
+    contact_agreement,
+    object_sdf_grid,
+    penetration_mm,
+)
 
-STAGE_VERSION = "refine_grasp/1"
+STAGE_VERSION = "refine_grasp/2"
 STAGE = "refine_grasp"
 _N_POSE = 6
 
@@ -84,8 +89,9 @@ class RefineGraspConfig(StageConfig):
     """Penetration probes (spheres) along each phalanx."""
     agreement_dist_mm: float = 3.0
     """Contact agreement: a vertex within this of the hand mesh is touched by the hand."""
-    penetration_tol_mm: float = 0.5
-    """The refinement is kept when its maximum penetration is at most the fit's or this."""
+    backtrack_steps: int = 8
+    """Bisection steps on the share of the optimised move kept when the optimum penetrates
+    deeper than the fit (8 steps: the share to within 0.4 %)."""
 
 
 PRESETS: dict[str, RefineGraspConfig] = {
@@ -146,6 +152,9 @@ class GraspRefinement:
         Jacobian evaluations of the least squares, over all rounds.
     n_attract, n_repel : int
         Vertices attracting and repelling in the last round.
+    kept_share : float
+        Share of the optimised move (palm correction and angle changes) returned: 1 the
+        optimum, less when it was scaled back so as to penetrate no deeper than the fit.
     accepted : bool
         The refinement is returned; False: the stage-3 fit is returned unchanged.
     reason : str
@@ -166,6 +175,7 @@ class GraspRefinement:
     iterations: int
     n_attract: int
     n_repel: int
+    kept_share: float
     accepted: bool
     reason: str
 
@@ -266,24 +276,20 @@ def _forward_jacobian(fun, x: np.ndarray, step: np.ndarray, lo, hi) -> np.ndarra
 
 
 def _metrics(V, F, contact, observed, hand_v, hand_f, surface_d_m, config) -> GraspMetrics:
-    """Penetration of the hand mesh into the object, contact agreement by the hand mesh."""
+    """Penetration of the hand mesh into the object and contact agreement with it, by
+    ``hand_surface.contact_agreement`` (the one definition, also qa_metrics'); the model's own
+    distance ``surface_d_m`` only pre-selects the vertices that may be touched."""
     pen_max_mm, pen_mean_mm = penetration_mm(V, F, hand_v)
-    near_tol_m = 1e-3 * config.agreement_dist_mm
-    d_m = np.full(len(V), np.inf)
-    cand = np.flatnonzero(observed & (surface_d_m < near_tol_m + 0.005))
-    if len(cand):
-        hand = o3d.t.geometry.RaycastingScene()
-        hand.add_triangles(hand_v.astype(np.float32), hand_f.astype(np.uint32))
-        q = o3d.core.Tensor(V[cand].astype(np.float32))
-        d_m[cand] = hand.compute_distance(q).numpy()
-        d_m[cand[surface_d_m[cand] < 0]] = 0.0  # inside the hand
-    touched = d_m <= near_tol_m
-    contacted = observed & (contact >= config.contact_threshold)
+    near_share, touch_share = contact_agreement(
+        V, contact, observed, hand_v, hand_f, near_mm=config.agreement_dist_mm,
+        contact_threshold=config.contact_threshold,
+        candidates=surface_d_m < 1e-3 * config.agreement_dist_mm + 0.005,
+    )
     return GraspMetrics(
         penetration_max_mm=pen_max_mm,
         penetration_mean_mm=pen_mean_mm,
-        contact_near_share=float(touched[contacted].mean()) if contacted.any() else float("nan"),
-        touch_contacted_share=float(contacted[touched].mean()) if touched.any() else float("nan"),
+        contact_near_share=near_share,
+        touch_contacted_share=touch_share,
     )
 
 
@@ -330,7 +336,7 @@ def refine_grasp(
     T0 = T_o_w @ np.asarray(fit.T_w_p, dtype=float)
     angles0 = model.clip(fit.angles_rad)
 
-    def result(T_o_p, angles, before, after, iterations, n_att, n_rep, reason):
+    def result(T_o_p, angles, before, after, iterations, n_att, n_rep, reason, kept=0.0):
         mesh = model.mesh(angles, T_o_p, fit.scale)
         joints_o = model.keypoints(angles, T_o_p, fit.scale)
         return GraspRefinement(
@@ -338,7 +344,7 @@ def refine_grasp(
             angles_rad=angles, joints_o=joints_o, joints_w=transform_points(T_w_o, joints_o),
             hand_vertices_o=mesh.vertices, hand_faces=np.asarray(mesh.faces, np.int64),
             before=before, after=after, iterations=iterations, n_attract=n_att, n_repel=n_rep,
-            accepted=not reason, reason=reason,
+            kept_share=float(kept), accepted=not reason, reason=reason,
         )  # fmt: skip
 
     def measure(T_o_p, angles):
@@ -379,19 +385,35 @@ def refine_grasp(
             max_nfev=config.max_evaluations,
         )  # fmt: skip
         x, iterations = np.clip(sol.x, lo, hi), iterations + int(sol.njev)
-    T = make_T(prob.R0 @ Rotation.from_rotvec(x[:3]).as_matrix(), prob.t0 + 1e-3 * x[3:6])
-    angles = model.clip(x[_N_POSE:])
-    after = measure(T, angles)
     n_att, n_rep = len(prob.attract), len(prob.repel)
     if n_att == 0:
         reason = (f"no observed contacted vertex within {config.capture_radius_mm} mm of the "
                   "fitted hand; the stage-3 fit is kept")
         return result(T0, angles0, before, before, iterations, 0, n_rep, reason)
-    if after.penetration_max_mm > max(before.penetration_max_mm, config.penetration_tol_mm):
-        reason = (f"refined hand penetrates {after.penetration_max_mm:.2f} mm, the fit "
-                  f"{before.penetration_max_mm:.2f} mm; the stage-3 fit is kept")
+
+    def hand_at(share: float):
+        z = prob.x0 + share * (x - prob.x0)
+        T = make_T(prob.R0 @ Rotation.from_rotvec(z[:3]).as_matrix(), prob.t0 + 1e-3 * z[3:6])
+        return T, model.clip(z[_N_POSE:])
+
+    def depth_mm(share: float) -> float:
+        T, angles = hand_at(share)
+        return penetration_mm(V, F, model.mesh(angles, T, fit.scale).vertices)[0]
+
+    kept = 1.0
+    if depth_mm(1.0) > before.penetration_max_mm:
+        good, bad = 0.0, 1.0  # the fit (share 0) is no deeper than itself
+        for _ in range(config.backtrack_steps):
+            mid = 0.5 * (good + bad)
+            good, bad = (mid, bad) if depth_mm(mid) <= before.penetration_max_mm else (good, mid)
+        kept = good
+    if kept == 0.0:
+        reason = (f"the refinement penetrates deeper than the fit's "
+                  f"{before.penetration_max_mm:.2f} mm even scaled back to "
+                  f"1/{2 ** config.backtrack_steps} of its move; the stage-3 fit is kept")
         return result(T0, angles0, before, before, iterations, n_att, n_rep, reason)
-    return result(T, angles, before, after, iterations, n_att, n_rep, "")
+    T, angles = hand_at(kept)
+    return result(T, angles, before, measure(T, angles), iterations, n_att, n_rep, "", kept)
 
 
 __all__ = [
