@@ -168,7 +168,8 @@ def read_format(layout: CatalogLayout) -> dict:
     except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
         raise CatalogFormatError(
             f"{layout.uri} is not a graspcap catalog (no catalog.json); "
-            "open it with create=True to make a new one") from None
+            "`graspcap build ... --catalog` creates one there (in Python: "
+            "graspcap.catalog.open(..., create=True))") from None
     try:
         stamp = json.loads(text)
     except json.JSONDecodeError as exc:
