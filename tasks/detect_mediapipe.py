@@ -3,7 +3,10 @@
 This module imports without MediaPipe; :func:`hands_module` imports it on first use
 (``mediapipe.solutions.hands``, the legacy API whose palm and landmark models ship inside
 the 0.10.21 wheel, so nothing is downloaded at run time) with its glog/absl chatter on
-stderr swallowed. See ``docs/detectors.md`` for the install and the measurements.
+stderr swallowed; ``graspcap.tasks.mediapipe_graph`` holds that and the tuned graph
+(inference threads, a lean ``process``), ``graspcap.tasks.frame_reader`` the decoding
+(straight to RGB, a reader thread ahead of the detector). See ``docs/detectors.md`` for
+the install and the measurements.
 
 Handedness: MediaPipe labels hands as if the image were a mirrored selfie; on an
 unmirrored camera image its "Left" is the person's right hand (checked on the shared
@@ -16,13 +19,9 @@ its label), the only per-hand score it returns.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import multiprocessing
 import os
-import re
-import sys
-import tempfile
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -30,22 +29,20 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 from pydantic import Field
 
 from graspcap.tasks.config import StageConfig
-from graspcap.tasks.session_files import _jpeg_problem
+from graspcap.tasks.frame_reader import iter_frames, read_rgb
+from graspcap.tasks.mediapipe_graph import hands_module, quiet_stderr, tuned_hands
+
+__all__ = ["hands_module", "read_rgb"]  # re-exported: the CLI, the stage and the bench use them
 
 log = logging.getLogger(__name__)
 N_KEYPOINTS = 21
 HandName = Literal["right", "left"]
 TRUE_HAND: dict[str, HandName] = {"Left": "right", "Right": "left"}
 """MediaPipe's label on an unmirrored image -> the person's hand."""
-_NOISE = re.compile(
-    r"XNNPACK delegate|absl::InitializeLog|inference_feedback_manager|"
-    r"landmark_projection_calculator|^\s*$"
-)
 
 
 class FrameMode(StrEnum):
@@ -84,6 +81,14 @@ class MediaPipeConfig(StageConfig):
     (``bench/detect_speed.py``, ``docs/detectors.md``)."""
     min_frames_per_worker: int = Field(200, ge=1)
     """Chunks are at least this long, so a worker's start-up is paid back."""
+    threads: int = Field(1, ge=1, le=8)
+    """Threads of each TFLite inference (XNNPACK's ``num_threads``, palm and landmark
+    models). 1 by default (MediaPipe's own desktop default): a build runs two stages side by
+    side on the 2 cores, and XNNPACK's spinning worker threads then burn several times the
+    CPU they save. 2 when the detector has both cores to itself (``docs/detectors.md``)."""
+    prefetch: int = Field(2, ge=0, le=16)
+    """Frames a reader thread decodes ahead while MediaPipe runs the current one (0: decode
+    on the calling thread). The detections do not depend on it."""
 
 
 @dataclass(frozen=True)
@@ -135,51 +140,14 @@ class FrameDetections:
     workers: int
 
 
-# --- MediaPipe, imported quietly ------------------------------------------------------------
-
-
-@contextlib.contextmanager
-def quiet_stderr() -> Iterator[None]:
-    """Send fd 2 to a file while MediaPipe starts; lines that are not its known start-up
-    chatter are written back to stderr afterwards."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile(mode="w+b") as sink:
-        os.dup2(sink.fileno(), 2)
-        try:
-            yield
-        finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            for line in sink.read().decode(errors="replace").splitlines():
-                if not _NOISE.search(line):
-                    print(line, file=sys.stderr)
-
-
-_HANDS: Any = None
-
-
-def hands_module() -> Any:
-    """``mediapipe.solutions.hands``, imported on first call with its log chatter hidden."""
-    global _HANDS
-    if _HANDS is None:
-        os.environ.setdefault("GLOG_minloglevel", "2")
-        os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
-        with quiet_stderr():
-            from mediapipe.python.solutions import hands
-        _HANDS = hands
-    return _HANDS
-
-
 class Detector:
     """One MediaPipe ``Hands`` graph (it keeps tracking state between calls in video mode)."""
 
     def __init__(self, config: MediaPipeConfig, *, video: bool, max_hands: int):
         self.config = config
         with quiet_stderr():
-            self._hands = hands_module().Hands(
+            self._hands = tuned_hands()(
+                inference_threads=config.threads,
                 static_image_mode=not video,
                 max_num_hands=max_hands,
                 model_complexity=config.model_complexity,
@@ -194,15 +162,23 @@ class Detector:
         hidden until two calls after the first hand."""
 
     def __call__(self, rgb: np.ndarray) -> list[Candidate]:
-        """Hands in an ``(h, w, 3) uint8`` RGB image."""
-        h, w = rgb.shape[:2]
-        if self._quiet_calls > 0:
-            with quiet_stderr():
-                result = self._hands.process(rgb)
-            if result.multi_hand_landmarks or self._quiet_calls < 2:
-                self._quiet_calls -= 1
-        else:
+        """Hands in an ``(h, w, 3) uint8`` RGB image (a read-only array, as :func:`read_rgb`
+        returns, is passed by reference; a writable one is copied by MediaPipe)."""
+        return self.candidates(self.process(rgb), rgb.shape[:2])
+
+    def process(self, rgb: np.ndarray) -> Any:
+        """MediaPipe's own output for ``rgb`` (``multi_hand_landmarks``, ...)."""
+        if self._quiet_calls <= 0:
+            return self._hands.process(rgb)
+        with quiet_stderr():
             result = self._hands.process(rgb)
+        if result.multi_hand_landmarks or self._quiet_calls < 2:
+            self._quiet_calls -= 1
+        return result
+
+    def candidates(self, result: Any, shape: tuple[int, int]) -> list[Candidate]:
+        """:meth:`process`'s output for an image of ``shape`` (h, w) as :class:`Candidate`."""
+        h, w = shape
         out = []
         for lms, cls in zip(
             result.multi_hand_landmarks or [], result.multi_handedness or [], strict=True
@@ -244,46 +220,45 @@ def pick(
 # --- frames -> keypoints ------------------------------------------------------------------
 
 
-def read_rgb(path: Path | str, size: tuple[int, int] | None) -> tuple[np.ndarray | None, str]:
-    """``(h, w, 3) uint8`` RGB of the image at ``path``, or None and why not.
+@dataclass(frozen=True)
+class FrameResult:
+    """MediaPipe on one frame of a video.
 
-    ``size`` (width, height) is the colour camera's; another size is refused, since the
-    keypoints would not be in that camera's pixels.
+    Attributes
+    ----------
+    index : int
+        The frame's position in the run.
+    keypoints : (21, 3) float
+        x_px, y_px, confidence; all 0 when no hand was picked.
+    label_mismatch : bool
+        The picked hand carries the other hand's label.
+    note : str
+        Why the frame could not be read ("" when it was).
     """
-    try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
-        return None, f"cannot read: {exc.strerror or exc}"
-    if Path(path).suffix.lower() in (".jpg", ".jpeg") or data.startswith(b"\xff\xd8"):
-        problem = _jpeg_problem(data)
-        if problem:
-            return None, problem
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None:
-        return None, "does not decode as an image (corrupt or unsupported)"
-    h, w = bgr.shape[:2]
-    if size is not None and (w, h) != tuple(size):
-        return None, f"size {w}x{h}, expected {size[0]}x{size[1]} (width x height)"
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), ""
+
+    index: int
+    keypoints: np.ndarray
+    label_mismatch: bool
+    note: str
 
 
-def _detect_chunk(
-    paths: Sequence[str], size: tuple[int, int] | None, hand: HandName, config: MediaPipeConfig
-) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
-    """One tracker over consecutive frames (runs in a worker process or in-process)."""
-    n = len(paths)
-    keypoints, mismatch, notes = np.zeros((n, N_KEYPOINTS, 3)), np.zeros(n, bool), []
+def iter_detections(
+    paths: Sequence[Path | str], size: tuple[int, int] | None, hand: HandName,
+    config: MediaPipeConfig,
+) -> Iterator[FrameResult]:
+    """One tracker over consecutive frames, a :class:`FrameResult` per frame in order, as
+    soon as it is known (frames decoded ``config.prefetch`` ahead by a reader thread)."""
     video = config.mode is FrameMode.VIDEO
     # Video: one hand tracked (palm detection only when it is lost); a second, two-hand
     # detector looks again only when the tracked hand carries the other hand's label.
     main = Detector(config, video=video, max_hands=1 if video else 2)
     both: Detector | None = None
     previous, settled = None, False  # settled: the tracked hand is the best there is
+    frames = iter_frames(paths, size, config.prefetch)
     try:
-        for i, path in enumerate(paths):
-            rgb, why = read_rgb(path, size)
+        for i, (rgb, why) in enumerate(frames):
             if rgb is None:
-                notes.append((i, why))
+                yield FrameResult(i, np.zeros((N_KEYPOINTS, 3)), False, why)
                 continue
             candidates = main(rgb)
             settled = settled and bool(candidates)
@@ -295,14 +270,28 @@ def _detect_chunk(
                 else:  # no hand with the right label in view: keep tracking this one
                     settled = True
             chosen = pick(candidates, hand, previous, config.handedness)
-            if chosen is not None:
-                keypoints[i] = chosen.keypoints()
-                mismatch[i] = chosen.hand != hand
-                previous = keypoints[i]
+            if chosen is None:
+                yield FrameResult(i, np.zeros((N_KEYPOINTS, 3)), False, "")
+                continue
+            previous = chosen.keypoints()
+            yield FrameResult(i, previous, chosen.hand != hand, "")
     finally:
+        frames.close()
         main.close()
         if both is not None:
             both.close()
+
+
+def _detect_chunk(
+    paths: Sequence[str], size: tuple[int, int] | None, hand: HandName, config: MediaPipeConfig
+) -> tuple[np.ndarray, np.ndarray, list[tuple[int, str]]]:
+    """:func:`iter_detections` collected (runs in a worker process or in-process)."""
+    n = len(paths)
+    keypoints, mismatch, notes = np.zeros((n, N_KEYPOINTS, 3)), np.zeros(n, bool), []
+    for r in iter_detections(paths, size, hand, config):
+        keypoints[r.index], mismatch[r.index] = r.keypoints, r.label_mismatch
+        if r.note:
+            notes.append((r.index, r.note))
     return keypoints, mismatch, notes
 
 

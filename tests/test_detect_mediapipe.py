@@ -131,6 +131,25 @@ def test_video_mode_tracks_a_moving_hand(photos, tmp_path):
         assert np.abs(motion - [step, step // 2]).max() <= motion_tol_px, (name, motion)
 
 
+def test_tuned_graph_and_reader_give_plain_mediapipe_landmarks(photos, tmp_path):
+    """Reader thread, RGB decode, read-only input, the lean ``process`` and 2 inference
+    threads change no detection: plain ``Hands`` on imread + cvtColor frames, same tracker."""
+    images, _ = photos
+    paths = _shifted_video(images / "victory.jpg", tmp_path / "v", 5, 3)
+    plain = hands_module().Hands(static_image_mode=False, max_num_hands=1)
+    expected = []
+    for p in paths:
+        rgb = cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)
+        (hand,) = plain.process(rgb).multi_hand_landmarks
+        expected.append([[q.x * 640, q.y * 480] for q in hand.landmark])
+    plain.close()
+    for threads, prefetch in ((1, 0), (1, 2), (2, 3)):
+        config = MediaPipeConfig(workers=1, threads=threads, prefetch=prefetch)
+        found = detect_frames(paths, (640, 480), "right", config)
+        assert (found.keypoints[:, :, 2] > 0.5).all()
+        assert np.abs(found.keypoints[:, :, :2] - expected).max() <= 1e-6, (threads, prefetch)
+
+
 def test_two_workers_give_what_one_gives(photos, tmp_path):
     images, _ = photos
     paths = _shifted_video(images / "thumbs_up.jpg", tmp_path / "v", 6, 3)
