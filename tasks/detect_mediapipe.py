@@ -34,7 +34,12 @@ from pydantic import Field
 
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.frame_reader import iter_frames, read_rgb
-from graspcap.tasks.mediapipe_graph import hands_module, quiet_stderr, tuned_hands
+from graspcap.tasks.mediapipe_graph import (
+    HandsOutput,
+    hands_module,
+    quiet_stderr,
+    tuned_hands,
+)
 
 __all__ = ["hands_module", "read_rgb"]  # re-exported: the CLI, the stage and the bench use them
 
@@ -160,13 +165,14 @@ class Detector:
         self._quiet_calls = 2
         """The first frames with a hand log once more (landmark projection): stderr stays
         hidden until two calls after the first hand."""
+        self._done: HandsOutput | None = None
 
     def __call__(self, rgb: np.ndarray) -> list[Candidate]:
         """Hands in an ``(h, w, 3) uint8`` RGB image (a read-only array, as :func:`read_rgb`
         returns, is passed by reference; a writable one is copied by MediaPipe)."""
         return self.candidates(self.process(rgb), rgb.shape[:2])
 
-    def process(self, rgb: np.ndarray) -> Any:
+    def process(self, rgb: np.ndarray) -> HandsOutput:
         """MediaPipe's own output for ``rgb`` (``multi_hand_landmarks``, ...)."""
         if self._quiet_calls <= 0:
             return self._hands.process(rgb)
@@ -176,8 +182,21 @@ class Detector:
             self._quiet_calls -= 1
         return result
 
+    def send(self, rgb: np.ndarray) -> None:
+        """Start on ``rgb``; :meth:`wait` gives the raw output for :meth:`candidates`, which
+        may run while the graph works on the next frame (the first frames, while MediaPipe
+        still logs, run at once)."""
+        self._done = self.process(rgb) if self._quiet_calls > 0 else None
+        if self._done is None:
+            self._hands.send(rgb)
+
+    def wait(self) -> Any:
+        return self._done if self._done is not None else self._hands.wait()
+
     def candidates(self, result: Any, shape: tuple[int, int]) -> list[Candidate]:
-        """:meth:`process`'s output for an image of ``shape`` (h, w) as :class:`Candidate`."""
+        """:meth:`process`'s (or :meth:`wait`'s) output for an image of ``shape`` (h, w)."""
+        if not isinstance(result, HandsOutput):
+            result = self._hands.outputs(result)
         h, w = shape
         out = []
         for lms, cls in zip(
@@ -242,44 +261,76 @@ class FrameResult:
     note: str
 
 
+class _Chooser:
+    """The manifest's hand from each frame's candidates, frames in order.
+
+    Video: one hand is tracked; when it carries the other hand's label, a second, two-hand
+    detector looks at that frame once (its hands replace the tracked one if one has the
+    manifest's label; otherwise the tracked hand is kept without looking again while it is
+    tracked). Then :func:`pick`, seeded by the previous frame's keypoints.
+    """
+
+    def __init__(self, config: MediaPipeConfig, hand: HandName, video: bool):
+        self.config, self.hand, self.video = config, hand, video
+        self.both: Detector | None = None
+        self.previous: np.ndarray | None = None
+        self.settled = False  # the tracked hand is the best there is
+
+    def __call__(self, i: int, rgb: np.ndarray, candidates: list[Candidate]) -> FrameResult:
+        hand = self.hand
+        self.settled = self.settled and bool(candidates)
+        if self.video and candidates and not self.settled and all(
+            c.hand != hand for c in candidates
+        ):
+            self.both = self.both or Detector(self.config, video=False, max_hands=2)
+            again = self.both(rgb)
+            if any(c.hand == hand for c in again):
+                candidates = again
+            else:
+                self.settled = True
+        chosen = pick(candidates, hand, self.previous, self.config.handedness)
+        if chosen is None:
+            return FrameResult(i, np.zeros((N_KEYPOINTS, 3)), False, "")
+        self.previous = chosen.keypoints()
+        return FrameResult(i, self.previous, chosen.hand != hand, "")
+
+    def close(self) -> None:
+        if self.both is not None:
+            self.both.close()
+
+
 def iter_detections(
     paths: Sequence[Path | str], size: tuple[int, int] | None, hand: HandName,
     config: MediaPipeConfig,
 ) -> Iterator[FrameResult]:
-    """One tracker over consecutive frames, a :class:`FrameResult` per frame in order, as
-    soon as it is known (frames decoded ``config.prefetch`` ahead by a reader thread)."""
+    """One tracker over consecutive frames, a :class:`FrameResult` per frame in order.
+
+    Frames are decoded ``config.prefetch`` ahead by a reader thread, and the graph runs one
+    frame ahead of the Python side: while it works on frame i, frame i-1's output becomes
+    arrays, is chosen from and yielded. The graph's input is the frames alone, so the
+    results are those of running frame by frame.
+    """
     video = config.mode is FrameMode.VIDEO
-    # Video: one hand tracked (palm detection only when it is lost); a second, two-hand
-    # detector looks again only when the tracked hand carries the other hand's label.
     main = Detector(config, video=video, max_hands=1 if video else 2)
-    both: Detector | None = None
-    previous, settled = None, False  # settled: the tracked hand is the best there is
+    choose = _Chooser(config, hand, video)
     frames = iter_frames(paths, size, config.prefetch)
+    running: tuple[int, np.ndarray] | None = None  # (index, image) the graph works on
     try:
         for i, (rgb, why) in enumerate(frames):
+            raw = main.wait() if running else None
+            if rgb is not None:
+                main.send(rgb)
+            if running:
+                yield choose(*running, main.candidates(raw, running[1].shape[:2]))
+            running = None if rgb is None else (i, rgb)
             if rgb is None:
                 yield FrameResult(i, np.zeros((N_KEYPOINTS, 3)), False, why)
-                continue
-            candidates = main(rgb)
-            settled = settled and bool(candidates)
-            if video and candidates and not settled and all(c.hand != hand for c in candidates):
-                both = both or Detector(config, video=False, max_hands=2)
-                again = both(rgb)
-                if any(c.hand == hand for c in again):
-                    candidates = again
-                else:  # no hand with the right label in view: keep tracking this one
-                    settled = True
-            chosen = pick(candidates, hand, previous, config.handedness)
-            if chosen is None:
-                yield FrameResult(i, np.zeros((N_KEYPOINTS, 3)), False, "")
-                continue
-            previous = chosen.keypoints()
-            yield FrameResult(i, previous, chosen.hand != hand, "")
+        if running:
+            yield choose(*running, main.candidates(main.wait(), running[1].shape[:2]))
     finally:
         frames.close()
         main.close()
-        if both is not None:
-            both.close()
+        choose.close()
 
 
 def _detect_chunk(

@@ -10,7 +10,9 @@ landmark models ship inside the wheel) with its glog/absl chatter on stderr swal
   on desktop Linux is 1, and ``OMP_NUM_THREADS`` does not reach TFLite);
 - has a leaner ``process``: the base class builds a new namedtuple class per call and
   converts all three outputs; this one returns :class:`HandsOutput` with the two outputs
-  we read. The graph and its outputs are the same (tested against the plain ``Hands``).
+  we read. The graph and its outputs are the same (tested against the plain ``Hands``);
+- splits ``process`` into ``send`` and ``wait``, so that a caller can turn one frame's
+  output into arrays while the graph already runs on the next.
 """
 
 from __future__ import annotations
@@ -99,17 +101,31 @@ def tuned_hands() -> Any:
 
         def process(self, image: np.ndarray) -> HandsOutput:
             """Hands in an ``(h, w, 3) uint8`` RGB image (read-only: taken by reference)."""
+            self.send(image)
+            return self.outputs(self.wait())
+
+        def send(self, image: np.ndarray) -> None:
+            """Start the graph on ``image``; :meth:`wait` returns when it is done."""
             if image.ndim != 3 or image.shape[2] != 3:
                 raise ValueError("Input image must contain three channel rgb data.")
-            self._graph_outputs.clear()
             self._simulated_timestamp += 33333  # 30 fps, as the base class
             packet = packet_creator.create_image_frame(image, image_format=ImageFormat.SRGB)
             self._graph.add_packet_to_input_stream(
                 stream=self._input, packet=packet.at(self._simulated_timestamp))
+
+        def wait(self) -> dict[str, Any]:
+            """The output packets of the image last sent (unconverted: :meth:`outputs` may
+            run while the graph works on the next image)."""
             self._graph.wait_until_idle()
+            packets = dict(self._graph_outputs)
+            self._graph_outputs.clear()
+            return packets
+
+        @staticmethod
+        def outputs(packets: dict[str, Any]) -> HandsOutput:
             out = []
             for name in HandsOutput._fields:
-                found = self._graph_outputs.get(name)
+                found = packets.get(name)
                 empty = found is None or found.is_empty()
                 out.append(None if empty else packet_getter.get_proto_list(found))
             return HandsOutput(*out)

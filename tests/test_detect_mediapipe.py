@@ -132,21 +132,24 @@ def test_video_mode_tracks_a_moving_hand(photos, tmp_path):
 
 
 def test_tuned_graph_and_reader_give_plain_mediapipe_landmarks(photos, tmp_path):
-    """Reader thread, RGB decode, read-only input, the lean ``process`` and 2 inference
-    threads change no detection: plain ``Hands`` on imread + cvtColor frames, same tracker."""
+    """Reader thread, RGB decode, read-only input, the lean ``process``, the graph running a
+    frame ahead and 2 inference threads change no detection: plain ``Hands`` on imread +
+    cvtColor frames, one tracker; a truncated frame in the middle is skipped by both."""
     images, _ = photos
-    paths = _shifted_video(images / "victory.jpg", tmp_path / "v", 5, 3)
+    paths = _shifted_video(images / "victory.jpg", tmp_path / "v", 6, 3)
+    paths[2].write_bytes(paths[2].read_bytes()[:5000])
     plain = hands_module().Hands(static_image_mode=False, max_num_hands=1)
-    expected = []
-    for p in paths:
-        rgb = cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB)
+    expected = np.zeros((6, 21, 2))
+    for i in (0, 1, 3, 4, 5):
+        rgb = cv2.cvtColor(cv2.imread(str(paths[i])), cv2.COLOR_BGR2RGB)
         (hand,) = plain.process(rgb).multi_hand_landmarks
-        expected.append([[q.x * 640, q.y * 480] for q in hand.landmark])
+        expected[i] = [[q.x * 640, q.y * 480] for q in hand.landmark]
     plain.close()
     for threads, prefetch in ((1, 0), (1, 2), (2, 3)):
         config = MediaPipeConfig(workers=1, threads=threads, prefetch=prefetch)
         found = detect_frames(paths, (640, 480), "right", config)
-        assert (found.keypoints[:, :, 2] > 0.5).all()
+        assert [i for i, _ in found.notes] == [2] and "truncated" in found.notes[0][1]
+        assert ((found.keypoints[:, :, 2] > 0.5).all(axis=1) == [1, 1, 0, 1, 1, 1]).all()
         assert np.abs(found.keypoints[:, :, :2] - expected).max() <= 1e-6, (threads, prefetch)
 
 
