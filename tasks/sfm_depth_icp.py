@@ -27,7 +27,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import sparse
 from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.config import StageConfig
@@ -192,6 +191,13 @@ def _exp_batch(step: np.ndarray) -> np.ndarray:
     return T
 
 
+def _even(points: np.ndarray, max_points: int) -> np.ndarray:
+    """At most ``max_points`` of ``points`` (n, 3), evenly spread over their order."""
+    if len(points) <= max_points:
+        return points
+    return points[np.linspace(0, len(points) - 1, max_points).round().astype(int)]
+
+
 def icp_batch(
     clouds: Sequence[SurfaceCloud],
     pairs: np.ndarray,
@@ -243,19 +249,20 @@ def icp_batch(
         [np.where(c.index >= 0, c.index + b, -1).ravel() for c, b in zip(clouds, point_base,
                                                                          strict=True)]
     )
-    first = np.array([c.first_px for c in clouds], dtype=float)
-    stride = np.array([c.stride_px for c in clouds], dtype=float)
-    pts = np.concatenate([c.points for c in clouds])
-    normals = np.concatenate([c.normals for c in clouds])
-    src, pid = [], []
-    for n, b in enumerate(pairs[:, 1]):
-        src.append(clouds[b].points[:: max(1, len(clouds[b].points) // max_points)])
-        pid.append(np.full(len(src[-1]), n))
-    p, pid = np.concatenate(src), np.concatenate(pid)
-    total = np.bincount(pid, minlength=k).astype(float)
-    tgt = pairs[pid, 0]
-    t_first, t_stride = first[tgt], stride[tgt][:, None]
-    t_shape, t_base = shape[tgt], grid_base[tgt]
+    surface = np.concatenate([np.hstack([c.points, c.normals]) for c in clouds])
+    # every pair's source points in one padded (k, P, 3) block: per-pair products are then
+    # batched matrix products instead of per-point gathers and sparse sums
+    src = [_even(clouds[b].points, max_points) for b in pairs[:, 1]]
+    P = max(len(s) for s in src)
+    p = np.zeros((k, P, 3))
+    valid = np.zeros((k, P), bool)
+    for n, s in enumerate(src):
+        p[n, : len(s)], valid[n, : len(s)] = s, True
+    total = valid.sum(1).astype(float)
+    tgt = pairs[:, 0]
+    t_first = np.array([clouds[a].first_px for a in tgt], dtype=float)[:, None, :]
+    t_stride = np.array([clouds[a].stride_px for a in tgt], dtype=float)[:, None, None]
+    t_shape, t_base = shape[tgt][:, None, :], grid_base[tgt][:, None]
     f, c0 = np.array([K[0, 0], K[1, 1]]), np.array([K[0, 2], K[1, 2]])
     T = np.array(T_a_b, dtype=float)
     T0_inv = np.stack([inv_T(X) for X in T])
@@ -265,29 +272,36 @@ def icp_batch(
     used = np.zeros(k)
     active = np.ones(k, bool)
     for _ in range(iterations):
-        R = T[pid, :3, :3]
-        moved = np.einsum("nij,nj->ni", R, p) + T[pid, :3, 3]
+        R = T[:, :3, :3]
+        moved = p @ R.transpose(0, 2, 1) + T[:, None, :3, 3]
         with np.errstate(invalid="ignore", divide="ignore"):
-            node = np.rint(((moved[:, :2] / moved[:, 2:]) * f + c0 - t_first) / t_stride)
-        ok = (moved[:, 2] > 0) & np.all((node >= 0) & (node < t_shape[:, ::-1]), axis=1)
-        row = np.full(len(p), -1)
-        row[ok] = index[t_base[ok] + node[ok, 1].astype(np.int64) * t_shape[ok, 1]
-                        + node[ok, 0].astype(np.int64)]
+            node = np.rint(((moved[..., :2] / moved[..., 2:]) * f + c0 - t_first) / t_stride)
+            ok = valid & (moved[..., 2] > 0) & np.all((node >= 0) & (node < t_shape[..., ::-1]),
+                                                      axis=2)  # fmt: skip
+        row = np.full((k, P), -1)
+        flat = (t_base + node[..., 1] * t_shape[..., 1] + node[..., 0])[ok]
+        row[ok] = index[flat.astype(np.int64)]
         ok &= row >= 0
-        ok[ok] = np.sum((pts[row[ok]] - moved[ok]) ** 2, axis=1) < max_distance_m**2
-        q, nq = pts[row[ok]], normals[row[ok]]
-        r = np.sum(nq * (moved[ok] - q), axis=1)
+        qn = surface[row]  # row -1 (not ok) reads a real point, weighted 0 below
+        q, nq = qn[..., :3], qn[..., 3:]
+        d = moved - q
+        ok &= np.einsum("kpi,kpi->kp", d, d) < max_distance_m**2
+        r = np.where(ok, np.einsum("kpi,kpi->kp", nq, d), 0.0)
         a = np.abs(r)
-        wgt = np.where(a <= huber_m, 1.0, huber_m / np.maximum(a, 1e-12))
-        m = np.einsum("ni,nij->nj", nq, R[ok])  # target normal in the source frame
-        J = np.concatenate([np.cross(p[ok], m), m], axis=1)
-        sel = sparse.csr_matrix((wgt, (pid[ok], np.arange(len(r)))), shape=(k, len(r)))
-        H = np.asarray(sel @ (J[:, :, None] * J[:, None, :]).reshape(-1, 36)).reshape(k, 6, 6)
-        g = np.asarray(sel @ (J * r[:, None]))
-        used = np.bincount(pid[ok], minlength=k).astype(float)
-        inl = (a <= 3 * huber_m).astype(float)
+        wgt = np.where(ok, np.where(a <= huber_m, 1.0, huber_m / np.maximum(a, 1e-12)), 0.0)
+        m = nq @ R  # target normal in the source frame
+        J = np.empty((k, P, 6))
+        J[..., 0] = p[..., 1] * m[..., 2] - p[..., 2] * m[..., 1]  # p x m
+        J[..., 1] = p[..., 2] * m[..., 0] - p[..., 0] * m[..., 2]
+        J[..., 2] = p[..., 0] * m[..., 1] - p[..., 1] * m[..., 0]
+        J[..., 3:] = m
+        Jw = J * wgt[..., None]
+        H = Jw.transpose(0, 2, 1) @ J
+        g = np.einsum("kpi,kp->ki", Jw, r)
+        used = ok.sum(1).astype(float)
+        inl = ok & (a <= 3 * huber_m)
         with np.errstate(invalid="ignore", divide="ignore"):
-            rmse = np.sqrt(np.bincount(pid[ok], r**2 * inl, k) / np.bincount(pid[ok], inl, k))
+            rmse = np.sqrt(np.sum(r**2 * inl, axis=1) / inl.sum(1))
         active &= used >= 12
         D = T0_inv @ T
         delta = np.concatenate([Rotation.from_matrix(D[:, :3, :3]).as_rotvec(), D[:, :3, 3]], 1)
