@@ -8,7 +8,7 @@ from pydantic import Field
 
 from graspcap.tasks.config import StageConfig
 
-STAGE_VERSION = "synth/1"
+STAGE_VERSION = "synth/2"
 
 
 class Difficulty(StrEnum):

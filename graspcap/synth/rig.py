@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -115,46 +114,3 @@ def interpolate_pose(T_a: np.ndarray, T_b: np.ndarray, s: float) -> np.ndarray:
     """Pose between ``T_a`` (s = 0) and ``T_b`` (s = 1): slerp rotation, linear translation."""
     slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([T_a[:3, :3], T_b[:3, :3]])))
     return make_T(slerp([s]).as_matrix()[0], (1 - s) * T_a[:3, 3] + s * T_b[:3, 3])
-
-
-@dataclass(frozen=True)
-class Motion:
-    """Smooth rigid motion of the hand and object in the camera frame after the steady frame.
-
-    ``rotvec(tau)`` and ``shift(tau)`` are sums of sines (zero at tau = 0), so
-    the motion starts at the steady pose; ``centre`` is the rotation centre (m).
-    """
-
-    axes: np.ndarray  # (3, 3) unit rotation axes
-    amplitudes_rad: np.ndarray  # (3,)
-    freq: np.ndarray  # (3,) cycles over the video
-    shift_dirs: np.ndarray  # (2, 3) unit translation directions
-    shift_m: np.ndarray  # (2,)
-    shift_freq: np.ndarray  # (2,)
-    centre: np.ndarray  # (3,)
-
-    def M(self, tau: float) -> np.ndarray:
-        """(4, 4) motion at normalised time ``tau`` in [0, 1]; identity at 0."""
-        rotvec = (self.amplitudes_rad * np.sin(2 * np.pi * self.freq * tau)) @ self.axes
-        shift = (self.shift_m * np.sin(2 * np.pi * self.shift_freq * tau)) @ self.shift_dirs
-        R = Rotation.from_rotvec(rotvec).as_matrix()
-        return make_T(R, self.centre + shift - R @ self.centre)
-
-    def scaled(self, factor: float) -> Motion:
-        """The same motion with rotation and translation amplitudes times ``factor``."""
-        return Motion(self.axes, self.amplitudes_rad * factor, self.freq, self.shift_dirs,
-                      self.shift_m * factor, self.shift_freq, self.centre)
-
-
-def random_motion(centre: np.ndarray, cfg: SynthConfig, rng: np.random.Generator) -> Motion:
-    """A motion reaching up to ``cfg.motion_rotation_deg`` about varied axes, a few cm of shift."""
-    axes = rng.normal(size=(3, 3))
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    total = np.radians(cfg.motion_rotation_deg) * rng.uniform(0.6, 1.0)
-    amplitudes = total * rng.dirichlet(np.ones(3) * 2.0) * 1.6
-    dirs = rng.normal(size=(2, 3))
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    return Motion(axes, np.minimum(amplitudes, np.radians(cfg.motion_rotation_deg)),
-                  rng.uniform(0.4, 1.2, 3), dirs,
-                  cfg.motion_translation_m * rng.uniform(0.3, 0.6, 2), rng.uniform(0.3, 1.0, 2),
-                  np.asarray(centre, float))

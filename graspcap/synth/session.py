@@ -12,6 +12,7 @@ import numpy as np
 from graspcap.schemas.session import SessionManifest
 from graspcap.synth.config import STAGE_VERSION, SynthConfig
 from graspcap.synth.grasp import Grasp, hand_contact, plan_grasp
+from graspcap.synth.motion import steady_motion
 from graspcap.synth.objects import (
     OBJECT_NAMES,
     ObjectMesh,
@@ -24,7 +25,6 @@ from graspcap.synth.rig import (
     color_K,
     interpolate_pose,
     platter_mesh,
-    random_motion,
     rest_on_platter,
     smoothstep,
     table_mesh,
@@ -303,22 +303,20 @@ def _occluded(
 
 def _video_motion(obj: ObjectMesh, hand_o: np.ndarray, joints_o: np.ndarray,
                   T_w_o_steady: np.ndarray, T_color_tt: np.ndarray, steady: int,
-                  cfg: SynthConfig, rng: np.random.Generator) -> list[np.ndarray]:
-    """Rigid motions M_i (camera frame) of hand and object for frames ``steady`` .. count-1."""
+                  cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
+    """Rigid motions M_i (camera frame) of hand and object for frames ``steady`` .. count-1:
+    turned by at least ``MIN_STEADY_TURN_DEG``, in view and above the table."""
     K = color_K(cfg)
     joints_w = transform_points(T_w_o_steady, joints_o)
     sample = transform_points(T_w_o_steady, np.concatenate([obj.vertices[::11], hand_o[::7]]))
     centre = transform_points(T_w_o_steady, joints_o[list(RIGID_PALM_POINTS)]).mean(axis=0)
-    motion = random_motion(centre, cfg, rng)
-    n = cfg.frames - steady
-    taus = np.arange(n) / max(n - 1, 1)
-    for _ in range(12):
-        Ms = [motion.M(t) for t in taus]
-        worst = max(np.degrees(np.linalg.norm(cv2.Rodrigues(M[:3, :3])[0])) for M in Ms)
-        ok = worst <= cfg.motion_rotation_deg + 1e-6 and all(
-            _in_image(project(K, transform_points(M, joints_w)), cfg, 5)
-            and _above_table(transform_points(M, sample), T_color_tt) for M in Ms)
-        if ok:
-            return Ms
-        motion = motion.scaled(0.75)
-    raise StageError("synth", f"object {obj.name}: no motion keeps the hand in view")
+    T_tt_color = inv_T(T_color_tt)
+    try:
+        return steady_motion(
+            centre, cfg.frames - steady, cfg, rng,
+            in_view=lambda M: _in_image(project(K, transform_points(M, joints_w)), cfg, 5),
+            heights_m=lambda M: float(transform_points(T_tt_color @ M, sample)[:, 2].min()),
+            up=T_color_tt[:3, 2],
+        )  # fmt: skip
+    except StageError as e:
+        raise StageError("synth", f"object {obj.name}: {e.reason}") from e
