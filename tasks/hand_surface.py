@@ -99,6 +99,79 @@ def penetration_mm(
     return float(depth_mm.max(initial=0.0)), float(depth_mm[inside].mean()) if inside.any() else 0.0
 
 
+def _parts(faces: np.ndarray) -> list[np.ndarray]:
+    """The faces (index arrays) of each connected part of a mesh."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = np.asarray(faces, np.int64)
+    n = int(f.max()) + 1 if len(f) else 0
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    face_label = label[f[:, 0]]
+    return [np.flatnonzero(face_label == k) for k in np.unique(face_label)]
+
+
+def contact_agreement(
+    object_vertices: np.ndarray, contact: np.ndarray, observed: np.ndarray,
+    hand_vertices: np.ndarray, hand_faces: np.ndarray, *, near_mm: float,
+    contact_threshold: float, candidates: np.ndarray | None = None,
+) -> tuple[float, float]:
+    """How well a contact map and a hand mesh (both in the object frame) agree, both ways.
+
+    An object vertex is *touched* when it lies within ``near_mm`` of the hand mesh's surface
+    (Open3D's unsigned distance) or inside one of the mesh's closed parts (each connected
+    part's own ray-parity occupancy, so that overlapping parts do not cancel); *contacted*
+    when observed and its contact is at least ``contact_threshold``. Only observed vertices
+    count. This is the one definition ``refine_grasp`` (before / after) and ``qa_metrics`` use.
+
+    Parameters
+    ----------
+    object_vertices : (n, 3) float
+    contact : (n,) float in [0, 1]
+    observed : (n,) bool
+    hand_vertices : (k, 3) float
+    hand_faces : (l, 3) int
+    near_mm : float
+    contact_threshold : float
+    candidates : (n,) bool, optional
+        Vertices that may be touched, a conservative pre-selection for speed (e.g. by a cheaper
+        distance); None: every observed vertex is measured.
+
+    Returns
+    -------
+    contact_near_share : float
+        Contacted vertices that are touched (NaN when none is contacted).
+    touch_contacted_share : float
+        Touched observed vertices that are contacted (NaN when the hand touches none).
+    """
+    V = np.asarray(object_vertices, float)
+    observed = np.asarray(observed, bool)
+    contacted = observed & (np.asarray(contact, float) >= contact_threshold)
+    cand = observed if candidates is None else observed & np.asarray(candidates, bool)
+    touched = np.zeros(len(V), bool)
+    idx = np.flatnonzero(cand)
+    if len(idx):
+        hv = np.asarray(hand_vertices, np.float32)
+        hf = np.asarray(hand_faces, np.uint32)
+        hand = o3d.t.geometry.RaycastingScene()
+        hand.add_triangles(hv, hf)
+        q = V[idx].astype(np.float32)
+        d_mm = 1e3 * hand.compute_distance(o3d.core.Tensor(q)).numpy()
+        touched[idx] = d_mm <= near_mm
+        lo, hi = hv.min(0), hv.max(0)
+        far = np.flatnonzero(~touched[idx] & np.all((q >= lo) & (q <= hi), axis=1))
+        for part in _parts(hf) if len(far) else []:
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(hv, hf[part])
+            inside = scene.compute_occupancy(o3d.core.Tensor(q[far]), nsamples=3).numpy() > 0
+            touched[idx[far[inside]]] = True
+    near_share = float(touched[contacted].mean()) if contacted.any() else float("nan")
+    touch_share = float(contacted[touched].mean()) if touched.any() else float("nan")
+    return near_share, touch_share
+
+
 def object_sdf_grid(
     vertices: np.ndarray, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray, step_m: float,
     band_m: float,
@@ -173,4 +246,7 @@ class HandSurface:
         return centres.reshape(len(kp), -1, 3), self.sample_r, palm
 
 
-__all__ = ["BONES", "Grid", "HandSurface", "object_sdf_grid", "palm_grid"]
+__all__ = [
+    "BONES", "Grid", "HandSurface", "contact_agreement", "object_sdf_grid", "palm_grid",
+    "penetration_mm",
+]
