@@ -138,7 +138,11 @@ def _watch(submitted: Mapping[str, Mapping[str, Any]], session_ids: Mapping[str,
 
 
 def _stage_outcomes(futures: Mapping[str, Any]):
-    refs, ran, cached, not_run = {}, [], [], []
+    """(refs, ran, cached, not_run, error, failed_stage, notes) of one session's tasks; a
+    failed aid stage (``pipeline.AID_STAGES``: pictures) is a note, not the session's error."""
+    from graspcap.tasks.pipeline import AID_STAGES
+
+    refs, ran, cached, not_run, notes = {}, [], [], [], []
     error = failed_stage = None
     for name, fut in futures.items():
         fut.wait()
@@ -149,17 +153,20 @@ def _stage_outcomes(futures: Mapping[str, Any]):
             (cached if ref.cached else ran).append(name)
         elif state.is_failed() or state.is_crashed():
             exc = state.result(raise_on_failure=False)
+            why = (str(exc) if isinstance(exc, StageError) else
+                   f"{name}: {type(exc).__name__}: {exc}" if isinstance(exc, BaseException)
+                   else f"{name}: {state.message}")
+            if name in AID_STAGES:
+                notes.append(f"{why} (a QA aid: the session is committed without it)")
+                continue
             failed_stage = failed_stage or name
-            if error is None:
-                error = (str(exc) if isinstance(exc, StageError) else
-                         f"{name}: {type(exc).__name__}: {exc}" if isinstance(exc, BaseException)
-                         else f"{name}: {state.message}")
+            error = error or why
         else:  # NotReady (an upstream failed), Cancelled, ...
             not_run.append(name)
             if failed_stage is None:  # no failed upstream seen: say what Prefect said
                 failed_stage = name
                 error = f"{name} did not run ({state.type.value}: {state.message})"
-    return refs, ran, cached, not_run, error, failed_stage
+    return refs, ran, cached, not_run, error, failed_stage, tuple(notes)
 
 
 @flow(name="graspcap-build", persist_result=False, log_prints=False)
@@ -217,15 +224,15 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         good_prev = prev is not None and (prev["status"] != Status.FAILED
                                           or prev["steady_from"] is not None)
         if str(d) in duplicate:
-            refs, ran, cached, not_run, error, stage = {}, [], [], list(STAGES), \
-                duplicate[str(d)], None
+            refs, ran, cached, not_run, error, stage, notes = {}, [], [], list(STAGES), \
+                duplicate[str(d)], None, ()
         else:
-            refs, ran, cached, not_run, error, stage = outcomes[str(d)]
+            refs, ran, cached, not_run, error, stage, notes = outcomes[str(d)]
         if "pictures" in refs:
             _write_pictures(cat.layout.pictures_dir(sid), WorkArea.load(refs["pictures"]))
         retries = {st: n - 1 for (s, st), n in attempts.items() if s == sid and n > 1}
         info = dict(session_id=sid, session_dir=str(d), ran=tuple(ran), cached=tuple(cached),
-                    not_run=tuple(not_run), retries=retries)
+                    not_run=tuple(not_run), retries=retries, notes=notes)
         if error is not None:
             # a failure replayed from the work area (no stage body ran) that the catalog's
             # latest build already records needs no new version

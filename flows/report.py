@@ -38,6 +38,8 @@ class SessionReport:
     """Extra attempts per stage after transient faults."""
     kept_previous: bool = False
     """Failed, and the catalog keeps the session's previous good rows."""
+    notes: tuple[str, ...] = ()
+    """Failures of aid stages (pictures) that left the session committed."""
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,7 @@ class BuildReport:
             if s.outcome == Outcome.FAILED:
                 kept = " (previous rows kept)" if s.kept_previous else ""
                 lines.append(f"  FAILED {s.session_id}{kept}: {s.error}")
+            lines += [f"  note {s.session_id}: {n}" for n in s.notes]
         return "\n".join(lines)
 
     def record(self) -> dict:

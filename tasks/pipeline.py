@@ -340,6 +340,12 @@ STAGES: dict[str, Stage] = {
 }  # fmt: skip
 
 
+AID_STAGES: frozenset[str] = frozenset({"pictures"})
+"""Stages that only help a person look at a session (not part of its data): when one fails,
+the build still commits the session's rows with its QA status, and notes the failure in the
+build report; it never fails the session."""
+
+
 def configs_for(preset: str = "default", **overrides: StageConfig) -> dict[str, StageConfig]:
     """Every stage's config: the named preset where the stage has one, else its default,
     with explicit per-stage ``overrides``."""
