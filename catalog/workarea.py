@@ -25,6 +25,7 @@ import os
 import pickle
 import tempfile
 import threading
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +33,10 @@ from typing import Any
 
 _CHUNK = 1 << 20
 EXECUTIONS = "executions.jsonl"
+RACY_S = 2.0
+"""A file modified less than this long before it is hashed may change again within the same
+mtime tick (a coarse file-system clock): its digest is used but not remembered (git's
+"racily clean" rule)."""
 
 
 @dataclass(frozen=True)
@@ -66,15 +71,19 @@ class WorkArea:
     """
 
     _loaded: OrderedDict[str, Any] = OrderedDict()
+    """Results by content digest, most recently used last: the ones this process saved or
+    loaded, so a downstream task does not unpickle what an upstream task just wrote."""
     _loaded_lock = threading.Lock()
-    _LOADED_MAX = 32
+    _LOADED_MAX = 64
+    _memo: dict[str, str] = {}
+    """File digests by (path, size, mtime_ns, inode), for every work area of this process."""
+    _MEMO_MAX = 200_000
 
     def __init__(self, root: Path | str):
         self.root = Path(root).expanduser().resolve()
         (self.root / "results").mkdir(parents=True, exist_ok=True)
         self._digest_index = self.root / "digests"
         self._digest_index.mkdir(exist_ok=True)
-        self._memo: dict[str, str] = {}
 
     def __getstate__(self) -> dict:
         return {"root": str(self.root)}
@@ -90,18 +99,25 @@ class WorkArea:
     def file_digest(self, path: Path) -> str:
         """sha256 of a file's bytes, remembered by (path, size, mtime_ns, inode) so unchanged
         files are not hashed again on every build (a file replaced by a rename, even with the
-        same size and mtime, has a new inode)."""
+        same size and mtime, has a new inode): in this process's memory, then in
+        ``<root>/digests/``. A file modified less than ``RACY_S`` ago is hashed every time."""
         st = os.stat(path)
         ident = f"{os.path.abspath(path)}|{st.st_size}|{st.st_mtime_ns}|{st.st_ino}"
         name = hashlib.sha256(ident.encode()).hexdigest()[:32]
-        if name in self._memo:
-            return self._memo[name]
+        if (digest := self._memo.get(name)) is not None:
+            return digest
         memo = self._digest_index / name
-        if memo.exists():
+        try:
             digest = memo.read_text()
-        else:
+        except FileNotFoundError:
+            digest = None
+        if not digest:
             digest = sha256_file(Path(path))
+            if time.time_ns() - st.st_mtime_ns < RACY_S * 1e9:
+                return digest  # may change again within the same mtime tick: not remembered
             _atomic_write(memo, digest.encode())
+        if len(self._memo) >= self._MEMO_MAX:
+            self._memo.clear()
         self._memo[name] = digest
         return digest
 
@@ -119,7 +135,8 @@ class WorkArea:
 
     def save(self, stage: str, key: str, result: Any, build_id: str,
              seconds: float = 0.0) -> ResultRef:
-        """Store ``result`` under ``(stage, key)``; the record is written last."""
+        """Store ``result`` under ``(stage, key)``; the record is written last. The result
+        stays in this process's memory under its digest (``load`` of its ref needs no read)."""
         data = pickle.dumps(result, protocol=5)
         path = self.result_path(stage, key)
         _atomic_write(path, data)
@@ -127,6 +144,7 @@ class WorkArea:
                         cached=False, seconds=seconds)
         record = {"digest": ref.digest, "build_id": build_id, "seconds": seconds}
         _atomic_write(path.with_suffix(".json"), canonical_json(record).encode())
+        self._remember(ref.digest, result)
         return ref
 
     def lookup(self, stage: str, key: str) -> ResultRef | None:
@@ -143,18 +161,26 @@ class WorkArea:
 
     @classmethod
     def load(cls, ref: ResultRef) -> Any:
-        """The result ``ref`` points to (a few recent ones are kept in memory, by digest)."""
+        """The result ``ref`` points to: from memory when this process saved or loaded a
+        result with the same content digest lately, else read from ``ref.path``."""
         with cls._loaded_lock:
             if ref.digest in cls._loaded:
                 cls._loaded.move_to_end(ref.digest)
                 return cls._loaded[ref.digest]
         with open(ref.path, "rb") as f:
-            result = pickle.load(f)
+            data = f.read()
+        result = pickle.loads(data)
+        if hashlib.sha256(data).hexdigest() == ref.digest:  # never remember it under a wrong one
+            cls._remember(ref.digest, result)
+        return result
+
+    @classmethod
+    def _remember(cls, digest: str, result: Any) -> None:
         with cls._loaded_lock:
-            cls._loaded[ref.digest] = result
+            cls._loaded[digest] = result
+            cls._loaded.move_to_end(digest)
             while len(cls._loaded) > cls._LOADED_MAX:
                 cls._loaded.popitem(last=False)
-        return result
 
     def save_failure(self, stage: str, key: str, stage_name: str, reason: str,
                      session: str | None, build_id: str) -> None:

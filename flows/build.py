@@ -41,7 +41,7 @@ from graspcap.flows.progress import ProgressFn, Tracker, reporting_to
 from graspcap.flows.report import BuildReport, Outcome, SessionReport
 from graspcap.flows.rows import failed_row, session_rows
 from graspcap.flows.runtime import build_settings, task_runner, worker_api
-from graspcap.flows.session import submit_session
+from graspcap.flows.session import Settled, submit_session
 from graspcap.schemas.tables import Status
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError
@@ -126,15 +126,38 @@ def _input_digest(work: WorkArea, session_dir: Path) -> str:
 
 
 def _watch(submitted: Mapping[str, Mapping[str, Any]], session_ids: Mapping[str, str]) -> None:
-    """Wait for every task, reporting each as it finishes (``flows/progress.py``);
-    ``session_ids`` by session directory, as in ``submitted``."""
-    owner = {fut: (session_ids[d], name)
-             for d, futures in submitted.items() for name, fut in futures.items()}
+    """Wait for every task, reporting each as it finishes (``flows/progress.py``), the stages
+    settled without a task first; ``session_ids`` by session directory, as in ``submitted``."""
     tracker = Tracker({session_ids[d]: len(f) for d, f in submitted.items()})
+    owner = {}
+    for d, futures in submitted.items():
+        for name, fut in futures.items():
+            if isinstance(fut, Settled):
+                tracker.finished(session_ids[d], name, fut.state)
+            else:
+                owner[fut] = (session_ids[d], name)
     for fut in as_completed(list(owner)):
         fut.wait()  # sets the future's final state; reading .state before may ask the API
         state = fut.state
         tracker.finished(*owner[fut], state.name or state.type.value)
+
+
+def _outcome(fut: Any) -> tuple[str, Any, str | None]:
+    """("completed", ref) / ("failed", exception) / ("not_run", None) of one stage, and
+    Prefect's message; a :class:`Settled` stage says the same without a task run."""
+    if isinstance(fut, Settled):
+        if fut.state == "Cached":
+            return "completed", fut.ref, None
+        if fut.state == "Failed":
+            return "failed", fut.error, None
+        return "not_run", None, "NotReady: an upstream stage failed"
+    fut.wait()
+    state = fut.state
+    if state.is_completed():
+        return "completed", state.result(), None
+    if state.is_failed() or state.is_crashed():
+        return "failed", state.result(raise_on_failure=False), state.message
+    return "not_run", None, f"{state.type.value}: {state.message}"
 
 
 def _stage_outcomes(futures: Mapping[str, Any]):
@@ -145,17 +168,14 @@ def _stage_outcomes(futures: Mapping[str, Any]):
     refs, ran, cached, not_run, notes = {}, [], [], [], []
     error = failed_stage = None
     for name, fut in futures.items():
-        fut.wait()
-        state = fut.state
-        if state.is_completed():
-            ref = state.result()
-            refs[name] = ref
-            (cached if ref.cached else ran).append(name)
-        elif state.is_failed() or state.is_crashed():
-            exc = state.result(raise_on_failure=False)
-            why = (str(exc) if isinstance(exc, StageError) else
-                   f"{name}: {type(exc).__name__}: {exc}" if isinstance(exc, BaseException)
-                   else f"{name}: {state.message}")
+        kind, value, message = _outcome(fut)
+        if kind == "completed":
+            refs[name] = value
+            (cached if value.cached else ran).append(name)
+        elif kind == "failed":
+            why = (str(value) if isinstance(value, StageError) else
+                   f"{name}: {type(value).__name__}: {value}" if isinstance(value, BaseException)
+                   else f"{name}: {message}")
             if name in AID_STAGES:
                 notes.append(f"{why} (a QA aid: the session is committed without it)")
                 continue
@@ -165,7 +185,7 @@ def _stage_outcomes(futures: Mapping[str, Any]):
             not_run.append(name)
             if failed_stage is None:  # no failed upstream seen: say what Prefect said
                 failed_stage = name
-                error = f"{name} did not run ({state.type.value}: {state.message})"
+                error = f"{name} did not run ({message})"
     return refs, ran, cached, not_run, error, failed_stage, tuple(notes)
 
 
@@ -198,7 +218,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     t_discover = time.perf_counter()
 
     submitted = {str(d): submit_session(d, configs, work, build_id, session_id=sid,
-                                        replay_failures=not retry_failed)
+                                        replay_failures=not retry_failed, settle=True)
                  for d, sid in zip(dirs, ids, strict=True) if str(d) not in duplicate}
     _watch(submitted, {str(d): sid for d, sid in zip(dirs, ids, strict=True)})
     outcomes = {d: _stage_outcomes(f) for d, f in submitted.items()}

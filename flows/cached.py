@@ -105,13 +105,59 @@ def stage_key(version: str, config: StageConfig, reads_digest: str,
     return h.hexdigest()
 
 
-def reads_digest(work: WorkArea, files: Mapping[str, list[Path]], roles: tuple[str, ...]
-                 ) -> str:
-    """Digest of the bytes of every file of ``roles`` (role names and file order kept)."""
+def reads_digest(work: WorkArea, files: Mapping[str, list[Path]], roles: tuple[str, ...],
+                 role_digests: dict[str, str] | None = None) -> str:
+    """Digest of the bytes of every file of ``roles`` (role names and file order kept);
+    ``role_digests`` (role -> digest) is filled and reused when given (one session's stages
+    share their roles within one planning pass)."""
     h = hashlib.sha256()
     for role in roles:
-        h.update(f"{role}:{work.files_digest(list(files.get(role, [])))}\0".encode())
+        if role_digests is None or role not in role_digests:
+            digest = work.files_digest(list(files.get(role, [])))
+            if role_digests is not None:
+                role_digests[role] = digest
+        else:
+            digest = role_digests[role]
+        h.update(f"{role}:{digest}\0".encode())
     return h.hexdigest()
+
+
+def cache_key(stage_name: str, session_dir: Path | str, config: StageConfig,
+              upstream: Mapping[str, ResultRef], work: WorkArea,
+              role_digests: dict[str, str] | None = None) -> str | None:
+    """The cache key of ``stage_name`` for one session given its upstream refs; None when the
+    session's files cannot be listed or one is missing (then the stage runs, uncached, and
+    ``load_session`` reports what is wrong)."""
+    from graspcap.tasks.pipeline import STAGES
+
+    stage = STAGES[stage_name]
+    if stage_name == "load_session":
+        files = session_files(Path(session_dir))
+    else:
+        files = loaded_session_files(upstream["load_session"])
+    if files is None:
+        return None
+    try:
+        return stage_key(stage.version, config,
+                         reads_digest(work, files, stage.reads, role_digests),
+                         {k: upstream[k] for k in stage.upstream})
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+
+
+def lookup_cached(stage_name: str, session_dir: Path | str, config: StageConfig,
+                  upstream: Mapping[str, ResultRef], work: WorkArea, replay_failures: bool = True,
+                  role_digests: dict[str, str] | None = None) -> ResultRef | StageError | None:
+    """What the work area already holds for this stage run, without running anything: its
+    stored result, its remembered deterministic failure (when ``replay_failures``), or None."""
+    key = cache_key(stage_name, session_dir, config, upstream, work, role_digests)
+    if key is None:
+        return None
+    if (ref := work.lookup(stage_name, key)) is not None:
+        return ref
+    if replay_failures and (failure := work.lookup_failure(stage_name, key)) is not None:
+        return StageError(failure["stage"], failure["reason"], session=failure["session"])
+    return None
 
 
 def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config: StageConfig,
@@ -125,17 +171,7 @@ def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config
     missing = set(stage.upstream) - set(upstream)
     if missing:
         raise ValueError(f"{stage_name}: upstream results missing: {sorted(missing)}")
-    if stage_name == "load_session":
-        files = session_files(Path(session_dir))
-    else:
-        files = loaded_session_files(upstream["load_session"])
-    key = None
-    if files is not None:
-        try:
-            key = stage_key(stage.version, config, reads_digest(work, files, stage.reads),
-                            {k: upstream[k] for k in stage.upstream})
-        except (FileNotFoundError, NotADirectoryError):
-            key = None  # a listed file is missing: load_session says which
+    key = cache_key(stage_name, session_dir, config, upstream, work)
     if key is not None and (ref := work.lookup(stage_name, key)) is not None:
         return ref
     if key is not None and replay_failures and (

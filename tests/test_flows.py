@@ -6,6 +6,9 @@ from __future__ import annotations
 import dataclasses
 import shutil
 
+import numpy as np
+import pytest
+
 from graspcap.catalog.workarea import ResultRef, WorkArea
 from graspcap.flows.cached import reads_digest, stage_key
 from graspcap.tasks.errors import StageError
@@ -106,3 +109,84 @@ def test_downstream_of_a_failed_stage_does_not_run(warm, synth_root, tmp_path, m
         assert not states[name].is_completed() and not states[name].is_failed()
     assert states["register_scan"].is_completed()  # independent branch still ran (cached)
     assert executions(tmp_path, "b-fail") == []
+
+
+def test_file_digests_are_remembered_until_the_file_changes(tmp_path, monkeypatch):
+    import os
+
+    from graspcap.catalog import workarea
+    from graspcap.catalog.workarea import sha256_file
+
+    work = WorkArea(tmp_path / "work")
+    f = tmp_path / "a.bin"
+    f.write_bytes(b"one")
+    old = 1_700_000_000_000_000_000
+    os.utime(f, ns=(old, old))
+    hashed = []
+    real = workarea.sha256_file
+    monkeypatch.setattr(workarea, "sha256_file", lambda p: hashed.append(p) or real(p))
+    d1 = work.file_digest(f)
+    assert d1 == sha256_file(f) and work.file_digest(f) == d1 and len(hashed) == 1
+    assert WorkArea(tmp_path / "work").file_digest(f) == d1 and len(hashed) == 1
+    f.write_bytes(b"two")  # same size, new bytes: a new mtime
+    os.utime(f, ns=(old + 1, old + 1))
+    assert work.file_digest(f) == sha256_file(f) != d1 and len(hashed) == 2
+    g = tmp_path / "b.bin"  # same size and mtime, replaced by a rename: a new inode
+    g.write_bytes(b"one")
+    os.utime(g, ns=(old + 1, old + 1))
+    os.replace(g, f)
+    assert work.file_digest(f) == d1 and len(hashed) == 3
+    f.write_bytes(b"new")  # modified just now: may change again in the same mtime tick
+    for _ in range(2):
+        assert work.file_digest(f) == sha256_file(f)
+    assert len(hashed) == 5
+
+
+def test_results_in_memory_are_keyed_by_their_content_digest(tmp_path):
+    work = WorkArea(tmp_path)
+    a, b = {"v": np.arange(3)}, {"v": np.arange(4)}
+    ref_a = work.save("st", "k", a, "b1")
+    ref_b = work.save("st", "k", b, "b2")  # same key and path, other bytes
+    assert ref_a.path == ref_b.path and ref_a.digest != ref_b.digest
+    assert WorkArea.load(ref_b) is b and WorkArea.load(ref_a) is a  # no read: saved here
+    WorkArea._loaded.clear()
+    loaded = WorkArea.load(ref_b)
+    np.testing.assert_array_equal(loaded["v"], b["v"])
+    assert WorkArea.load(ref_b) is loaded  # remembered once read
+    WorkArea._loaded.clear()
+    wrong = dataclasses.replace(ref_b, digest="0" * 64)  # a ref whose file changed since
+    np.testing.assert_array_equal(WorkArea.load(wrong)["v"], b["v"])
+    assert "0" * 64 not in WorkArea._loaded  # never remembered under a digest it lacks
+    with pytest.raises(FileNotFoundError):
+        WorkArea.load(dataclasses.replace(ref_a, path=str(tmp_path / "gone.pkl")))
+
+
+def test_settle_session_settles_hits_and_failures_and_leaves_the_rest(warm, synth_root,
+                                                                      tmp_path):
+    from graspcap.flows.session import settle_session
+    from graspcap.tasks.pipeline import STAGES, configs_for
+
+    catalog, _ = warm
+    shutil.copytree(catalog / "work", tmp_path / "work")
+    work = WorkArea(tmp_path / "work")
+    session = sorted(p for p in synth_root.iterdir() if p.is_dir())[0]
+    configs = configs_for(PRESET)
+    settled = settle_session(session, configs, work)
+    assert list(settled) == list(STAGES) and {s.state for s in settled.values()} == {"Cached"}
+    assert all(s.ref.cached and s.ref.stage == n for n, s in settled.items())
+    downstream = {"fit_hand"}
+    for name, stage in STAGES.items():  # topological order
+        if downstream & set(stage.upstream):
+            downstream.add(name)
+    key = settled["fit_hand"].ref.key
+    for p in (tmp_path / "work" / "results" / "fit_hand").glob(f"{key}.*"):
+        p.unlink()
+    settled = settle_session(session, configs, work)
+    assert set(settled) == set(STAGES) - downstream  # fit_hand and its downstream must run
+    work.save_failure("fit_hand", key, "fit_hand", "did not converge", "s", "b")
+    settled = settle_session(session, configs, work)
+    assert settled["fit_hand"].state == "Failed"
+    assert settled["fit_hand"].error.reason == "did not converge"
+    assert {settled[n].state for n in downstream - {"fit_hand"}} == {"NotReady"}
+    assert set(settle_session(session, configs, work, replay_failures=False)) == (
+        set(STAGES) - downstream)
