@@ -358,6 +358,23 @@ def _settled(refined: list[Candidate], cfg: RegistrationConfig) -> bool:
     )
 
 
+def _image_box(
+    K: np.ndarray, points_c: np.ndarray, width: int, height: int
+) -> tuple[int, int, int, int]:
+    """Pixel box (u0, v0, u1, v1), end exclusive, within the image, holding every pixel whose
+    centre ray can hit the convex hull of ``points_c`` (n, 3) (camera frame); the whole image
+    when a point is not in front of the camera."""
+    if not np.all(points_c[:, 2] > 1e-9):
+        return 0, 0, width, height
+    uv = points_c[:, :2] / points_c[:, 2:] * np.diag(K)[:2] + K[:2, 2]
+    lo = np.floor(uv.min(axis=0)).astype(int) - 1
+    hi = np.ceil(uv.max(axis=0)).astype(int) + 2
+    return (
+        int(np.clip(lo[0], 0, width)), int(np.clip(lo[1], 0, height)),
+        int(np.clip(hi[0], 0, width)), int(np.clip(hi[1], 0, height)),
+    )  # fmt: skip
+
+
 def depth_agreement(
     depth_m: np.ndarray,
     K: np.ndarray,
@@ -377,10 +394,18 @@ def depth_agreement(
     pixels judged).
     """
     h, w = depth_m.shape
-    hits = render([mesh], [np.asarray(T_c_o, float)], np.asarray(K, float), w, h)
+    T_c_o = np.asarray(T_c_o, float)
+    K = np.asarray(K, float)
+    u0, v0, u1, v1 = _image_box(K, transform_points(T_c_o, mesh[0]), w, h)
+    if u1 <= u0 or v1 <= v0:
+        return 0.0, 0.0, 0
+    K_box = K.copy()  # rays through the pixels of the box only: identical rays, fewer
+    K_box[:2, 2] -= (u0, v0)
+    hits = render([mesh], [T_c_o], K_box, u1 - u0, v1 - v0)
+    depth_m = depth_m[v0:v1, u0:u1]
     seen = (hits.mesh_index == 0) & (depth_m > 0)
     if keep is not None:
-        seen &= keep
+        seen &= keep[v0:v1, u0:u1]
     diff = depth_m[seen] - hits.depth_m[seen]
     agree = np.abs(diff) <= tol_m
     n = int(seen.sum())
