@@ -46,8 +46,9 @@ from graspcap.tasks.session_files import _jpeg_problem
 REPO = Path(__file__).resolve().parents[1]
 PHOTO = REPO.parent / "shared/data/mediapipe_hands/images/thumbs_up.jpg"
 SETTINGS = [(model, threads, prefetch) for model in (1, 0)
-            for threads, prefetch in ((1, 0), (1, 2), (2, 2))]
-"""(model_complexity, threads, prefetch): prefetch 0 is the stage before the reader thread."""
+            for threads, prefetch in ((1, 0), (1, 2), (2, 0), (2, 2))]
+"""(model_complexity, threads, prefetch); prefetch 0: decoded on the calling thread (which still
+overlaps the graph, which runs a frame ahead)."""
 PARTS = ("read + JPEG check", "decode to RGB", "MediaPipe process", "to our arrays")
 
 
