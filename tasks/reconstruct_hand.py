@@ -49,7 +49,7 @@ from graspcap.tasks.sfm_solve import (
     solve_visual,
 )
 
-STAGE_VERSION = "reconstruct_hand/5"
+STAGE_VERSION = "reconstruct_hand/6"
 
 
 class ReconstructConfig(StageConfig):
