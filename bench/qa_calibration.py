@@ -1,6 +1,6 @@
 """Calibration of qa_metrics: every QA metric beside the truth errors, per session.
 
-    .venv/bin/python bench/qa_calibration.py [--realistic 12] [--hard 6] [--out /tmp/qa_cal]
+    .venv/bin/python bench/qa_calibration.py [--realistic 20] [--hard 6] [--out /tmp/qa_cal]
     .venv/bin/python bench/qa_calibration.py --fresh   # re-run the stages (after code changes)
     .venv/bin/python bench/qa_calibration.py --cached-only   # re-judge the pickled sessions
 
@@ -174,7 +174,7 @@ def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--realistic", type=int, default=12)
+    parser.add_argument("--realistic", type=int, default=20)
     parser.add_argument("--hard", type=int, default=6)
     parser.add_argument("--frames", type=int, nargs="+", default=[60, 90, 120])
     parser.add_argument("--out", type=Path, default=Path("/tmp/qa_calibration"))

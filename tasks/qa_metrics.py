@@ -87,62 +87,63 @@ METRICS: dict[str, MetricSpec] = {
 class QaMetricsConfig(StageConfig):
     """Flag and fail limits per metric, and how the hand-object metrics are measured.
 
-    The default limits are calibrated by ``bench/qa_calibration.py`` on 18 synthetic sessions
-    (12 realistic, 6 hard; 7 trustworthy and 11 wrong by the truth): a flag limit lies 1.5x
+    The default limits are calibrated by ``bench/qa_calibration.py`` on 26 synthetic sessions
+    (20 realistic, 6 hard; 11 trustworthy and 15 wrong by the truth): a flag limit lies 1.5x
     beyond the worst trustworthy value ("x 1.5": upper limits are that value x 1.5, lower
     limits have its distance to 1 x 1.5), unless its docstring says otherwise; a fail limit
     lies where the wrong sessions were and no trustworthy one came near.
     """
 
-    reproj_rmse_px: Bound = Bound(flag=5.6, fail=8.0)
-    """SfM reprojection RMSE (px), upper limits; trustworthy <= 3.71 (x 1.5)."""
-    inlier_ratio: Bound = Bound(flag=0.92, fail=0.6)
+    reproj_rmse_px: Bound = Bound(flag=5.9, fail=8.0)
+    """SfM reprojection RMSE (px), upper limits; trustworthy <= 3.91 (x 1.5)."""
+    inlier_ratio: Bound = Bound(flag=0.915, fail=0.6)
     """Share of keypoint observations kept as inliers by stage 2, lower limits; trustworthy
-    >= 0.946 (x 1.5); the hard sessions, all wrong, had 0.74-0.83."""
+    >= 0.944 (x 1.5); the hard sessions, all wrong, had 0.74-0.83."""
     window_outlier_share: Bound = Bound(flag=0.2, fail=0.45)
     """Share of the keypoint detections that stage 2 rejected as outliers, in the worst window
     of ``outlier_window_frames`` consecutive steady frames (see :func:`window_outlier_share`),
-    upper limits; trustworthy <= 0.092 (x 2: a window's share fluctuates more than a
+    upper limits; trustworthy <= 0.099 (x 2: a window's share fluctuates more than a
     session's); onsets detected 12-24 frames early gave 0.54-0.67."""
     crosscheck_mm: Bound = Bound(flag=0.5, fail=5.0)
     """Largest joint discrepancy between GTSAM and pycolmap on the same pixels-only problem
-    (mm, after a similarity), upper limits; trustworthy <= 0.02 (numerical noise), so the
+    (mm, after a similarity), upper limits; trustworthy <= 0.05 (numerical noise), so the
     flag is half of issue 3's 1 mm target instead of x 1.5."""
-    crosscheck_camera_deg: Bound = Bound(flag=0.55, fail=5.0)
+    crosscheck_camera_deg: Bound = Bound(flag=0.57, fail=5.0)
     """Largest camera rotation discrepancy between GTSAM and pycolmap (deg), upper limits;
-    trustworthy <= 0.353 (x 1.5); 1.95 and 2.9 where the cameras were wrong."""
+    trustworthy <= 0.378 (x 1.5); 0.94-2.9 where the cameras were wrong."""
     rgbd_discrepancy_mm: Bound = Bound(flag=12.5, fail=25.0)
     """Largest joint difference between the RGB-D result and pycolmap's pixels-only optimum
     (mm, after a similarity), upper limits; trustworthy <= 8.14 (x 1.5; the depth terms move
     joints by several mm by design, and the wrong sessions were no higher)."""
     registration_fitness: Bound = Bound(flag=0.95, fail=0.6)
     """Stage-1 registration fitness (share of scene points explained), lower limits;
-    trustworthy >= 0.991 (x 1.5 would be 0.986: kept at 0.95 for cluttered real scenes)."""
-    registration_rmse_mm: Bound = Bound(flag=1.5, fail=5.0)
-    """Stage-1 registration inlier RMSE (mm), upper limits; trustworthy <= 0.98 (x 1.5)."""
+    trustworthy >= 0.972 (x 1.5 gives 0.958, rounded down to 0.95)."""
+    registration_rmse_mm: Bound = Bound(flag=1.7, fail=5.0)
+    """Stage-1 registration inlier RMSE (mm), upper limits; trustworthy <= 1.12 (x 1.5)."""
     adjustment_fitness: Bound = Bound(flag=0.5, fail=0.3)
     """Fitness of the object at the first steady frame (``estimate_adjustment``), lower
     limits; trustworthy >= 0.644 (x 1.5 gives 0.47; the stage itself refuses < 0.5)."""
     adjustment_rmse_mm: Bound = Bound(flag=5.0, fail=10.0)
     """Inlier RMSE of ``estimate_adjustment`` (mm), upper limits; trustworthy <= 3.3 (x 1.5)."""
-    scan_fitness: Bound = Bound(flag=0.95, fail=0.6)
+    scan_fitness: Bound = Bound(flag=0.94, fail=0.6)
     """Fitness of the object on the platter during the thermal scan, lower limits;
-    trustworthy >= 0.984 (x 1.5 would be 0.976: kept at 0.95 like stage 1)."""
-    scan_rmse_mm: Bound = Bound(flag=1.75, fail=5.0)
-    """Inlier RMSE of the scan registration (mm), upper limits; trustworthy <= 1.15 (x 1.5)."""
+    trustworthy >= 0.962 (x 1.5 gives 0.943)."""
+    scan_rmse_mm: Bound = Bound(flag=1.9, fail=5.0)
+    """Inlier RMSE of the scan registration (mm), upper limits; trustworthy <= 1.26 (x 1.5)."""
     fit_residual_mm: Bound = Bound(flag=3.75, fail=15.0)
     """RMS distance of the fitted hand model's joints to the SfM joints (mm), upper limits;
     trustworthy <= 2.46 (x 1.5); 24-34 mm where the SfM hand was wrong."""
     penetration_max_mm: Bound = Bound(flag=2.0, fail=10.0)
     """Deepest hand vertex inside the object (mm), upper limits: issue 6's target (trustworthy
-    <= 0.13, x 1.5 would flag sub-millimetre contact noise)."""
+    <= 0.13, x 1.5 would flag sub-millimetre contact noise; 2.98 on a wrong session)."""
     penetration_mean_mm: Bound = Bound(flag=1.0)
     """Mean depth of the hand vertices inside the object (mm; 0 when none is), upper."""
     fit_contact_agreement: Bound = Bound(flag=0.3)
     """``contact_agreement`` of the stage-3 fit, before ``refine_grasp`` drew the hand to the
     contact map, lower limits: the video's hand and the thermal scan, two independent
     measurements, agree on where the grasp is (low: the hand poses, the object pose or the
-    contact map's registration is wrong); trustworthy >= 0.538 (x 1.5)."""
+    contact map's registration is wrong); trustworthy >= 0.405, wrong 0-0.29 where this was
+    the first sign: the flag sits between them (x 1.18, a thinner margin than the others)."""
     contact_agreement: Bound = Bound(flag=0.94, fail=0.3)
     """Share of contacted observed vertices within ``near_hand_mm`` of the final hand, lower
     limits; trustworthy >= 0.964 (x 1.5); objects registered upside down gave 0-0.28."""
