@@ -16,7 +16,8 @@ the registered surface pins it to a few tenths (rig sessions: 1.6-2.2 deg -> 0.2
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 
@@ -36,7 +37,8 @@ from graspcap.tasks.sfm_depth_icp import (
     hand_centre,
     surface_cloud,
 )
-from graspcap.tasks.sfm_init import initialise
+from graspcap.tasks.sfm_depth_init import depth_initialisation
+from graspcap.tasks.sfm_init import Initialisation, initialise
 from graspcap.tasks.sfm_sanity import implausibility
 from graspcap.tasks.sfm_solve import (
     STAGE,
@@ -49,7 +51,7 @@ from graspcap.tasks.sfm_solve import (
     solve_visual,
 )
 
-STAGE_VERSION = "reconstruct_hand/6"
+STAGE_VERSION = "reconstruct_hand/7"
 
 
 class ReconstructConfig(StageConfig):
@@ -129,6 +131,16 @@ class ReconstructConfig(StageConfig):
     """Choose the initial pair among near-equally good ones by how many depth readings one
     scale explains: pixels of a small, distant hand barely tell the hand from its
     depth-reversed twin, the depth does."""
+    depth_restart: bool = True
+    """When the solve from the two-view start fails (an implausible hand, too little turn, too
+    few posed frames), solve once more from the depth initialisation (``sfm_depth_init``):
+    the two-view start can pick an essential matrix that is wrong by tens of degrees. The
+    checks stay, so a second wrong hand fails the same way."""
+    restart_depth_share: float = 0.35
+    """Also solve from the depth initialisation when fewer of the depth readings than this
+    agree with the reprojection-only solve's scale or with the result (a hand settled in a
+    wrong minimum that still looks plausible; measured: 0.13-0.29 for hands 33-83 mm off,
+    >= 0.41 for correct ones), and keep the result more readings agree with."""
 
 
 PRESETS: dict[str, ReconstructConfig] = {
@@ -173,6 +185,9 @@ class SfmDiagnostics:
     depth_inlier: np.ndarray
     range_factor: np.ndarray
     depth_links: np.ndarray
+    restarted_after: str = ""
+    """The reason the solve from the two-view start failed when the result comes from the
+    depth restart, else empty."""
 
 
 @dataclass(frozen=True)
@@ -214,6 +229,10 @@ def reconstruct_hand(
 ) -> HandReconstruction:
     """Structure from motion of the hand from ``steady_from`` on.
 
+    Solved from the two-view start; when that fails and ``config.depth_restart`` is set,
+    once more from the depth initialisation (``diagnostics.restarted_after`` then holds
+    the first failure). When both fail the error names both reasons.
+
     Parameters
     ----------
     keypoints : (n, 21, 3) float, x, y pixels and confidence per video frame (0 = missed).
@@ -227,12 +246,91 @@ def reconstruct_hand(
     T_c_tt : (4, 4) turntable pose in the colour camera: the platter and table below its top
         plane are cut from the depth links' surfaces; without it there are no depth links.
     """
-    cfg = config
-    K = np.asarray(K, dtype=float)
     if not callable(depth_at):
         frames_m = np.asarray(depth_at)
         depth_frame = depth_frame or (lambda i: frames_m[i])
         depth_at = depth_lookup_from_frames(frames_m)
+    solve = partial(
+        _reconstruct, keypoints, K, steady_from, depth_at, surface_offset_m, config,
+        depth_frame=depth_frame, T_c_tt=T_c_tt,
+    )  # fmt: skip
+
+    def restarts():
+        """Solves from the depth initialisation: through the reprojection-only solve like
+        the first, then straight into the RGB-D solve (pixels alone may prefer a wrong hand
+        even from a right start)."""
+        kp = np.asarray(keypoints, dtype=float)[steady_from:]
+        ok = (kp[..., 2] >= config.min_confidence) & np.all(np.isfinite(kp), axis=2)
+        init = depth_initialisation(
+            kp[..., :2], ok, np.asarray(K, dtype=float), depth_at,
+            np.broadcast_to(np.asarray(surface_offset_m, dtype=float), (21,)), steady_from,
+            ransac_px=config.ransac_px, min_points=config.min_points_per_frame,
+        )  # fmt: skip
+        if init is not None:
+            yield partial(solve, initialisation=init)
+            yield partial(solve, initialisation=init, rgbd_from_start=True)
+
+    def restarted(rec: HandReconstruction, reason: str) -> HandReconstruction:
+        return replace(rec, diagnostics=replace(rec.diagnostics, restarted_after=reason))
+
+    try:
+        first = solve()
+    except StageError as failed:
+        if not config.depth_restart:
+            raise
+        reasons = []
+        for attempt in restarts():
+            try:
+                return restarted(attempt(), failed.reason)
+            except StageError as e:
+                reasons.append(e.reason)
+        if not reasons:
+            raise
+        raise StageError(
+            STAGE, f"{failed.reason} (restarted from the depth-backprojected joints: "
+            f"{reasons[-1]})",
+        ) from failed
+    share = min(_depth_shares(first))
+    if not config.depth_restart or share >= config.restart_depth_share:
+        return first
+    for attempt in restarts():
+        try:
+            again = attempt()
+        except StageError:
+            continue
+        if _depth_shares(again)[1] > _depth_shares(first)[1]:
+            return restarted(again, f"only {share:.0%} of the depth readings agreed with the hand")
+    return first
+
+
+def _depth_shares(rec: HandReconstruction) -> tuple[float, float]:
+    """Shares of the sampled depth readings that agree with the reprojection-only solve's
+    scale and with the result (range factors of the final solve, within
+    ``range_gate_sigmas`` of it; with ``depth_use = scale`` the first again)."""
+    d = rec.diagnostics
+    n = max(d.scale_samples, 1)
+    final = d.range_factor.sum() if d.range_factor.any() else d.scale_inliers
+    return d.scale_inliers / n, float(final) / n
+
+
+def _reconstruct(
+    keypoints: np.ndarray,
+    K: np.ndarray,
+    steady_from: int,
+    depth_at: DepthLookup,
+    surface_offset_m: np.ndarray,
+    config: ReconstructConfig,
+    *,
+    depth_frame: DepthFrame | None,
+    T_c_tt: np.ndarray | None,
+    initialisation: Initialisation | None = None,
+    rgbd_from_start: bool = False,
+) -> HandReconstruction:
+    """One solve of :func:`reconstruct_hand`, from the two-view start or from a metric
+    ``initialisation`` (``sfm_depth_init``); with ``rgbd_from_start`` that also starts the
+    RGB-D solve (instead of the scaled reprojection-only solve)."""
+    cfg = config
+    K = np.asarray(K, dtype=float)
     offset = np.broadcast_to(np.asarray(surface_offset_m, dtype=float), (21,))
     kp = np.asarray(keypoints, dtype=float)[steady_from:]
     m = len(kp)
@@ -251,7 +349,7 @@ def reconstruct_hand(
             f"too few usable frames: {usable} of {m} frames from {steady_from} on have "
             f">= {cfg.min_points_per_frame} detected joints, need {cfg.min_frames}",
         )
-    init, best_parallax = initialise(
+    init, best_parallax = (initialisation, 0.0) if initialisation is not None else initialise(
         uv,
         ok,
         K,
@@ -335,8 +433,12 @@ def reconstruct_hand(
             def link_fn(T: np.ndarray) -> list[DepthLink]:
                 return depth_links(surfaces, T, K, link_cfg)
 
+        T_start, X_start = T_vis, X_vis
+        if rgbd_from_start:  # metric: start from it, the pixels alone may prefer a
+            T_start = np.where(np.isfinite(init.T_c_w), init.T_c_w, T_vis)  # wrong hand
+            X_start = np.where(np.isfinite(init.points_w), init.points_w, X_vis)
         T_c_w, X, res, inlier, n, range_used, links = solve_rgbd(
-            cfg, K, uv, ok, inlier, sigma, T_vis, X_vis, depth, offset, pair.a, link_fn
+            cfg, K, uv, ok, inlier, sigma, T_start, X_start, depth, offset, pair.a, link_fn
         )
         rounds += n
     else:
