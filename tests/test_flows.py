@@ -128,18 +128,25 @@ def test_file_digests_are_remembered_until_the_file_changes(tmp_path, monkeypatc
     d1 = work.file_digest(f)
     assert d1 == sha256_file(f) and work.file_digest(f) == d1 and len(hashed) == 1
     assert WorkArea(tmp_path / "work").file_digest(f) == d1 and len(hashed) == 1
+    big = tmp_path / "big.bin"  # a big file's digest is remembered on disk for other processes
+    big.write_bytes(bytes(workarea.MEMO_MIN_BYTES))
+    os.utime(big, ns=(old, old))
+    db = work.file_digest(big)
+    WorkArea._memo.clear()  # as in a new process
+    assert WorkArea(tmp_path / "work").file_digest(big) == db and len(hashed) == 2
+    assert work.file_digest(f) == d1 and len(hashed) == 3  # a small one is hashed again
     f.write_bytes(b"two")  # same size, new bytes: a new mtime
     os.utime(f, ns=(old + 1, old + 1))
-    assert work.file_digest(f) == sha256_file(f) != d1 and len(hashed) == 2
+    assert work.file_digest(f) == sha256_file(f) != d1 and len(hashed) == 4
     g = tmp_path / "b.bin"  # same size and mtime, replaced by a rename: a new inode
     g.write_bytes(b"one")
     os.utime(g, ns=(old + 1, old + 1))
     os.replace(g, f)
-    assert work.file_digest(f) == d1 and len(hashed) == 3
+    assert work.file_digest(f) == d1 and len(hashed) == 5
     f.write_bytes(b"new")  # modified just now: may change again in the same mtime tick
     for _ in range(2):
         assert work.file_digest(f) == sha256_file(f)
-    assert len(hashed) == 5
+    assert len(hashed) == 7
 
 
 def test_results_in_memory_are_keyed_by_their_content_digest(tmp_path):
