@@ -11,10 +11,17 @@ with the hand's pixels masked out. Two paths, tried in order:
    hand's 3D points, then FPFH + RANSAC + ICP as in stage 1; the stage-1 pose
    is one more start. Among poses that explain the depth equally well (a
    symmetric object) the one closest in rotation to stage 1 is kept.
+
+One frame shows one side of the object, partly hidden by the hand: a mug's visible half
+fits its own flipped twin as well as the truth (rig seed 11 #0: 163 deg off, ICP fitness
+0.98). Other steady frames (``other_views``) show it turned by the participant; their
+points, carried into the first frame by the virtual cameras of stage 2, are registered
+together with it, and every pose is scored against all of their depth images.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from enum import StrEnum
 
@@ -41,7 +48,7 @@ from graspcap.tasks.registration import (
 )
 from graspcap.tasks.render import render
 
-STAGE_VERSION = "estimate_adjustment/4"
+STAGE_VERSION = "estimate_adjustment/5"
 STAGE = "estimate_adjustment"
 
 HAND_BONES = (
@@ -65,6 +72,20 @@ class Stage1Hypothesis(StrEnum):
 
     BEST = "best"
     RUNNER_UP = "runner_up"
+
+
+@dataclass(frozen=True)
+class SteadyView:
+    """Another steady frame: the same held object, seen turned.
+
+    depth_m : (h, w) float metres, 0 = invalid; hand_mask : (h, w) bool, the hand's pixels.
+    T_ref_c : (4, 4) this frame's camera into the frame of ``estimate_adjustment``'s depth
+        (``inv(T_w_c[ref]) @ T_w_c[this]`` from stage 2's virtual cameras).
+    """
+
+    depth_m: np.ndarray
+    hand_mask: np.ndarray
+    T_ref_c: np.ndarray
 
 
 class EstimateAdjustmentConfig(StageConfig):
@@ -98,6 +119,8 @@ class EstimateAdjustmentConfig(StageConfig):
     """ICP from the stage-1 pose is accepted at this fitness."""
     min_fitness: float = 0.5
     """A final fitness below this fails the stage."""
+    other_views: int = 3
+    """Other steady frames (evenly spread) the pipeline passes as ``other_views``."""
     check_ambiguity: bool = True
     """Run the symmetry probes on the global path (finds the symmetric pose closest to stage 1)."""
     registration: RegistrationConfig = RegistrationConfig()
@@ -183,28 +206,33 @@ def hand_mask_from_keypoints(
 
 
 def _score(
-    depth: np.ndarray,
-    keep: np.ndarray,
+    views: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
     K: np.ndarray,
     mesh: tuple[np.ndarray, np.ndarray],
     T_w_o: np.ndarray,
     tol_m: float,
 ) -> tuple[float, float, int]:
-    """Does the depth show the object at ``T_w_o``? Renders the mesh; over the pixels where
-    it is visible, ``keep`` is True (the hand is masked out) and the depth valid, a pixel
-    agrees when ``|depth - rendered| <= tol_m``. Depth further away means the camera sees
-    through where the object would be; nearer depth means something unmasked covers it (or
-    the pose is inside another surface): both count against the pose. Returns (agreeing
-    share, RMS depth difference of the agreeing pixels, pixels judged)."""
-    h, w = depth.shape
-    hits = render([mesh], [T_w_o], K, w, h)
-    seen = (hits.mesh_index == 0) & keep & (depth > 0)
-    diff = depth[seen] - hits.depth_m[seen]
-    agree = np.abs(diff) <= tol_m
-    n = int(seen.sum())
-    if n == 0 or not agree.any():
+    """Does the depth show the object at ``T_w_o``? In every view ``(depth (h, w), keep
+    (h, w), T_ref_c (4, 4))`` renders the mesh at ``inv(T_ref_c) @ T_w_o``; over the pixels
+    where it is visible, ``keep`` is True (the hand is masked out) and the depth valid, a
+    pixel agrees when ``|depth - rendered| <= tol_m``. Depth further away means the camera
+    sees through where the object would be; nearer depth means something unmasked covers it
+    (or the pose is inside another surface): both count against the pose. Returns (agreeing
+    share, RMS depth difference of the agreeing pixels, pixels judged), over all views."""
+    n = n_agree = 0
+    sq = 0.0
+    for depth, keep, T_ref_c in views:
+        h, w = depth.shape
+        hits = render([mesh], [inv_T(T_ref_c) @ T_w_o], K, w, h)
+        seen = (hits.mesh_index == 0) & keep & (depth > 0)
+        diff = depth[seen] - hits.depth_m[seen]
+        agree = np.abs(diff) <= tol_m
+        n += int(seen.sum())
+        n_agree += int(agree.sum())
+        sq += float(np.sum(diff[agree] ** 2))
+    if n == 0 or n_agree == 0:
         return 0.0, 0.0, n
-    return float(agree.sum() / n), float(np.sqrt(np.mean(diff[agree] ** 2))), n
+    return n_agree / n, float(np.sqrt(sq / n_agree)), n
 
 
 def _largest_cluster(points: np.ndarray, cfg: EstimateAdjustmentConfig) -> np.ndarray:
@@ -267,6 +295,7 @@ def estimate_adjustment(
     hand_mask: np.ndarray,
     config: EstimateAdjustmentConfig = PRESETS["default"],
     T_w_o_stage1_alt: np.ndarray | None = None,
+    other_views: Sequence[SteadyView] = (),
 ) -> Adjustment:
     """Estimate ``T_adj`` from the depth of the first steady frame.
 
@@ -287,6 +316,8 @@ def estimate_adjustment(
         ``ambiguous``): the stage runs from both and keeps the pose whose rendering the depth
         agrees with more (ties: ``T_w_o_stage1``); ``Adjustment.stage1_hypothesis`` says which.
         ``T_adj`` stays relative to ``T_w_o_stage1``.
+    other_views : other steady frames (:class:`SteadyView`): their points outside the hand
+        join the registration, their depth the scoring (same intrinsics ``K``).
     """
     cfg = config.registration
     depth = valid_depth(depth_m, config.max_range_m)
@@ -295,18 +326,22 @@ def estimate_adjustment(
     hand = np.asarray(hand_mask, bool)
     if hand.shape != depth.shape:
         raise StageError(STAGE, f"hand mask has shape {hand.shape}, depth {depth.shape}")
-    grown = hand
-    if config.mask_dilate_px > 0:
-        k = 2 * config.mask_dilate_px + 1
-        grown = cv2.dilate(hand.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
-    points = cloud_from_depth(depth, K, ~grown)
-    hand_pts = cloud_from_depth(depth, K, hand)
+    views = [(depth, ~_grown(hand, config), np.eye(4))]
+    points = cloud_from_depth(depth, K, views[0][1])
     if len(points) < config.min_points:
         raise StageError(STAGE, f"only {len(points)} depth points outside the hand mask")
+    hand_pts = [cloud_from_depth(depth, K, hand)]
+    points = [points]
+    for v in other_views:  # carried into this frame by the virtual cameras
+        d, m = valid_depth(v.depth_m, config.max_range_m), np.asarray(v.hand_mask, bool)
+        T = np.asarray(v.T_ref_c, float)
+        views.append((d, ~_grown(m, config), T))
+        points.append(cloud_from_depth(d, K, views[-1][1]) @ T[:3, :3].T + T[:3, 3])
+        hand_pts.append(cloud_from_depth(d, K, m) @ T[:3, :3].T + T[:3, 3])
     model = prepare_model(mesh_vertices, mesh_faces, cfg)
 
     mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
-    ctx = _Context(depth, K, ~grown, points, hand_pts, model, mesh)
+    ctx = _Context(views, K, np.concatenate(points), np.concatenate(hand_pts), model, mesh)
     T_w_o1 = np.asarray(T_w_o_stage1, float)
     hypotheses = [(Stage1Hypothesis.BEST, T_w_o1)]
     if T_w_o_stage1_alt is not None:
@@ -326,13 +361,32 @@ def estimate_adjustment(
     return replace(best, T_adj=best.T_w_o @ inv_T(T_w_o1))
 
 
+def spread_frames(pose_valid: np.ndarray, ref: int, count: int) -> list[int]:
+    """Up to ``count`` frames other than ``ref``, evenly spread over the posed ones (``pose_valid``
+    (m,) bool), the last posed frame included: the views of :class:`SteadyView`."""
+    posed = np.flatnonzero(np.asarray(pose_valid, bool))
+    posed = posed[posed != ref]
+    if count <= 0 or len(posed) == 0:
+        return []
+    pick = np.unique(np.round(np.linspace(0, len(posed) - 1, count + 1)[1:]).astype(int))
+    return [int(posed[i]) for i in pick]
+
+
+def _grown(hand: np.ndarray, config: EstimateAdjustmentConfig) -> np.ndarray:
+    """The hand mask (h, w) grown by ``mask_dilate_px``."""
+    if config.mask_dilate_px <= 0:
+        return hand
+    k = 2 * config.mask_dilate_px + 1
+    return cv2.dilate(hand.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+
+
 @dataclass(frozen=True)
 class _Context:
-    """The steady frame, prepared once for every stage-1 hypothesis."""
+    """The steady frames, prepared once for every stage-1 hypothesis: the views
+    ``(depth, keep, T_ref_c)`` and the points of all of them in the first one's frame."""
 
-    depth: np.ndarray
+    views: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
     K: np.ndarray
-    keep: np.ndarray
     points: np.ndarray
     hand_pts: np.ndarray
     model: Model
@@ -347,8 +401,8 @@ def _from_hypothesis(
 ) -> Adjustment:
     """Both paths from one stage-1 pose ``T_w_o1`` (4, 4); ``T_adj`` relative to it."""
     cfg = config.registration
-    depth, K, keep, points, hand_pts, model, mesh = (
-        ctx.depth, ctx.K, ctx.keep, ctx.points, ctx.hand_pts, ctx.model, ctx.mesh
+    views, K, points, hand_pts, model, mesh = (
+        ctx.views, ctx.K, ctx.points, ctx.hand_pts, ctx.model, ctx.mesh
     )  # fmt: skip
 
     # Path 1: ICP from the stage-1 pose, on the points it can reach.
@@ -356,7 +410,7 @@ def _from_hypothesis(
     reach1 = np.linalg.norm(points - centre1, axis=1) <= model.radius_m + config.stage1_reach_m
     scene_all = to_pcd(points[reach1])
     first = refine(scene_all, model, inv_T(T_w_o1), cfg, "stage1")
-    fit, rmse, n = _score(depth, keep, K, mesh, inv_T(first.T_o_s), config.agree_tol_m)
+    fit, rmse, n = _score(views, K, mesh, inv_T(first.T_o_s), config.agree_tol_m)
     if n >= config.min_points and fit >= config.accept_fitness:
         T_w_o = inv_T(first.T_o_s)
         return Adjustment(
@@ -382,7 +436,7 @@ def _from_hypothesis(
         rotation_error_deg(c.T_o_s, chosen.T_o_s) >= cfg.ambiguity_min_deg for c in equal
     )
     T_w_o = inv_T(chosen.T_o_s)
-    fit, rmse, n = _score(depth, keep, K, mesh, T_w_o, config.agree_tol_m)
+    fit, rmse, n = _score(views, K, mesh, T_w_o, config.agree_tol_m)
     if n < config.min_points or fit < config.min_fitness:
         raise StageError(
             STAGE,

@@ -170,18 +170,30 @@ def _estimate_adjustment(
     # a stage-1 pose that could be another (near-symmetric object) is tried both ways
     alt = register_object.T_w_o_runner_up if register_object.ambiguous else None
 
-    def attempt(k: int):
-        T_w_ck = reconstruct_hand.T_w_c[k]
+    T_w_c = reconstruct_hand.T_w_c
+
+    def view(k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Steady frame k's depth and hand mask (the fitted hand seen by its camera)."""
         depth = session.read_depth_m(session.grasp_path("depth", s + k))
         h, w = depth.shape
-        rendered = render([(hand.vertices, hand.faces)], [inv_T(T_w_ck)], _K(session), w, h)
+        rendered = render([(hand.vertices, hand.faces)], [inv_T(T_w_c[k])], _K(session), w, h)
         kp = detect_keypoints.keypoints[s + k]
         bones = estimate_adjustment.hand_mask_from_keypoints(kp[:, :2], kp[:, 2], (h, w), 6.0)
+        return depth, (rendered.mesh_index >= 0) | bones
+
+    def attempt(k: int):
+        depth, mask = view(k)
+        others = [
+            estimate_adjustment.SteadyView(*view(j), inv_T(T_w_c[k]) @ T_w_c[j])
+            for j in estimate_adjustment.spread_frames(
+                reconstruct_hand.pose_valid, k, config.other_views
+            )
+        ]
         adj = estimate_adjustment.estimate_adjustment(
-            depth, _K(session), V, F, register_object.T_w_o, (rendered.mesh_index >= 0) | bones,
-            config, T_w_o_stage1_alt=alt,
+            depth, _K(session), V, F, register_object.T_w_o, mask, config, T_w_o_stage1_alt=alt,
+            other_views=others,
         )  # fmt: skip
-        return replace(adj, T_adj=T_w_ck @ adj.T_adj, T_w_o=T_w_ck @ adj.T_w_o)
+        return replace(adj, T_adj=T_w_c[k] @ adj.T_adj, T_w_o=T_w_c[k] @ adj.T_w_o)
 
     k = min(config.frames_after_onset, len(reconstruct_hand.T_w_c) - 1)
     try:
