@@ -16,7 +16,7 @@ the registered surface pins it to a few tenths (rig sessions: 1.6-2.2 deg -> 0.2
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -39,6 +39,7 @@ from graspcap.tasks.sfm_depth_icp import (
 )
 from graspcap.tasks.sfm_depth_init import depth_initialisation
 from graspcap.tasks.sfm_init import Initialisation, initialise
+from graspcap.tasks.sfm_restart import solve_with_restarts
 from graspcap.tasks.sfm_sanity import implausibility
 from graspcap.tasks.sfm_solve import (
     STAGE,
@@ -270,47 +271,9 @@ def reconstruct_hand(
             yield partial(solve, initialisation=init)
             yield partial(solve, initialisation=init, rgbd_from_start=True)
 
-    def restarted(rec: HandReconstruction, reason: str) -> HandReconstruction:
-        return replace(rec, diagnostics=replace(rec.diagnostics, restarted_after=reason))
-
-    try:
-        first = solve()
-    except StageError as failed:
-        if not config.depth_restart:
-            raise
-        reasons = []
-        for attempt in restarts():
-            try:
-                return restarted(attempt(), failed.reason)
-            except StageError as e:
-                reasons.append(e.reason)
-        if not reasons:
-            raise
-        raise StageError(
-            STAGE, f"{failed.reason} (restarted from the depth-backprojected joints: "
-            f"{reasons[-1]})",
-        ) from failed
-    share = min(_depth_shares(first))
-    if not config.depth_restart or share >= config.restart_depth_share:
-        return first
-    for attempt in restarts():
-        try:
-            again = attempt()
-        except StageError:
-            continue
-        if _depth_shares(again)[1] > _depth_shares(first)[1]:
-            return restarted(again, f"only {share:.0%} of the depth readings agreed with the hand")
-    return first
-
-
-def _depth_shares(rec: HandReconstruction) -> tuple[float, float]:
-    """Shares of the sampled depth readings that agree with the reprojection-only solve's
-    scale and with the result (range factors of the final solve, within
-    ``range_gate_sigmas`` of it; with ``depth_use = scale`` the first again)."""
-    d = rec.diagnostics
-    n = max(d.scale_samples, 1)
-    final = d.range_factor.sum() if d.range_factor.any() else d.scale_inliers
-    return d.scale_inliers / n, float(final) / n
+    return solve_with_restarts(
+        solve, restarts, enabled=config.depth_restart, min_share=config.restart_depth_share
+    )
 
 
 def _reconstruct(
