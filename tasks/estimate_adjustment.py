@@ -14,14 +14,16 @@ with the hand's pixels masked out. Two paths, tried in order:
 
 One frame shows one side of the object, partly hidden by the hand: a mug's visible half
 fits its own flipped twin as well as the truth (rig seed 11 #0: 163 deg off, ICP fitness
-0.98). Other steady frames (``other_views``) show it turned by the participant; their
-points, carried into the first frame by the virtual cameras of stage 2, are registered
-together with it, and every pose is scored against all of their depth images.
+0.98). Other steady frames (``other_views``) show it turned by the participant: when the
+first frame alone fits below ``views_below_fitness``, their points, carried into the first
+frame by the virtual cameras of stage 2, are registered together with it, every pose is
+scored against all of their depth images, and the better pose is kept (one frame alone is
+sharper when it is right: the fused points carry the cameras' tenths of a degree).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from enum import StrEnum
 
@@ -120,7 +122,12 @@ class EstimateAdjustmentConfig(StageConfig):
     min_fitness: float = 0.5
     """A final fitness below this fails the stage."""
     other_views: int = 3
-    """Other steady frames (evenly spread) the pipeline passes as ``other_views``."""
+    """Other steady frames (evenly spread) the pipeline offers as ``other_views``."""
+    views_below_fitness: float = 0.97
+    """The other views are used when the first frame's pose fits below this (measured on rig
+    sessions: right poses 0.99-1.00; a flipped mug 0.92, a mug 7.5 deg off 0.64)..."""
+    views_margin: float = 0.02
+    """...and their pose is kept when the views agree with it by this much more."""
     check_ambiguity: bool = True
     """Run the symmetry probes on the global path (finds the symmetric pose closest to stage 1)."""
     registration: RegistrationConfig = RegistrationConfig()
@@ -168,6 +175,8 @@ class Adjustment:
     path: AdjustmentPath
     ambiguous: bool
     stage1_hypothesis: Stage1Hypothesis = Stage1Hypothesis.BEST
+    views: int = 1
+    """Frames the pose was registered in and scored against (``fitness`` is over all)."""
 
 
 def hand_mask_from_keypoints(
@@ -295,7 +304,7 @@ def estimate_adjustment(
     hand_mask: np.ndarray,
     config: EstimateAdjustmentConfig = PRESETS["default"],
     T_w_o_stage1_alt: np.ndarray | None = None,
-    other_views: Sequence[SteadyView] = (),
+    other_views: Callable[[], Sequence[SteadyView]] | None = None,
 ) -> Adjustment:
     """Estimate ``T_adj`` from the depth of the first steady frame.
 
@@ -316,8 +325,8 @@ def estimate_adjustment(
         ``ambiguous``): the stage runs from both and keeps the pose whose rendering the depth
         agrees with more (ties: ``T_w_o_stage1``); ``Adjustment.stage1_hypothesis`` says which.
         ``T_adj`` stays relative to ``T_w_o_stage1``.
-    other_views : other steady frames (:class:`SteadyView`): their points outside the hand
-        join the registration, their depth the scoring (same intrinsics ``K``).
+    other_views : ``() -> [SteadyView, ...]``, other steady frames (same intrinsics ``K``),
+        asked for only when the first frame alone fits below ``views_below_fitness``.
     """
     cfg = config.registration
     depth = valid_depth(depth_m, config.max_range_m)
@@ -327,38 +336,64 @@ def estimate_adjustment(
     if hand.shape != depth.shape:
         raise StageError(STAGE, f"hand mask has shape {hand.shape}, depth {depth.shape}")
     views = [(depth, ~_grown(hand, config), np.eye(4))]
-    points = cloud_from_depth(depth, K, views[0][1])
-    if len(points) < config.min_points:
-        raise StageError(STAGE, f"only {len(points)} depth points outside the hand mask")
-    hand_pts = [cloud_from_depth(depth, K, hand)]
-    points = [points]
-    for v in other_views:  # carried into this frame by the virtual cameras
-        d, m = valid_depth(v.depth_m, config.max_range_m), np.asarray(v.hand_mask, bool)
-        T = np.asarray(v.T_ref_c, float)
-        views.append((d, ~_grown(m, config), T))
-        points.append(cloud_from_depth(d, K, views[-1][1]) @ T[:3, :3].T + T[:3, 3])
-        hand_pts.append(cloud_from_depth(d, K, m) @ T[:3, :3].T + T[:3, 3])
+    n = len(cloud_from_depth(depth, K, views[0][1]))
+    if n < config.min_points:
+        raise StageError(STAGE, f"only {n} depth points outside the hand mask")
     model = prepare_model(mesh_vertices, mesh_faces, cfg)
-
     mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
-    ctx = _Context(views, K, np.concatenate(points), np.concatenate(hand_pts), model, mesh)
     T_w_o1 = np.asarray(T_w_o_stage1, float)
     hypotheses = [(Stage1Hypothesis.BEST, T_w_o1)]
     if T_w_o_stage1_alt is not None:
         hypotheses.append((Stage1Hypothesis.RUNNER_UP, np.asarray(T_w_o_stage1_alt, float)))
-    results: list[Adjustment] = []
-    errors: list[StageError] = []
-    for which, T_start in hypotheses:
-        try:
-            results.append(_from_hypothesis(ctx, T_start, which, config))
-        except StageError as e:
-            errors.append(e)
-    if not results:
-        raise errors[0]
-    best = max(results, key=lambda a: a.fitness)  # ties: the stage-1 best (listed first)
-    # T_adj is relative to the stage-1 pose passed in, whichever hypothesis won, so that
-    # T_adj @ T_w_o_stage1 is the object's pose in the steady frame.
-    return replace(best, T_adj=best.T_w_o @ inv_T(T_w_o1))
+    hands = [hand]
+
+    def solve(views: list) -> Adjustment:
+        points = [cloud_from_depth(d, K, keep) @ T[:3, :3].T + T[:3, 3] for d, keep, T in views]
+        hand_pts = [cloud_from_depth(d, K, m) @ T[:3, :3].T + T[:3, 3]
+                    for (d, _, T), m in zip(views, hands, strict=True)]  # fmt: skip
+        ctx = _Context(views, K, np.concatenate(points), np.concatenate(hand_pts), model, mesh)
+        results: list[Adjustment] = []
+        errors: list[StageError] = []
+        for which, T_start in hypotheses:
+            try:
+                results.append(_from_hypothesis(ctx, T_start, which, config))
+            except StageError as e:
+                errors.append(e)
+        if not results:
+            raise errors[0]
+        best = max(results, key=lambda a: a.fitness)  # ties: the stage-1 best (listed first)
+        # T_adj is relative to the stage-1 pose passed in, whichever hypothesis won, so that
+        # T_adj @ T_w_o_stage1 is the object's pose in the steady frame.
+        return replace(best, T_adj=best.T_w_o @ inv_T(T_w_o1), views=len(views))
+
+    try:
+        single: Adjustment | None = solve(views)
+    except StageError as e:
+        single, failed = None, e
+    if other_views is None or (single is not None and
+                               single.fitness >= config.views_below_fitness):
+        if single is None:
+            raise failed
+        return single
+    for v in other_views():  # carried into this frame by the virtual cameras
+        hands.append(np.asarray(v.hand_mask, bool))
+        d = valid_depth(v.depth_m, config.max_range_m)
+        views.append((d, ~_grown(hands[-1], config), np.asarray(v.T_ref_c, float)))
+    if len(views) == 1:
+        if single is None:
+            raise failed
+        return single
+    try:
+        multi = solve(views)
+    except StageError:
+        if single is None:
+            raise failed from None
+        return single
+    if single is None or multi.fitness > config.views_margin + _score(
+        views, K, mesh, single.T_w_o, config.agree_tol_m
+    )[0]:
+        return multi
+    return single
 
 
 def spread_frames(pose_valid: np.ndarray, ref: int, count: int) -> list[int]:

@@ -183,12 +183,15 @@ def _estimate_adjustment(
 
     def attempt(k: int):
         depth, mask = view(k)
-        others = [
-            estimate_adjustment.SteadyView(*view(j), inv_T(T_w_c[k]) @ T_w_c[j])
-            for j in estimate_adjustment.spread_frames(
-                reconstruct_hand.pose_valid, k, config.other_views
-            )
-        ]
+
+        def others() -> list[estimate_adjustment.SteadyView]:
+            return [
+                estimate_adjustment.SteadyView(*view(j), inv_T(T_w_c[k]) @ T_w_c[j])
+                for j in estimate_adjustment.spread_frames(
+                    reconstruct_hand.pose_valid, k, config.other_views
+                )
+            ]
+
         adj = estimate_adjustment.estimate_adjustment(
             depth, _K(session), V, F, register_object.T_w_o, mask, config, T_w_o_stage1_alt=alt,
             other_views=others,

@@ -27,8 +27,9 @@ def test_spread_frames_skip_the_reference_and_unposed_frames():
 @pytest.mark.slow
 def test_a_mug_half_hidden_by_the_hand_is_registered_with_the_other_views(tmp_path):
     """Rig seed 11 #0 (easy, 40 frames; the build benchmark's mug): from its first steady
-    frame alone the mug came out 140-163 deg off (a flipped mug, ICP fitness 0.98); with
-    three other steady frames 0.5 deg / 0.7 mm (measured)."""
+    frame alone the mug came out 10-163 deg off from run to run (a flipped or turned mug, ICP
+    fitness 0.98, depth agreement 0.92-0.96 < ``views_below_fitness``); with three other
+    steady frames 0.5 deg / 0.7 mm (measured)."""
     from graspcap.synth import config_for, generate_session
     from graspcap.synth.evaluate import load_truth
 
@@ -46,6 +47,6 @@ def test_a_mug_half_hidden_by_the_hand_is_registered_with_the_other_views(tmp_pa
         cfg = PRESETS["default"].model_copy(update={"other_views": n})
         errors[n] = pose_error(run_stage(STAGES["estimate_adjustment"], d, cfg, res).T_w_o,
                                T_true)  # fmt: skip
-    assert errors[0][0] > 20.0  # one view: a wrong mug (this is what the views fix)
+    assert errors[0][0] > 5.0  # one view: a wrong mug (this is what the views fix)
     rot, trans = errors[PRESETS["default"].other_views]
     assert rot < 1.0 and trans < 0.003, errors
