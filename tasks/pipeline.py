@@ -92,17 +92,22 @@ def depth_lookup(session: Session, window_px: int = 2, read: Callable | None = N
         lambda i: session.read_depth_m(session.grasp_path("depth", i))
     )
 
+    offsets = np.arange(-window_px, window_px + 1)
+
     def depth_at(frame: int, uv: np.ndarray) -> np.ndarray:
         depth = read(int(frame))
         h, w = depth.shape
-        out = np.zeros(len(uv))
-        for k, (u, v) in enumerate(np.rint(np.asarray(uv, dtype=float)).astype(int)):
-            win = depth[
-                max(v - window_px, 0) : v + window_px + 1, max(u - window_px, 0) : u + window_px + 1
-            ]
-            vals = win[win > 0]
-            if 0 <= u < w and 0 <= v < h and vals.size:
-                out[k] = np.median(vals)
+        u, v = np.rint(np.asarray(uv, dtype=float).reshape(-1, 2)).astype(int).T
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        rows = np.clip(v[:, None] + offsets, -1, h)[:, :, None]  # -1 / h: outside, no depth
+        cols = np.clip(u[:, None] + offsets, -1, w)[:, None, :]
+        padded = np.pad(depth, 1)
+        win = padded[rows + 1, cols + 1].reshape(len(u), -1)
+        win = np.where(win > 0, win, np.nan)
+        has = inside & np.isfinite(win).any(axis=1)
+        out = np.zeros(len(u))
+        if has.any():
+            out[has] = np.nanmedian(win[has], axis=1)
         return out
 
     return depth_at
