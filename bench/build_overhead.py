@@ -1,7 +1,8 @@
 """Orchestration overhead of a dataset build (prints markdown; numbers in docs/architecture.md).
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/build_overhead.py [--sessions 8] [--frames 40]
-        [--preset fast] [--repeat 3] [--dask-repeat 1] [--no-dask] [--budget-s 840]
+        [--difficulty easy] [--preset fast] [--repeat 3] [--dask-repeat 1] [--no-dask]
+        [--budget-s 840]
 
 On fresh synthetic sessions (seed 11, easy), in this order:
 
@@ -11,9 +12,11 @@ On fresh synthetic sessions (seed 11, easy), in this order:
    (default runner: 2 threads) into a new catalog, and a no-op rebuild of that catalog; the
    first round also a cold build with 1 thread worker (no concurrency to hide overhead);
 3. all-cached sessions as subflows vs as tasks of one flow run (the structure decision);
-4. ``--dask-repeat`` times: cold builds on a Dask LocalCluster of 1 and of 2 single-threaded
-   worker processes (order alternated between rounds), and a no-op Dask rebuild (the cluster's
-   fixed cost).
+4. the Dask costs on their own: a LocalCluster of 2 as the build makes it (start with the
+   worker preload, close), and trivial Prefect tasks through it (the per-task dispatch cost);
+5. ``--dask-repeat`` times: cold builds on a Dask LocalCluster of 1 and of 2 single-threaded
+   worker processes (order alternated between rounds): the fixed cost F = build wall - W,
+   W = the stage bodies' seconds; and a no-op Dask rebuild (starts no cluster).
 
 Ratios are per round (a build and its baseline measured back to back), then the median over
 the rounds. Rounds stop early when the next would end after ``--budget-s`` (40 % of it kept
@@ -44,6 +47,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sessions", type=int, default=8)
     ap.add_argument("--frames", type=int, default=40)
+    ap.add_argument("--difficulty", default="easy", help="synthetic sessions: easy, realistic")
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--repeat", type=int, default=3, help="rounds of bare / cold / no-op")
     ap.add_argument("--dask-repeat", type=int, default=1, help="rounds of Dask 1 / 2 workers")
@@ -60,7 +64,8 @@ def main() -> None:
     from graspcap.synth import generate
 
     root = tmp / "sessions"
-    generate(root, sessions=args.sessions, seed=11, difficulty="easy", frames=args.frames)
+    generate(root, sessions=args.sessions, seed=11, difficulty=args.difficulty,
+             frames=args.frames)
     details: list[str] = []
 
     def note(text: str) -> None:
@@ -176,21 +181,32 @@ def main() -> None:
 
     speedups: list[float] = []
     if not args.no_dask:
+        with build_settings():
+            start_s, close_s, first_s, per_task_s = _dask_costs()
+        note(f"Dask fixed cost: LocalCluster of 2 started with the worker preload in "
+             f"{start_s:.1f} s, closed in {close_s:.1f} s; first trivial task {first_s:.2f} s")
+        note(f"Dask per-task cost: {1000 * per_task_s:.0f} ms a trivial Prefect task, "
+             f"sequential (a build dispatches one task per session)")
         t_dask = time.perf_counter()
         for i in range(args.dask_repeat):
             spent = time.perf_counter() - t_start
             if i and spent + (time.perf_counter() - t_dask) / i > args.budget_s:
                 note(f"stopped after {i} Dask round(s): time budget")
                 break
-            took = {}
+            took, work_s = {}, {}
             for n in ((1, 2) if i % 2 == 0 else (2, 1)):
                 took[n], rep = timed_build(tmp / f"dask{i}-{n}", dask=f"local:{n}")
                 assert not rep.failed or len(rep.failed) < len(sdirs), rep.summary()
+                work_s[n] = sum(r["seconds"] for r in WorkArea(
+                    tmp / f"dask{i}-{n}" / "work").executions())
             speedups.append(took[1] / took[2])
+            fixed = took[1] - work_s[1]
             note(f"Dask round {i + 1}: 1 worker {took[1]:.1f} s, 2 workers {took[2]:.1f} s, "
-                 f"speed-up {took[1] / took[2]:.2f}")
+                 f"speed-up {took[1] / took[2]:.2f}; 1 worker: W (stage bodies) "
+                 f"{work_s[1]:.1f} s, F = wall - W {fixed:.1f} s (F/W {fixed / work_s[1]:.2f}; "
+                 f"1.7 needs <= 0.21); 2 workers: stage bodies {work_s[2]:.1f} s in all")
         n, _ = timed_build(tmp / "dask0-2", dask="local:2")
-        note(f"no-op rebuild on a Dask LocalCluster of 2 (its fixed cost): {n:.1f} s")
+        note(f"no-op rebuild with --dask local:2 (nothing to run: no cluster started): {n:.1f} s")
 
     print(f"\n{args.sessions} synthetic sessions, {args.frames} frames, preset {args.preset!r}; "
           f"medians of {args.repeat} round(s) (Dask: {args.dask_repeat}); load "
@@ -211,6 +227,43 @@ def main() -> None:
     for name, value, target, met in rows:
         shown = "not run (--no-dask)" if value is None else f"{value:.3f}"
         print(f"| {name} | {shown} | {target} | {'-' if met is None else 'yes' if met else 'NO'} |")
+
+
+def _dask_costs() -> tuple[float, float, float, float]:
+    """(cluster start s, close s, first trivial task s, s per trivial task) on a LocalCluster
+    of 2 made as ``--dask local:2`` makes it, trivial Prefect tasks submitted one at a time."""
+    from prefect import flow, task
+    from prefect.cache_policies import NONE
+
+    from graspcap.flows.runtime import task_runner
+
+    @task(persist_result=False, cache_policy=NONE)
+    def trivial(x: int) -> int:
+        return x
+
+    runner = task_runner("local:2")
+    t = time.perf_counter()
+    from distributed import LocalCluster
+
+    cluster = LocalCluster(**runner.cluster_kwargs)
+    start_s = time.perf_counter() - t
+    t = time.perf_counter()
+    cluster.close()
+    close_s = time.perf_counter() - t
+    out: dict[str, float] = {}
+
+    @flow(persist_result=False)
+    def dispatch() -> None:
+        t = time.perf_counter()
+        trivial.submit(0).wait()
+        out["first"] = time.perf_counter() - t
+        t = time.perf_counter()
+        for i in range(10):
+            trivial.submit(i).wait()
+        out["each"] = (time.perf_counter() - t) / 10
+
+    dispatch.with_options(task_runner=task_runner("local:2"))()
+    return start_s, close_s, out["first"], out["each"]
 
 
 if __name__ == "__main__":

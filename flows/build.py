@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from prefect import flow
+from prefect.context import FlowRunContext
 from prefect.futures import as_completed
 
 import graspcap
@@ -41,10 +42,9 @@ from graspcap.flows.progress import ProgressFn, Tracker, reporting_to
 from graspcap.flows.report import BuildReport, Outcome, SessionReport
 from graspcap.flows.rows import failed_row, session_rows
 from graspcap.flows.runtime import build_settings, task_runner, worker_api
-from graspcap.flows.session import Settled, submit_session
+from graspcap.flows.session import InSession, Settled, failure_text, submit_session
 from graspcap.schemas.tables import Status
 from graspcap.tasks.config import StageConfig
-from graspcap.tasks.errors import StageError
 from graspcap.tasks.load_session import discover_sessions
 
 BUILDS_LOG = "builds.jsonl"
@@ -129,28 +129,40 @@ def _watch(submitted: Mapping[str, Mapping[str, Any]], session_ids: Mapping[str,
     """Wait for every task, reporting each as it finishes (``flows/progress.py``), the stages
     settled without a task first; ``session_ids`` by session directory, as in ``submitted``."""
     tracker = Tracker({session_ids[d]: len(f) for d, f in submitted.items()})
-    owner = {}
+    owner: dict[Any, list[tuple[str, str]]] = {}
     for d, futures in submitted.items():
         for name, fut in futures.items():
             if isinstance(fut, Settled):
                 tracker.finished(session_ids[d], name, fut.state)
             else:
-                owner[fut] = (session_ids[d], name)
+                key = fut.future if isinstance(fut, InSession) else fut
+                owner.setdefault(key, []).append((session_ids[d], name))
     for fut in as_completed(list(owner)):
         fut.wait()  # sets the future's final state; reading .state before may ask the API
         state = fut.state
-        tracker.finished(*owner[fut], state.name or state.type.value)
+        value = state.result(raise_on_failure=False) if state.is_completed() else None
+        for sid, name in owner[fut]:  # a session task (Dask) says how each stage ended
+            inner = value.get(name) if isinstance(value, dict) else None
+            tracker.finished(sid, name, inner.state if isinstance(inner, Settled)
+                             else state.name or state.type.value)
 
 
 def _outcome(fut: Any) -> tuple[str, Any, str | None]:
     """("completed", ref) / ("failed", exception) / ("not_run", None) of one stage, and
     Prefect's message; a :class:`Settled` stage says the same without a task run."""
     if isinstance(fut, Settled):
-        if fut.state == "Cached":
+        if fut.state in ("Cached", "Completed"):
             return "completed", fut.ref, None
         if fut.state == "Failed":
-            return "failed", fut.error, None
+            return "failed", fut.why or fut.error, None
         return "not_run", None, "NotReady: an upstream stage failed"
+    if isinstance(fut, InSession):
+        fut.future.wait()
+        state = fut.future.state
+        if state.is_completed():
+            return _outcome(state.result()[fut.stage])
+        exc = state.result(raise_on_failure=False)
+        return "failed", failure_text(f"session task ({fut.stage})", exc, state.message), None
     fut.wait()
     state = fut.state
     if state.is_completed():
@@ -173,9 +185,7 @@ def _stage_outcomes(futures: Mapping[str, Any]):
             refs[name] = value
             (cached if value.cached else ran).append(name)
         elif kind == "failed":
-            why = (str(value) if isinstance(value, StageError) else
-                   f"{name}: {type(value).__name__}: {value}" if isinstance(value, BaseException)
-                   else f"{name}: {message}")
+            why = value if isinstance(value, str) else failure_text(name, value, message)
             if name in AID_STAGES:
                 notes.append(f"{why} (a QA aid: the session is committed without it)")
                 continue
@@ -217,8 +227,12 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         seen.setdefault(sid, d)
     t_discover = time.perf_counter()
 
+    # on Dask, one task per session (its stages nested in it): a dispatch costs ~0.4 s
+    runner = getattr(FlowRunContext.get(), "task_runner", None)
+    per_session = type(runner).__name__ == "DaskTaskRunner"
     submitted = {str(d): submit_session(d, configs, work, build_id, session_id=sid,
-                                        replay_failures=not retry_failed, settle=True)
+                                        replay_failures=not retry_failed, settle=True,
+                                        per_session=per_session)
                  for d, sid in zip(dirs, ids, strict=True) if str(d) not in duplicate}
     _watch(submitted, {str(d): sid for d, sid in zip(dirs, ids, strict=True)})
     outcomes = {d: _stage_outcomes(f) for d, f in submitted.items()}

@@ -97,8 +97,10 @@ def worker_api(dask: str | None) -> Iterator[str | None]:
 
 def task_runner(dask: str | None = None, workers: int = 2):
     """A Prefect task runner: threads in this process (``dask=None``, ``workers`` threads),
-    a Dask ``LocalCluster`` of N single-threaded worker processes (``"local:N"``), or an
-    existing Dask scheduler (its address, e.g. ``"tcp://10.0.0.5:8786"``)."""
+    a Dask ``LocalCluster`` of N single-threaded worker processes (``"local:N"``, each with
+    ``flows/worker.py`` preloaded and Open3D bounded to cores / N threads), or an existing Dask
+    scheduler (its address, e.g. ``"tcp://10.0.0.5:8786"``). The cluster starts at the first
+    submitted task: a build with nothing to run starts none."""
     if dask is None:
         from prefect.task_runners import ThreadPoolTaskRunner
 
@@ -106,10 +108,14 @@ def task_runner(dask: str | None = None, workers: int = 2):
     from prefect_dask import DaskTaskRunner
 
     if dask.startswith("local:"):
+        from graspcap.flows.worker import THREADS_ENV
+
         n = int(dask.split(":", 1)[1])
+        threads = max(1, (os.cpu_count() or 1) // n)  # Open3D's pool: the worker's cores
         return DaskTaskRunner(cluster_class="distributed.LocalCluster", cluster_kwargs={
             "n_workers": n, "threads_per_worker": 1, "processes": True,
-            "dashboard_address": None})
+            "dashboard_address": None, "preload": ["graspcap.flows.worker"],
+            "env": {THREADS_ENV: str(threads)}})
     return DaskTaskRunner(address=dask)
 
 

@@ -197,3 +197,47 @@ def test_settle_session_settles_hits_and_failures_and_leaves_the_rest(warm, synt
     assert {settled[n].state for n in downstream - {"fit_hand"}} == {"NotReady"}
     assert set(settle_session(session, configs, work, replay_failures=False)) == (
         set(STAGES) - downstream)
+
+
+def test_a_session_task_runs_the_stages_left_and_says_how_each_ended(warm, synth_root,
+                                                                     tmp_path, monkeypatch):
+    """What a Dask worker gets (``per_session=True``): one task for the session's stages that
+    must run, each a nested task run; a failed stage's downstream is NotReady inside it."""
+    from prefect import flow
+
+    from graspcap.flows.session import InSession, Settled, submit_session
+    from graspcap.tasks import pipeline
+
+    catalog, _ = warm
+    shutil.copytree(catalog / "work", tmp_path / "work")
+    for stage in ("fit_hand", "register_scan"):
+        shutil.rmtree(tmp_path / "work" / "results" / stage)
+
+    def broken(session, config, **_):
+        raise StageError("register_scan", "fitness 0.1 below 0.5", session="x")
+
+    monkeypatch.setitem(pipeline.STAGES, "register_scan",
+                        dataclasses.replace(pipeline.STAGES["register_scan"], run=broken))
+    session = sorted(p for p in synth_root.iterdir() if p.is_dir())[0]
+
+    @flow
+    def one():
+        out = submit_session(session, pipeline.configs_for(PRESET), WorkArea(tmp_path / "work"),
+                             "b-session", settle=True, per_session=True)
+        futures = {id(v.future) for v in out.values() if isinstance(v, InSession)}
+        states = {n: v.state for n, v in out.items() if isinstance(v, Settled)}
+        inner = next(v for v in out.values() if isinstance(v, InSession)).future.result()
+        return len(futures), states, {n: (s.state, s.why) for n, s in inner.items()}
+
+    n_futures, settled, inner = one()
+    assert n_futures == 1
+    assert settled == {n: "Cached" for n in ("load_session", "register_object",
+                                             "detect_keypoints", "select_steady",
+                                             "reconstruct_hand", "crosscheck_sfm")}
+    assert list(inner) == [n for n in pipeline.STAGES if n not in settled]  # DAG order
+    assert inner["fit_hand"][0] == "Completed" and inner["estimate_adjustment"][0] == "Completed"
+    assert inner["register_scan"] == ("Failed", "session x: register_scan: fitness 0.1 below 0.5")
+    for name in ("build_contactmap", "refine_grasp", "qa_metrics", "pictures"):
+        assert inner[name] == ("NotReady", None), name
+    ran = {st for _, st in executions(tmp_path, "b-session")}  # downstream: hits if unchanged
+    assert {"fit_hand"} <= ran <= {"fit_hand", "estimate_adjustment", "propagate_poses"}
