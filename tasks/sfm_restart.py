@@ -34,13 +34,15 @@ def solve_with_restarts(
     *,
     enabled: bool,
     min_share: float,
+    margin: float,
 ) -> Any:
     """``solve()``, or a restart when it fails or ``min(depth_shares) < min_share``.
 
     ``restarts()`` yields the restart solves in order (none when the depth initialisation
     is impossible). After a failure the first restart that succeeds is returned; after a
-    depth-disagreeing success the first restart more depth readings agree with, else the
-    first solve. A returned restart carries the reason in ``diagnostics.restarted_after``.
+    depth-disagreeing success the first restart whose result ``margin`` more of the depth
+    readings agree with, else the first solve. A returned restart carries the reason in
+    ``diagnostics.restarted_after``.
     """
 
     def restarted(rec: Any, reason: str) -> Any:
@@ -71,6 +73,6 @@ def solve_with_restarts(
             again = attempt()
         except StageError:
             continue
-        if depth_shares(again)[1] > depth_shares(first)[1]:
+        if depth_shares(again)[1] >= depth_shares(first)[1] + margin:
             return restarted(again, f"only {share:.0%} of the depth readings agreed with the hand")
     return first
