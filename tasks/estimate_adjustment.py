@@ -50,7 +50,7 @@ from graspcap.tasks.registration import (
 )
 from graspcap.tasks.render import render
 
-STAGE_VERSION = "estimate_adjustment/5"
+STAGE_VERSION = "estimate_adjustment/6"
 STAGE = "estimate_adjustment"
 
 HAND_BONES = (
@@ -121,8 +121,9 @@ class EstimateAdjustmentConfig(StageConfig):
     """ICP from the stage-1 pose is accepted at this fitness."""
     min_fitness: float = 0.5
     """A final fitness below this fails the stage."""
-    other_views: int = 3
-    """Other steady frames (evenly spread) the pipeline offers as ``other_views``."""
+    other_views: int = 6
+    """Other steady frames (evenly spread) the pipeline offers as ``other_views`` (rig seed
+    9000 #5, a mug from an onset 2 frames early: 3 views 4.7 deg, 6 views 0.9 deg)."""
     views_below_fitness: float = 0.97
     """The other views are used when the first frame's pose fits below this (measured on rig
     sessions: right poses 0.99-1.00; a flipped mug 0.92, a mug 7.5 deg off 0.64)..."""

@@ -52,7 +52,7 @@ from graspcap.tasks.sfm_solve import (
     solve_visual,
 )
 
-STAGE_VERSION = "reconstruct_hand/7"
+STAGE_VERSION = "reconstruct_hand/8"
 
 
 class ReconstructConfig(StageConfig):
