@@ -28,7 +28,7 @@ def test_spread_frames_skip_the_reference_and_unposed_frames():
 def test_a_mug_half_hidden_by_the_hand_is_registered_with_the_other_views(tmp_path):
     """Rig seed 11 #0 (easy, 40 frames; the build benchmark's mug): from its first steady
     frame alone the mug came out 10-163 deg off from run to run (a flipped or turned mug, ICP
-    fitness 0.98, depth agreement 0.92-0.96 < ``views_below_fitness``); with three other
+    fitness 0.98, depth agreement 0.92-0.96 < ``views_below_fitness``); with six other
     steady frames 0.5 deg / 0.7 mm (measured)."""
     from graspcap.synth import config_for, generate_session
     from graspcap.synth.evaluate import load_truth
