@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -108,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     from graspcap.tasks.detect_mediapipe import FrameMode, MediaPipeConfig
 
     backend = Backend(args.backend)
-    mp = MediaPipeConfig(mode=FrameMode.IMAGES,
+    mp = MediaPipeConfig(mode=FrameMode.IMAGES, threads=args.threads,
                          **({} if args.model_complexity is None
                             else {"model_complexity": args.model_complexity}))
     config = DetectKeypointsConfig(backend=backend, mediapipe=mp)
@@ -136,5 +137,8 @@ def add_detect_parser(sub: argparse._SubParsersAction) -> None:
                    help="the participant's hand (MediaPipe's mirrored labels are undone)")
     p.add_argument("--model-complexity", type=int, choices=[0, 1], default=None,
                    help="MediaPipe landmark model (default: the stage config's)")
+    p.add_argument("--threads", type=int, default=min(os.cpu_count() or 1, 8),
+                   help="MediaPipe inference threads (default: every core, up to 8; the "
+                        "detector runs alone here, unlike in a build)")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=run)
