@@ -19,29 +19,34 @@ DepthLookup = Callable[[int, np.ndarray], np.ndarray]
 video frame ``frame``; 0 (or NaN) where the sensor has no valid depth."""
 
 
-def depth_lookup_from_frames(depth_m: np.ndarray, window_px: int = 2) -> DepthLookup:
-    """A :data:`DepthLookup` over depth images (n, h, w) in metres.
+def window_median(depth_m: np.ndarray, uv_px: np.ndarray, window_px: int = 2) -> np.ndarray:
+    """Median of the valid (finite, > 0) depths in the (2 * window_px + 1)^2 square around
+    each rounded pixel, clipped at the image border; 0 where the square holds none or the
+    pixel lies outside the image.
 
-    Each value is the median of the non-zero depths in the (2 * window_px + 1)^2 square
-    around the rounded pixel; 0 when the window holds none or lies outside the image.
+    depth_m : (h, w) metres; uv_px : (k, 2) pixels. Returns (k,) metres.
     """
+    h, w = depth_m.shape
+    u, v = np.rint(np.asarray(uv_px, dtype=float).reshape(-1, 2)).astype(int).T
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    offsets = np.arange(-window_px, window_px + 1)
+    rows = np.clip(v[:, None] + offsets, -1, h)[:, :, None]  # -1 / h: the zero border
+    cols = np.clip(u[:, None] + offsets, -1, w)[:, None, :]
+    win = np.pad(depth_m, 1)[rows + 1, cols + 1].reshape(len(u), -1)
+    win = np.where(win > 0, win, np.nan)  # NaN > 0 is False: invalid readings drop out too
+    has = inside & np.isfinite(win).any(axis=1)
+    out = np.zeros(len(u))
+    if has.any():
+        out[has] = np.nanmedian(win[has], axis=1)
+    return out
+
+
+def depth_lookup_from_frames(depth_m: np.ndarray, window_px: int = 2) -> DepthLookup:
+    """A :data:`DepthLookup` over depth images (n, h, w) in metres, by :func:`window_median`."""
     depth_m = np.asarray(depth_m, dtype=float)
-    _, h, w = depth_m.shape
 
     def depth_at(frame: int, uv_px: np.ndarray) -> np.ndarray:
-        out = np.zeros(len(uv_px))
-        for k, (u, v) in enumerate(np.round(np.asarray(uv_px, dtype=float)).astype(int)):
-            if not (0 <= u < w and 0 <= v < h):
-                continue
-            patch = depth_m[
-                frame,
-                max(v - window_px, 0) : v + window_px + 1,
-                max(u - window_px, 0) : u + window_px + 1,
-            ]
-            valid = patch[(patch > 0) & np.isfinite(patch)]
-            if valid.size:
-                out[k] = float(np.median(valid))
-        return out
+        return window_median(depth_m[frame], uv_px, window_px)
 
     return depth_at
 

@@ -38,6 +38,7 @@ from graspcap.tasks import (
     select_steady,
 )
 from graspcap.tasks.config import StageConfig
+from graspcap.tasks.depth_scale import window_median
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T, project, transform_points
 from graspcap.tasks.hand_model import SURFACE_OFFSET_M, HandSide
@@ -92,23 +93,8 @@ def depth_lookup(session: Session, window_px: int = 2, read: Callable | None = N
         lambda i: session.read_depth_m(session.grasp_path("depth", i))
     )
 
-    offsets = np.arange(-window_px, window_px + 1)
-
     def depth_at(frame: int, uv: np.ndarray) -> np.ndarray:
-        depth = read(int(frame))
-        h, w = depth.shape
-        u, v = np.rint(np.asarray(uv, dtype=float).reshape(-1, 2)).astype(int).T
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        rows = np.clip(v[:, None] + offsets, -1, h)[:, :, None]  # -1 / h: outside, no depth
-        cols = np.clip(u[:, None] + offsets, -1, w)[:, None, :]
-        padded = np.pad(depth, 1)
-        win = padded[rows + 1, cols + 1].reshape(len(u), -1)
-        win = np.where(win > 0, win, np.nan)
-        has = inside & np.isfinite(win).any(axis=1)
-        out = np.zeros(len(u))
-        if has.any():
-            out[has] = np.nanmedian(win[has], axis=1)
-        return out
+        return window_median(read(int(frame)), uv, window_px)
 
     return depth_at
 
