@@ -151,6 +151,13 @@ def lookup_cached(stage_name: str, session_dir: Path | str, config: StageConfig,
     """What the work area already holds for this stage run, without running anything: its
     stored result, its remembered deterministic failure (when ``replay_failures``), or None."""
     key = cache_key(stage_name, session_dir, config, upstream, work, role_digests)
+    return _held(stage_name, key, work, replay_failures)
+
+
+def _held(stage_name: str, key: str | None, work: WorkArea,
+          replay_failures: bool) -> ResultRef | StageError | None:
+    """The stored result under ``key``, its remembered failure (when ``replay_failures``), or
+    None (also when there is no trustworthy key)."""
     if key is None:
         return None
     if (ref := work.lookup(stage_name, key)) is not None:
@@ -172,11 +179,11 @@ def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config
     if missing:
         raise ValueError(f"{stage_name}: upstream results missing: {sorted(missing)}")
     key = cache_key(stage_name, session_dir, config, upstream, work)
-    if key is not None and (ref := work.lookup(stage_name, key)) is not None:
-        return ref
-    if key is not None and replay_failures and (
-            failure := work.lookup_failure(stage_name, key)) is not None:
-        raise StageError(failure["stage"], failure["reason"], session=failure["session"])
+    held = _held(stage_name, key, work, replay_failures)
+    if isinstance(held, StageError):
+        raise held
+    if held is not None:
+        return held
     results = {k: WorkArea.load(upstream[k]) for k in stage.upstream}
     t0 = time.perf_counter()
     record = {"stage": stage_name, "session_id": session_id, "key": key, "build_id": build_id}
