@@ -1,19 +1,22 @@
 """Regenerate the golden catalogs under tests/golden/ (checked in with this script).
 
-    .venv/bin/python tests/golden/make_golden.py
+    .venv/bin/python tests/golden/make_golden.py [--formats 1 2]
 
 - ``catalog_v0/``: the stamp of a catalog of format 0 (never released, no migration leads from
   it), for the "rebuild it" error. A few hundred bytes.
-- ``catalog_v1.tar.gz``: a real catalog of format 1, the format before the current one:
-  ``build()`` committed as version 1 and tagged ``golden``, written by today's commit code with
-  format 1's differences (Delta tables without ``DELTA_TABLE_PROPERTIES``, no
-  ``FORMAT_2_COLUMNS``, stamp and versions row saying 1; docs/data_changelog.md). Unpacked it
-  is ~86 KB in 33 files (Delta logs, and Parquet footers repeating the schema's docs), packed
-  ~15 KB. Tests unpack it into a temporary
-  folder: opening fails naming ``graspcap catalog migrate``, migrating makes it readable.
+- ``catalog_v<k>.tar.gz`` for every older format ``k`` a migration leads from: a real catalog
+  of format ``k``: ``build()`` committed as version 1 and tagged ``golden``, written by today's
+  commit code with format ``k``'s differences (``COLUMNS_ADDED`` after ``k`` left out of the
+  schemas; Delta tables without ``DELTA_TABLE_PROPERTIES`` for format 1; stamp and versions row
+  saying ``k``; docs/data_changelog.md). ``catalog_v2.tar.gz`` was first written by the code of
+  format 2 itself (before format 3's columns existed); ``test_golden_script_still_writes_...``
+  checks that this script still writes the same columns. Unpacked one is ~86 KB in 33 files
+  (Delta logs, and Parquet footers repeating the schema's docs), packed ~15-20 KB. Tests unpack
+  them into a temporary folder: opening fails naming ``graspcap catalog migrate``, migrating
+  makes them readable.
 
 ``build()`` and ``expected()`` describe the tiny build (one session, two frames, a 4-vertex
-object), nothing random; ``--v1 DIR`` also writes the format-1 catalog unpacked for inspection.
+object), nothing random; ``--unpacked DIR`` also writes the catalogs unpacked for inspection.
 """
 
 from __future__ import annotations
@@ -37,12 +40,34 @@ import graspcap.catalog as gc
 from graspcap.catalog.commit import commit_build
 from graspcap.catalog.delta import create_tables
 from graspcap.catalog.layout import CatalogLayout, write_format_file
-from graspcap.schemas.tables import TABLE_SCHEMAS
+from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DELTA_TABLE_PROPERTIES, TABLE_SCHEMAS
 
 HERE = Path(__file__).resolve().parent
 SESSION = "p01-cube-use-00"
-FORMAT_2_COLUMNS = {"sessions": ("keypoint_backend", "keypoint_frames_detected")}
-"""Columns format 2 added (docs/data_changelog.md): a format-1 catalog's tables lack them."""
+COLUMNS_ADDED: dict[int, dict[str, tuple[str, ...]]] = {
+    2: {"sessions": ("keypoint_backend", "keypoint_frames_detected")},
+}
+"""``{format: {table: columns that format added}}`` (docs/data_changelog.md): a catalog of an
+older format lacks them."""
+FORMAT_2_COLUMNS = COLUMNS_ADDED[2]
+GOLDEN_FORMATS = (1, 2)
+"""Older formats with a golden catalog (every one ``graspcap catalog migrate`` leads from)."""
+
+
+def archive(fmt: int) -> Path:
+    """The golden catalog of format ``fmt``."""
+    return HERE / f"catalog_v{fmt}.tar.gz"
+
+
+def added_after(fmt: int) -> dict[str, tuple[str, ...]]:
+    """``{table: columns}`` added by the formats after ``fmt`` (a format-``fmt`` catalog lacks
+    them)."""
+    out: dict[str, tuple[str, ...]] = {}
+    for k, tables in COLUMNS_ADDED.items():
+        if k > fmt:
+            for name, cols in tables.items():
+                out[name] = out.get(name, ()) + cols
+    return out
 
 
 def expected() -> dict:
@@ -73,6 +98,7 @@ def build() -> gc.BuildCommit:
                          "qa_penetration_max_mm", "qa_penetration_mean_mm",
                          "qa_contact_agreement", "qa_contact_coverage"], 0.5),
     }
+    session = {k: v for k, v in session.items() if k in TABLE_SCHEMAS["sessions"].names}
     frames = {
         "session_id": [SESSION] * 2, "frame": np.array([3, 4]), "T_w_c": np.stack([e["T"]] * 2),
         "T_c_o": np.stack([e["T"]] * 2), "T_c_p": np.stack([e["T"]] * 2),
@@ -90,11 +116,12 @@ def build() -> gc.BuildCommit:
 
 
 @contextmanager
-def format_1_schemas() -> Iterator[None]:
-    """Within: ``TABLE_SCHEMAS`` without ``FORMAT_2_COLUMNS`` (the writer code reads it at call
-    time), so today's create and commit code writes format 1's columns."""
+def schemas_of(fmt: int) -> Iterator[None]:
+    """Within: ``TABLE_SCHEMAS`` without the columns added after format ``fmt`` (the writer
+    code reads it at call time), so today's create and commit code writes format ``fmt``'s
+    columns."""
     saved = dict(TABLE_SCHEMAS)
-    for name, cols in FORMAT_2_COLUMNS.items():
+    for name, cols in added_after(fmt).items():
         schema = TABLE_SCHEMAS[name]
         TABLE_SCHEMAS[name] = pa.schema([f for f in schema if f.name not in cols],
                                         metadata=schema.metadata)
@@ -104,19 +131,26 @@ def format_1_schemas() -> Iterator[None]:
         TABLE_SCHEMAS.update(saved)
 
 
-def write_v1(root: Path) -> None:
-    """A format-1 catalog at ``root`` holding ``build()`` as version 1, tagged ``golden``."""
+def write_golden(root: Path, fmt: int) -> None:
+    """A format-``fmt`` catalog at ``root`` holding ``build()`` as version 1, tagged
+    ``golden``."""
     layout = CatalogLayout(root.resolve())
     layout.root.mkdir(parents=True)
     commit = build()
-    rows = [{k: v for k, v in r.items() if k not in FORMAT_2_COLUMNS["sessions"]}
-            for r in commit.sessions]
-    with format_1_schemas():
-        create_tables(layout, properties=None)  # format 1: Delta's default table properties
-        write_format_file(layout, 1)
+    dropped = added_after(fmt).get("sessions", ())
+    rows = [{k: v for k, v in r.items() if k not in dropped} for r in commit.sessions]
+    with schemas_of(fmt):
+        # format 1: Delta's default table properties
+        create_tables(layout, properties=None if fmt == 1 else DELTA_TABLE_PROPERTIES)
+        write_format_file(layout, fmt)
         commit_build(layout, dataclasses.replace(commit, sessions=rows), lock_timeout_s=10.0,
-                     format_version=1)
+                     format_version=fmt)
         gc.Catalog(layout).tag(1, "golden")  # Catalog() skips the format check open() makes
+
+
+def write_v1(root: Path) -> None:
+    """A format-1 catalog at ``root`` (``write_golden(root, 1)``)."""
+    write_golden(root, 1)
 
 
 def pack(root: Path, archive: Path) -> None:
@@ -145,13 +179,19 @@ def unpack(archive: Path, dest: Path) -> Path:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--v1", type=Path, help="also write the format-1 catalog here")
+    parser.add_argument("--formats", type=int, nargs="+", default=list(GOLDEN_FORMATS),
+                        help="which golden catalogs to write again (their Delta logs and file "
+                             "names change, their content does not)")
+    parser.add_argument("--unpacked", type=Path, help="also write them unpacked here")
     args = parser.parse_args()
-    if args.v1:
-        write_v1(args.v1)
-    with tempfile.TemporaryDirectory() as tmp:
-        write_v1(Path(tmp) / "v1")
-        pack(Path(tmp) / "v1", HERE / "catalog_v1.tar.gz")
+    for fmt in args.formats:
+        if fmt not in GOLDEN_FORMATS or fmt > CATALOG_FORMAT_VERSION:
+            parser.error(f"format {fmt} has no golden catalog (formats {GOLDEN_FORMATS})")
+        if args.unpacked:
+            write_golden(args.unpacked / f"v{fmt}", fmt)
+        with tempfile.TemporaryDirectory() as tmp:
+            write_golden(Path(tmp) / f"v{fmt}", fmt)
+            pack(Path(tmp) / f"v{fmt}", archive(fmt))
     v0 = HERE / "catalog_v0"
     shutil.rmtree(v0, ignore_errors=True)
     v0.mkdir()
