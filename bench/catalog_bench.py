@@ -24,6 +24,7 @@ import zarr
 from deltalake import DeltaTable
 
 import graspcap.catalog as gc
+from graspcap.schemas.tables import SESSIONS_SCHEMA
 from graspcap.tasks.geometry import from_rotvec
 
 OBJECTS = {"mug": 2000, "drill": 3000, "bowl": 1500}
@@ -43,10 +44,7 @@ def make_build(ids: list[str], frames: int, seed: int, build_id: str) -> gc.Buil
             "steady_from": 10, "T_w_o_stage1": T, "T_adj": T, "T_w_p": T,
             "T_turntable_o_scan": T, "hand_scale": 1.0, "joint_angles_rad": rng.normal(size=20),
             "joints_w": rng.normal(size=63), "joints_fit_w": rng.normal(size=63),
-            **{q: float(rng.uniform()) for q in (
-                "qa_reproj_rmse_px", "qa_inlier_ratio", "qa_crosscheck_mm",
-                "qa_registration_rmse_mm", "qa_fit_residual_mm", "qa_penetration_max_mm",
-                "qa_penetration_mean_mm", "qa_contact_agreement", "qa_contact_coverage")},
+            **{q: float(rng.uniform()) for q in SESSIONS_SCHEMA.names if q.startswith("qa_")},
             "input_digest": f"{seed}-{i}", "code_version": "bench", "build_id": build_id,
             "config_digest": "c" * 64,
         })

@@ -1,15 +1,20 @@
 """Upgrade a catalog of an older format to the current one (``graspcap catalog migrate``).
 
-Format 1 -> 2: every Delta table gets ``DELTA_TABLE_PROPERTIES`` (expired-log cleanup off, so
-Delta never deletes the log entries old catalog versions are pinned to), and the columns format 2
-added (``sessions``: ``keypoint_backend``, ``keypoint_frames_detected``; nullable) are added to
-the Delta table's schema, so later commits validate; rows written before read them as null
+What the formats changed (docs/data_changelog.md): format 2 gave every Delta table
+``DELTA_TABLE_PROPERTIES`` (expired-log cleanup off, so Delta never deletes the log entries old
+catalog versions are pinned to) and added ``sessions.keypoint_backend`` and
+``keypoint_frames_detected``; format 3 added four ``qa_*`` columns to ``sessions``. Every added
+column is nullable. One upgrade serves every older format, in one go: it sets the properties
+where they differ, adds the columns the current schemas have and the Delta tables lack, and
+brings the columns' field metadata (docs, units; format 3 reworded ``qa_contact_agreement``'s)
+up to date, so later commits validate; rows written before read them as null
 (``graspcap.catalog.delta.read_files``). Setting a property or adding a column is a Delta
 commit, and a catalog version pins Delta versions, so the migration of a catalog that has
-versions appends one more catalog version (``build_id`` ``migrate-1-to-2``, same rows) pinning
-the new Delta versions; every earlier version and tag still reads what it read before. An empty
-catalog's tables are simply created again. ``catalog.json`` is restamped last, under the writer
-lock: a migration that dies half way leaves a format-1 catalog that ``migrate`` finishes.
+versions appends one more catalog version (``build_id`` ``migrate-<from>-to-<to>``, same rows)
+pinning the new Delta versions; every earlier version and tag still reads what it read before.
+An empty catalog's tables are simply created again. ``catalog.json`` is restamped last, under
+the writer lock: a migration that dies half way leaves a catalog of the old format that
+``migrate`` finishes (each change is idempotent).
 """
 
 from __future__ import annotations
@@ -68,8 +73,24 @@ def add_missing_columns(dt: DeltaTable, schema: pa.Schema) -> list[str]:
     return [f.name for f in missing]
 
 
-def _to_format_2(layout: CatalogLayout) -> int | None:
-    """Format 1 -> 2 under the writer lock (module docstring); the appended version or None."""
+def refresh_field_metadata(dt: DeltaTable, schema: pa.Schema) -> list[str]:
+    """Give the columns of Delta table ``dt`` the field metadata (``doc``, ``unit``, ...) they
+    have in ``schema`` (one Delta commit per column that differs); return their names. Delta
+    refuses a write whose field metadata disagrees with the table's ("Cannot merge metadata"),
+    so a format that rewords a column's doc refreshes it here."""
+    have = {f.name: dict(f.metadata or {}) for f in dt.schema().fields}
+    changed = []
+    for field in schema:
+        want = {k.decode(): v.decode() for k, v in (field.metadata or {}).items()}
+        if field.name in have and any(have[field.name].get(k) != v for k, v in want.items()):
+            dt.alter.set_column_metadata(field.name, want)
+            changed.append(field.name)
+    return changed
+
+
+def _upgrade(layout: CatalogLayout, found: int) -> int | None:
+    """Format ``found`` -> current under the writer lock (module docstring); the appended
+    version or None."""
     recover(layout)
     row = last_version_row(layout)
     if row is None:
@@ -86,20 +107,19 @@ def _to_format_2(layout: CatalogLayout) -> int | None:
             changed = True
         changed |= bool(add_missing_columns(DeltaTable(str(layout.table(name))),
                                             TABLE_SCHEMAS[name]))
+        changed |= bool(refresh_field_metadata(DeltaTable(str(layout.table(name))),
+                                               TABLE_SCHEMAS[name]))
     pinned = {name: delta_version(layout, name) for name in DATA_TABLES}
     if not changed and pinned == json.loads(row["table_versions"]):
         return None
     version = row["version"] + 1
     new_row = {**row, "version": version, "time_utc": datetime.now(UTC),
-               "build_id": "migrate-1-to-2", "format_version": 2,
+               "build_id": f"migrate-{found}-to-{CATALOG_FORMAT_VERSION}",
+               "format_version": CATALOG_FORMAT_VERSION,
                "table_versions": json.dumps(pinned, sort_keys=True)}
     write_deltalake(str(layout.table("versions")), to_table("versions", [new_row]),
                     mode="append")
     return version
-
-
-_STEPS = {1: _to_format_2}
-"""``{from format: step to the next format}``; every format in MIGRATIONS_FROM has one."""
 
 
 def migrate_catalog(uri: str | Path, out: str | Path | None = None, *,
@@ -132,9 +152,7 @@ def migrate_catalog(uri: str | Path, out: str | Path | None = None, *,
     new_version = None
     with writer_lock(layout, lock_timeout_s):
         current = read_format(layout)["format_version"]
-        while current < CATALOG_FORMAT_VERSION:
-            appended = _STEPS[current](layout)
-            new_version = appended if appended is not None else new_version
-            current += 1
-            write_format_file(layout, current)
+        if current < CATALOG_FORMAT_VERSION:
+            new_version = _upgrade(layout, current)
+            write_format_file(layout, CATALOG_FORMAT_VERSION)
     return MigrationReport(layout.root, found, CATALOG_FORMAT_VERSION, new_version)

@@ -24,7 +24,8 @@ from graspcap.tasks.qa_metrics import QaReport, qa_metrics
 IDENTITY_COLUMNS = ("participant", "object_id", "intent", "hand")
 QA_COLUMNS = ("reproj_rmse_px", "inlier_ratio", "crosscheck_mm", "registration_rmse_mm",
               "fit_residual_mm", "penetration_max_mm", "penetration_mean_mm",
-              "contact_agreement", "contact_coverage")
+              "contact_agreement", "contact_coverage", "window_outlier_share",
+              "crosscheck_camera_deg", "rgbd_discrepancy_mm", "fit_contact_agreement")
 """``qa_<name>`` columns of ``sessions``, filled from ``QaReport.metrics[<name>]``."""
 
 

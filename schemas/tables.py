@@ -26,7 +26,7 @@ from enum import StrEnum
 import numpy as np
 import pyarrow as pa
 
-CATALOG_FORMAT_VERSION = 2
+CATALOG_FORMAT_VERSION = 3
 """Bumped on any change of the tables' columns, their encodings, their Delta table properties or
 the Zarr layout (``docs/data_changelog.md``)."""
 
@@ -112,8 +112,23 @@ SESSIONS_SCHEMA = pa.schema([
     _qa("qa_fit_residual_mm", "Hand model fit residual.", "mm"),
     _qa("qa_penetration_max_mm", "Maximum hand-object penetration.", "mm"),
     _qa("qa_penetration_mean_mm", "Mean hand-object penetration.", "mm"),
-    _qa("qa_contact_agreement", "Contacted vertices within 5 mm of the hand (share).", "1"),
+    _qa("qa_contact_agreement", "Share of the contacted object vertices (seen by a thermal view, "
+        "contact >= 0.4) that the final hand (refined, else fitted) touches: within 3 mm of its "
+        "surface or inside it (hand_surface.contact_agreement; 0.4 and 3 mm are the stage "
+        "configs' defaults).", "1"),
     _qa("qa_contact_coverage", "Share of object vertices seen by a thermal view.", "1"),
+    _qa("qa_window_outlier_share", "Share of the keypoint detections stage 2 rejected as "
+        "outliers in the worst window of consecutive steady frames (8 by default; high: the "
+        "hand moved after the detected onset). Format 3; null on rows written before.", "1"),
+    _qa("qa_crosscheck_camera_deg", "Largest camera rotation discrepancy between GTSAM and "
+        "pycolmap on the same pixels-only problem. Format 3; null on rows written before.",
+        "deg"),
+    _qa("qa_rgbd_discrepancy_mm", "Largest joint difference between the RGB-D result and "
+        "pycolmap's pixels-only optimum, after a similarity. Format 3; null on rows written "
+        "before.", "mm"),
+    _qa("qa_fit_contact_agreement", "qa_contact_agreement of the stage-3 fit, before "
+        "refine_grasp drew the hand to the contact map (low: the video's hand and the thermal "
+        "scan disagree on the grasp). Format 3; null on rows written before.", "1"),
     _f("input_digest", _STR, "sha256 of the session's input bytes."),
     _f("code_version", _STR, "graspcap version (and git revision) that built the row."),
     _f("build_id", _STR, "Build that wrote the row (see the builds table)."),

@@ -46,7 +46,9 @@ def session_row(session_id: str, rng: np.random.Generator, *, status: str = "ok"
         row[name] = None if failed else _pose(rng)
     for name in ("qa_reproj_rmse_px", "qa_inlier_ratio", "qa_crosscheck_mm",
                  "qa_registration_rmse_mm", "qa_fit_residual_mm", "qa_penetration_max_mm",
-                 "qa_penetration_mean_mm", "qa_contact_agreement", "qa_contact_coverage"):
+                 "qa_penetration_mean_mm", "qa_contact_agreement", "qa_contact_coverage",
+                 "qa_window_outlier_share", "qa_crosscheck_camera_deg", "qa_rgbd_discrepancy_mm",
+                 "qa_fit_contact_agreement"):
         row[name] = None if failed else float(rng.uniform(0, 2))
     return row
 

@@ -18,6 +18,7 @@ from deltalake import DeltaTable
 import graspcap.catalog as gc
 from graspcap.catalog.commit import PAUSE_ENV, PAUSE_SIGNAL_ENV, writer_lock
 from graspcap.catalog.validate import to_table
+from graspcap.schemas.tables import CATALOG_FORMAT_VERSION
 from tests.catalog_factory import make_build
 from tests.conftest import REPO
 from tests.golden.make_golden import build as golden_build
@@ -238,10 +239,11 @@ def test_newer_format_says_upgrade_and_golden_build_reads_back(tmp_path):
     row = cat.table("sessions").to_pylist()[0]
     np.testing.assert_array_equal(np.reshape(row["T_w_p"], (4, 4)), e["T"])
     stamp = json.loads((root / "catalog.json").read_text())
-    assert stamp["format_version"] == 2
-    stamp["format_version"] = 3
+    assert stamp["format_version"] == CATALOG_FORMAT_VERSION
+    stamp["format_version"] = CATALOG_FORMAT_VERSION + 1
     (root / "catalog.json").write_text(json.dumps(stamp))
-    with pytest.raises(gc.CatalogFormatError, match=r"format 3.*upgrade graspcap"):
+    with pytest.raises(gc.CatalogFormatError,
+                       match=rf"format {CATALOG_FORMAT_VERSION + 1}.*upgrade graspcap"):
         gc.open(root)
 
 
@@ -293,7 +295,9 @@ CONTRACT = {
         **dict.fromkeys(["qa_reproj_rmse_px", "qa_inlier_ratio", "qa_crosscheck_mm",
                          "qa_registration_rmse_mm", "qa_fit_residual_mm",
                          "qa_penetration_max_mm", "qa_penetration_mean_mm",
-                         "qa_contact_agreement", "qa_contact_coverage"], pa.float64()),
+                         "qa_contact_agreement", "qa_contact_coverage",
+                         "qa_window_outlier_share", "qa_crosscheck_camera_deg",
+                         "qa_rgbd_discrepancy_mm", "qa_fit_contact_agreement"], pa.float64()),
     },
     "frames": {
         "session_id": pa.string(), "frame": pa.int64(),

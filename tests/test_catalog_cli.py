@@ -17,9 +17,9 @@ import pytest
 
 import graspcap.catalog as gc
 from graspcap.cli import main
+from graspcap.schemas.tables import CATALOG_FORMAT_VERSION
 from tests.catalog_factory import make_build
-from tests.conftest import REPO
-from tests.golden.make_golden import SESSION, expected, unpack
+from tests.golden.make_golden import GOLDEN_FORMATS, SESSION, archive, expected, unpack
 
 IDS_1 = ["p01-mug-use-00", "p02-drill-use-00", "p03-bowl-handoff-00"]
 FAILED = "p03-bowl-handoff-00"
@@ -150,8 +150,9 @@ def test_vacuum(tmp_path, capsys):
     assert not (tmp_path / "e").exists() and not (tmp_path / "e.partial").exists()
 
 
-def test_the_command_the_format_error_names_migrates(tmp_path):
-    src = unpack(REPO / "tests" / "golden" / "catalog_v1.tar.gz", tmp_path / "old")
+@pytest.mark.parametrize("fmt", GOLDEN_FORMATS)
+def test_the_command_the_format_error_names_migrates(tmp_path, fmt):
+    src = unpack(archive(fmt), tmp_path / "old")
     with pytest.raises(gc.CatalogFormatError) as info:
         gc.open(src)
     command = re.search(r"`(graspcap catalog migrate [^`]+)`", str(info.value)).group(1)
@@ -159,7 +160,7 @@ def test_the_command_the_format_error_names_migrates(tmp_path):
     done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=300,
                           env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert done.returncode == 0, done.stderr[-2000:]
-    assert "from format 1 to 2" in done.stdout
+    assert f"from format {fmt} to {CATALOG_FORMAT_VERSION}" in done.stdout
     values, observed = gc.open(src).contactmap(SESSION, "golden")
     np.testing.assert_array_equal(values, expected()["contact"])
     np.testing.assert_array_equal(observed, expected()["observed"])

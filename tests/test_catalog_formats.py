@@ -1,4 +1,5 @@
-"""Catalog formats: the golden format-1 catalog fails to open naming `migrate`, and migrates."""
+"""Catalog formats: the golden catalogs of formats 1 and 2 fail to open naming `migrate`, and
+migrate (old rows read the newer columns as null)."""
 
 from __future__ import annotations
 
@@ -21,9 +22,18 @@ from graspcap.schemas.tables import (
 )
 from tests.catalog_factory import make_build
 from tests.conftest import REPO
-from tests.golden.make_golden import FORMAT_2_COLUMNS, SESSION, expected, unpack, write_v1
+from tests.golden.make_golden import (
+    COLUMNS_ADDED,
+    GOLDEN_FORMATS,
+    SESSION,
+    added_after,
+    archive,
+    expected,
+    unpack,
+    write_golden,
+)
 
-ARCHIVE = REPO / "tests" / "golden" / "catalog_v1.tar.gz"
+ARCHIVE = archive(1)
 
 
 def _properties(root) -> dict[str, dict[str, str]]:
@@ -54,7 +64,7 @@ def _check_golden_content(cat: gc.Catalog, version) -> None:
 def test_current_format_tables_keep_their_delta_logs(tmp_path):
     gc.open(tmp_path / "cat", create=True)
     stamp = json.loads((tmp_path / "cat" / "catalog.json").read_text())
-    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 2
+    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 3
     for name, config in _properties(tmp_path / "cat").items():
         assert config == DELTA_TABLE_PROPERTIES, name
 
@@ -69,14 +79,15 @@ def test_golden_v1_fails_naming_migrate_then_migrated_copy_reads(tmp_path):
     before = _listing(src)
 
     report = migrate_catalog(src, tmp_path / "v2")
-    assert (report.from_format, report.to_format, report.new_version) == (1, 2, 2)
+    assert (report.from_format, report.to_format, report.new_version) == (1, 3, 2)
     assert _listing(src) == before  # source untouched (the copy is taken under its lock)
     with pytest.raises(gc.CatalogFormatError, match="migrate"):
         gc.open(src)
 
     cat = gc.open(tmp_path / "v2")
     assert cat.versions()["version"].to_pylist() == [1, 2]
-    assert cat.versions()["format_version"].to_pylist() == [1, 2]
+    assert cat.versions()["format_version"].to_pylist() == [1, 3]
+    assert cat.versions()["build_id"].to_pylist() == ["golden-1", "migrate-1-to-3"]
     assert cat.resolve("golden") == 1
     for version in ("golden", 2, None):
         _check_golden_content(cat, version)
@@ -95,7 +106,7 @@ def test_migrate_in_place_is_idempotent_and_refuses_what_it_cannot(tmp_path):
     src = unpack(ARCHIVE, tmp_path / "v1")
     assert migrate_catalog(src).new_version == 2
     again = migrate_catalog(src)
-    assert (again.from_format, again.new_version) == (2, None)
+    assert (again.from_format, again.new_version) == (3, None)
     _check_golden_content(gc.open(src), 2)
     with pytest.raises(gc.CatalogError, match="exists"):
         migrate_catalog(src, tmp_path / "v1")
@@ -120,19 +131,30 @@ def _delta_columns(root, name="sessions") -> list[str]:
     return [f.name for f in DeltaTable(str(root / "tables" / name)).schema().fields]
 
 
-def test_migrate_adds_format_2_columns_and_old_versions_read_them_as_null(tmp_path):
-    src = unpack(ARCHIVE, tmp_path / "v1")
-    new_cols = list(FORMAT_2_COLUMNS["sessions"])
+@pytest.mark.parametrize("fmt", GOLDEN_FORMATS)
+def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_path, fmt):
+    src = unpack(archive(fmt), tmp_path / f"v{fmt}")
+    assert json.loads((src / "catalog.json").read_text())["format_version"] == fmt
+    new_cols = list(added_after(fmt)["sessions"])
     assert not set(new_cols) & set(_delta_columns(src))  # the golden really lacks them
-    migrate_catalog(src)
-    assert _delta_columns(src)[-2:] == new_cols
+    assert set(COLUMNS_ADDED.get(fmt, {}).get("sessions", ())) <= set(_delta_columns(src))
+    with pytest.raises(gc.CatalogFormatError, match=rf"format {fmt}.*graspcap catalog migrate"):
+        gc.open(src)
+    report = migrate_catalog(src)
+    assert (report.from_format, report.to_format, report.new_version) == (fmt, 3, 2)
+    assert _delta_columns(src)[-len(new_cols):] == new_cols
+    assert sorted(_delta_columns(src)) == sorted(SESSIONS_SCHEMA.names)
     cat = gc.open(src)
+    assert cat.versions()["build_id"].to_pylist() == ["golden-1", f"migrate-{fmt}-to-3"]
     for version in (1, "golden", 2):  # pinned before, and made by, the migration
         old = cat.table("sessions", version)
         assert old.schema == SESSIONS_SCHEMA  # conformed on read (field docs included)
-        assert old["keypoint_backend"].to_pylist() == [None]
-        assert old["keypoint_frames_detected"].to_pylist() == [None]
+        for col in new_cols:
+            assert old[col].to_pylist() == [None], col
         assert old["session_id"].to_pylist() == [SESSION]
+        assert old["qa_contact_coverage"].to_pylist() == [0.5]  # the old QA values stay
+        if fmt >= 2:
+            assert old["keypoint_backend"].to_pylist() == ["openpose_json"]
     assert cat.diff(1, 2) == {"added": [], "removed": [], "changed": {}}
 
     # the next build validates against the migrated table; its version mixes files written
@@ -140,28 +162,31 @@ def test_migrate_adds_format_2_columns_and_old_versions_read_them_as_null(tmp_pa
     build = make_build(["p05-mug-use-00", "p06-bowl-use-00"], seed=5, build_id="after")
     assert cat.commit(build) == 3
     rows = {r["session_id"]: r for r in cat.table("sessions", 3).to_pylist()}
-    assert {s: r["keypoint_backend"] for s, r in rows.items()} == {
-        SESSION: None, "p05-mug-use-00": "openpose_json", "p06-bowl-use-00": "openpose_json"}
-    for r in build.sessions:
-        assert rows[r["session_id"]]["keypoint_frames_detected"] == r["keypoint_frames_detected"]
+    for col in new_cols:
+        assert rows[SESSION][col] is None, col
+        for r in build.sessions:
+            assert rows[r["session_id"]][col] == r[col] is not None, col
     files = cat.files("sessions", 3)
     assert len(files) == 2
     for order in (files, files[::-1]):
         some = gc.Catalog(cat.layout)
         some._files[("sessions", 3)] = order  # the read must not depend on the file order
-        assert some.table("sessions", 3, columns=["session_id", "keypoint_backend"])[
-            "keypoint_backend"].null_count == 1
-    assert cat.table("sessions", 1)["keypoint_backend"].to_pylist() == [None]
+        got = some.table("sessions", 3, columns=["session_id", *new_cols])
+        assert all(got[c].null_count == 1 for c in new_cols)
+    assert cat.table("sessions", 1)[new_cols[-1]].to_pylist() == [None]
     _check_golden_content(cat, 1)
 
 
-def test_golden_script_still_writes_format_1_columns(tmp_path):
-    golden = unpack(ARCHIVE, tmp_path / "golden")
-    write_v1(tmp_path / "fresh")
+@pytest.mark.parametrize("fmt", GOLDEN_FORMATS)
+def test_golden_script_still_writes_that_formats_columns(tmp_path, fmt):
+    golden = unpack(archive(fmt), tmp_path / "golden")
+    write_golden(tmp_path / "fresh", fmt)
     for name in TABLE_SCHEMAS:
         assert _delta_columns(tmp_path / "fresh", name) == _delta_columns(golden, name), name
-    assert set(FORMAT_2_COLUMNS["sessions"]) <= set(SESSIONS_SCHEMA.names)
-    assert "keypoint_backend" in TABLE_SCHEMAS["sessions"].names  # the swap was undone
+    assert _properties(tmp_path / "fresh") == _properties(golden)
+    for cols in added_after(fmt).values():
+        assert set(cols) <= set(SESSIONS_SCHEMA.names)
+        assert set(cols) <= set(TABLE_SCHEMAS["sessions"].names)  # the swap was undone
 
 
 def test_only_nullable_columns_can_be_added_to_existing_rows(tmp_path):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
+from graspcap.flows.rows import QA_COLUMNS
 from graspcap.tasks.drawing import decode_png
 from tests.flow_fixtures import (  # noqa: F401
     PRESET,
@@ -30,8 +31,32 @@ def test_pictures_are_written_and_rows_carry_the_qa_verdict(warm):
         assert contact.shape[1] > contact.shape[0] > 100
         assert r["status"] in ("ok", "flagged") and r["error"] is None
         for col in ("qa_reproj_rmse_px", "qa_penetration_max_mm", "qa_contact_agreement",
-                    "qa_contact_coverage"):
+                    "qa_contact_coverage", "qa_window_outlier_share", "qa_crosscheck_camera_deg",
+                    "qa_rgbd_discrepancy_mm", "qa_fit_contact_agreement"):
             assert r[col] is not None, col
+
+
+def test_every_qa_column_holds_its_qa_report_metric(warm):
+    """The ``qa_*`` columns (format 3: thirteen) are the QaReport's metrics of the row's
+    session, null exactly where the report has none."""
+    import pickle
+
+    catalog, _ = warm
+    reports = [pickle.loads(p.read_bytes())
+               for p in (catalog / "work" / "results" / "qa_metrics").glob("*.pkl")]
+    rows = gc.open(catalog).table("sessions").to_pylist()
+    assert len(rows) == 2 and len(reports) >= 2
+    assert len(QA_COLUMNS) == 13
+    assert {f"qa_{n}" for n in QA_COLUMNS} == {c for c in rows[0] if c.startswith("qa_")}
+    for r in rows:
+        report = next(q for q in reports
+                      if q.metrics["reproj_rmse_px"] == r["qa_reproj_rmse_px"])
+        assert str(report.verdict) == r["status"]
+        for name in QA_COLUMNS:
+            assert r[f"qa_{name}"] == report.metrics.get(name), name
+        for name in ("window_outlier_share", "crosscheck_camera_deg", "rgbd_discrepancy_mm",
+                     "fit_contact_agreement"):
+            assert name in report.metrics, name
 
 
 def test_a_qa_failed_session_is_a_failed_row_with_its_reasons(warm, synth_root, tmp_path):

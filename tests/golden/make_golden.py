@@ -46,6 +46,8 @@ HERE = Path(__file__).resolve().parent
 SESSION = "p01-cube-use-00"
 COLUMNS_ADDED: dict[int, dict[str, tuple[str, ...]]] = {
     2: {"sessions": ("keypoint_backend", "keypoint_frames_detected")},
+    3: {"sessions": ("qa_window_outlier_share", "qa_crosscheck_camera_deg",
+                     "qa_rgbd_discrepancy_mm", "qa_fit_contact_agreement")},
 }
 """``{format: {table: columns that format added}}`` (docs/data_changelog.md): a catalog of an
 older format lacks them."""
@@ -96,7 +98,8 @@ def build() -> gc.BuildCommit:
         **dict.fromkeys(["qa_reproj_rmse_px", "qa_inlier_ratio", "qa_crosscheck_mm",
                          "qa_registration_rmse_mm", "qa_fit_residual_mm",
                          "qa_penetration_max_mm", "qa_penetration_mean_mm",
-                         "qa_contact_agreement", "qa_contact_coverage"], 0.5),
+                         "qa_contact_agreement", "qa_contact_coverage",
+                         *COLUMNS_ADDED[3]["sessions"]], 0.5),
     }
     session = {k: v for k, v in session.items() if k in TABLE_SCHEMAS["sessions"].names}
     frames = {
