@@ -40,7 +40,7 @@ from graspcap.catalog.workarea import WorkArea
 from graspcap.flows.cached import reads_digest, session_files, session_id_of
 from graspcap.flows.progress import ProgressFn, Tracker, reporting_to
 from graspcap.flows.report import BuildReport, Outcome, SessionReport
-from graspcap.flows.rows import failed_row, session_rows
+from graspcap.flows.rows import NEWEST_COLUMNS, failed_row, predates_columns, session_rows
 from graspcap.flows.runtime import build_settings, task_runner, worker_api
 from graspcap.flows.session import InSession, Settled, failure_text, submit_session
 from graspcap.schemas.tables import Status
@@ -241,7 +241,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     previous = cat.latest_version()
     prev_rows = ({r["session_id"]: r for r in cat.table("sessions").select(
         ["session_id", "status", "input_digest", "config_digest", "steady_from",
-         "keypoint_backend"]).to_pylist()}
+         *NEWEST_COLUMNS]).to_pylist()}
         if previous is not None else {})
     attempts: dict[tuple[str, str], int] = {}
     for rec in work.executions(build_id):
@@ -283,9 +283,10 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                                          error=error, failed_stage=stage,
                                          kept_previous=good_prev, **info))
             continue
-        # a row from before a column existed (null backend) is rewritten from cached results
+        # a row from before a column existed (a migrated catalog's) is rewritten from cached
+        # results
         if (not ran and good_prev and prev["input_digest"] == common["input_digest"]
-                and prev["config_digest"] == cdigest and prev["keypoint_backend"] is not None):
+                and prev["config_digest"] == cdigest and not predates_columns(prev)):
             reports.append(SessionReport(outcome=Outcome.UNCHANGED, status=prev["status"],
                                          **info))
             continue

@@ -27,6 +27,17 @@ QA_COLUMNS = ("reproj_rmse_px", "inlier_ratio", "crosscheck_mm", "registration_r
               "contact_agreement", "contact_coverage", "window_outlier_share",
               "crosscheck_camera_deg", "rgbd_discrepancy_mm", "fit_contact_agreement")
 """``qa_<name>`` columns of ``sessions``, filled from ``QaReport.metrics[<name>]``."""
+NEWEST_COLUMNS = ("keypoint_backend", "qa_window_outlier_share", "qa_crosscheck_camera_deg",
+                  "qa_rgbd_discrepancy_mm", "qa_fit_contact_agreement")
+"""``sessions`` columns formats 2 and 3 added: :func:`predates_columns` reads them."""
+
+
+def predates_columns(row: Mapping[str, Any]) -> bool:
+    """Whether a ``sessions`` row with results was written before format 2's or 3's columns
+    existed (a migrated catalog's old rows): such a row has no keypoint backend, or none of
+    format 3's QA metrics (a row written since has ``qa_window_outlier_share`` whenever
+    stage 2 ran). The build rewrites it from the session's cached stage results."""
+    return row["keypoint_backend"] is None or all(row[c] is None for c in NEWEST_COLUMNS[1:])
 
 
 @dataclass(frozen=True)

@@ -77,3 +77,34 @@ def test_a_qa_failed_session_is_a_failed_row_with_its_reasons(warm, synth_root, 
     text = status_text(catalog)
     for r in rows:
         assert f"failed; pictures: {catalog.resolve() / 'pictures' / r['session_id']}" in text
+
+
+def test_rows_from_before_format_3_get_the_new_qa_columns_from_cached_results(
+        warm, synth_root, tmp_path):
+    """A migrated format-2 catalog's rows have null format-3 QA columns; the next build fills
+    them in without running a stage (the QaReports are in the work area)."""
+    import pyarrow as pa
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    cat = gc.open(catalog)
+    filled = cat.table("sessions")
+    old = filled
+    new_cols = ["qa_window_outlier_share", "qa_crosscheck_camera_deg", "qa_rgbd_discrepancy_mm",
+                "qa_fit_contact_agreement"]
+    for col in new_cols:
+        i = old.schema.get_field_index(col)
+        old = old.set_column(i, old.schema.field(i), pa.nulls(old.num_rows, old.schema[i].type))
+    v = cat.commit(gc.BuildCommit(gc.BuildInfo("pre-format-3", "old", "x" * 64), sessions=old,
+                                  frames=cat.table("frames")))
+    assert all(cat.table("sessions", v)[c].null_count == old.num_rows for c in new_cols)
+    report = build_dataset([synth_root], catalog, PRESET, build_id="fill3")
+    assert executions(catalog, "fill3") == []
+    assert report.catalog_version == v + 1 and len(report.changed) == old.num_rows
+    new = cat.table("sessions", v + 1).sort_by("session_id")
+    filled = filled.sort_by("session_id")
+    for col in new_cols:
+        assert new[col].null_count == 0, col
+        assert new[col].to_pylist() == filled[col].to_pylist(), col
+    again = build_dataset([synth_root], catalog, PRESET, build_id="noop3")
+    assert again.catalog_version is None and sorted(again.unchanged) == sorted(
+        r["session_id"] for r in new.to_pylist())
