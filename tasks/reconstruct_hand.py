@@ -16,7 +16,6 @@ the registered surface pins it to a few tenths (rig sessions: 1.6-2.2 deg -> 0.2
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -28,7 +27,6 @@ from graspcap.tasks.depth_scale import (
     estimate_scale,
 )
 from graspcap.tasks.errors import StageError
-from graspcap.tasks.geometry import inv_T
 from graspcap.tasks.sfm_depth_icp import (
     DepthFrame,
     DepthLink,
@@ -40,17 +38,19 @@ from graspcap.tasks.sfm_depth_icp import (
 from graspcap.tasks.sfm_depth_init import depth_initialisation
 from graspcap.tasks.sfm_init import Initialisation, initialise
 from graspcap.tasks.sfm_restart import solve_with_restarts
-from graspcap.tasks.sfm_sanity import implausibility
+from graspcap.tasks.sfm_result import HandReconstruction, SfmDiagnostics, assemble
+from graspcap.tasks.sfm_sanity import check_result
 from graspcap.tasks.sfm_solve import (
     STAGE,
     DepthUse,
     depth_scorer,
-    fill_poses,
-    rotation_span_deg,
     sample_depth,
     solve_rgbd,
     solve_visual,
 )
+
+__all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",
+           "STAGE_VERSION", "reconstruct_hand"]  # the result types live in sfm_result
 
 STAGE_VERSION = "reconstruct_hand/8"
 
@@ -155,71 +155,6 @@ PRESETS: dict[str, ReconstructConfig] = {
     "strict": ReconstructConfig(outlier_px=6.0, min_parallax_deg=5.0, min_frames=20),
     "paper": ReconstructConfig(depth_use=DepthUse.SCALE),
 }
-
-
-@dataclass(frozen=True)
-class SfmDiagnostics:
-    """How the solve went.
-
-    pair_frames : video frame indices of the initial pair; parallax_deg its median angle.
-    rounds : solves run; lm_iterations : iterations of the last; error_* : graph errors.
-    scale_samples / scale_inliers / scale_spread : see ``depth_scale.ScaleEstimate``.
-    T_w_c_init : (m, 4, 4) and joints_w_init : (21, 3), the initialisation in the output frame.
-    T_w_c_visual, joints_w_visual, inlier_visual : the reprojection-only solve (scaled, output
-        frame) and its inliers, the problem ``crosscheck_sfm`` hands to pycolmap.
-    depth_inlier : (m, 21) bool, observations whose depth reading fixed the scale.
-    range_factor : (m, 21) bool, observations whose depth reading entered the final solve as a
-        range factor (none with ``depth_use = scale``).
-    depth_links : (k, 2) int solve-frame pairs whose dense depth registration entered the
-        final solve (``depth_icp``).
-    """
-
-    pair_frames: tuple[int, int]
-    parallax_deg: float
-    rounds: int
-    lm_iterations: int
-    error_initial: float
-    error_final: float
-    scale_samples: int
-    scale_inliers: int
-    scale_spread: float
-    T_w_c_init: np.ndarray
-    joints_w_init: np.ndarray
-    T_w_c_visual: np.ndarray
-    joints_w_visual: np.ndarray
-    inlier_visual: np.ndarray
-    depth_inlier: np.ndarray
-    range_factor: np.ndarray
-    depth_links: np.ndarray
-    restarted_after: str = ""
-    """The reason the solve from the two-view start failed when the result comes from the
-    depth restart, else empty."""
-
-
-@dataclass(frozen=True)
-class HandReconstruction:
-    """Virtual cameras and the static hand, metric, ``T_w_c[0] = I``.
-
-    steady_from : first steady frame; frames : (m,) video frame indices.
-    T_w_c : (m, 4, 4); pose_valid : (m,) bool, False where the pose is interpolated.
-    joints_w : (21, 3) metres; joint_valid : (21,) bool, False (and NaN) if unreconstructed.
-    residuals_px : (m, 21), NaN for missing detections; inlier : (m, 21) bool.
-    reproj_rmse_px : RMS residual over inliers; inlier_ratio : inliers / detections.
-    scale_m_per_unit : metres per unit of the up-to-scale solve.
-    """
-
-    steady_from: int
-    frames: np.ndarray
-    T_w_c: np.ndarray
-    pose_valid: np.ndarray
-    joints_w: np.ndarray
-    joint_valid: np.ndarray
-    residuals_px: np.ndarray
-    inlier: np.ndarray
-    reproj_rmse_px: float
-    inlier_ratio: float
-    scale_m_per_unit: float
-    diagnostics: SfmDiagnostics
 
 
 def reconstruct_hand(
@@ -413,80 +348,9 @@ def _reconstruct(
     else:
         T_c_w, X = T_vis, X_vis
 
-    turn_deg = rotation_span_deg(T_c_w)
-    little = (
-        f"the hand turned only {turn_deg:.1f} deg relative to the camera from frame "
-        f"{steady_from} on: too little motion to triangulate the joints from; the participant "
-        "should turn the hand and object while holding the grasp"
-    )
-    if turn_deg < cfg.min_rotation_deg:
-        raise StageError(STAGE, f"{little} (need >= {cfg.min_rotation_deg:g} deg)")
-    n_inl = int((inlier & np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)[:, None]).sum())
-    reason = implausibility(
-        X,
-        T_c_w,
-        float(np.sqrt(np.mean(res[inlier] ** 2))) if inlier.any() else float("inf"),
-        n_inl / int(ok.sum()),
-        bone_range_m=cfg.bone_range_m,
-        distance_range_m=cfg.distance_range_m,
-        max_reproj_rmse_px=cfg.max_reproj_rmse_px,
-        min_inlier_ratio=cfg.min_inlier_ratio,
-    )
-    if reason:
-        raise StageError(
-            STAGE, reason if turn_deg >= cfg.little_rotation_deg else f"{reason}; likely cause: "
-            f"{little}",
-        )
-    T_c_w, pose_valid = fill_poses(T_c_w)
-    T_0_w = T_c_w[0].copy()
-
-    def to_output(T_c_w_any: np.ndarray, X_any: np.ndarray, factor: float = 1.0):
-        """Into the frame of the final camera 0 (so T_w_c[0] = I), metres."""
-        T_c_0 = T_c_w_any.copy()
-        T_c_0[:, :3, 3] *= factor
-        T_c_0 = T_c_0 @ inv_T(T_0_w)
-        return np.stack([inv_T(T) for T in T_c_0]), (factor * X_any) @ T_0_w[:3, :3].T + T_0_w[
-            :3, 3
-        ]
-
-    T_w_c, joints_w = to_output(T_c_w, X)
-    T_w_c[0] = np.eye(4)
-    T_w_c_init, joints_w_init = to_output(fill_poses(init.T_c_w)[0], init.points_w, s)
-    T_w_c_vis, joints_w_vis = to_output(fill_poses(T_vis)[0], X_vis)
-
-    residuals = np.where(ok, res, np.nan)
-    residuals[~pose_valid] = np.nan
-    inlier &= pose_valid[:, None]
-    n_inl = int(inlier.sum())
-    return HandReconstruction(
-        steady_from=int(steady_from),
-        frames=np.arange(steady_from, steady_from + m),
-        T_w_c=T_w_c,
-        pose_valid=pose_valid,
-        joints_w=joints_w,
-        joint_valid=np.all(np.isfinite(joints_w), axis=1),
-        residuals_px=residuals,
-        inlier=inlier,
-        reproj_rmse_px=float(np.sqrt(np.mean(res[inlier] ** 2))) if n_inl else float("nan"),
-        inlier_ratio=n_inl / int(ok.sum()),
-        scale_m_per_unit=s,
-        diagnostics=SfmDiagnostics(
-            pair_frames=(steady_from + pair.a, steady_from + pair.b),
-            parallax_deg=pair.parallax_deg,
-            rounds=rounds,
-            lm_iterations=ba.iterations,
-            error_initial=ba.error_initial,
-            error_final=ba.error_final,
-            scale_samples=scale.n_samples,
-            scale_inliers=scale.n_inliers,
-            scale_spread=scale.spread,
-            T_w_c_init=T_w_c_init,
-            joints_w_init=joints_w_init,
-            T_w_c_visual=T_w_c_vis,
-            joints_w_visual=joints_w_vis,
-            inlier_visual=inlier_vis,
-            depth_inlier=depth_inlier,
-            range_factor=range_used,
-            depth_links=np.array([(k.a, k.b) for k in links], dtype=int).reshape(-1, 2),
-        ),
+    check_result(cfg, X, T_c_w, res, inlier, ok, steady_from)
+    return assemble(
+        steady_from, T_c_w, X, res, ok, inlier, init=init, s=s, T_vis=T_vis, X_vis=X_vis,
+        inlier_vis=inlier_vis, rounds=rounds, ba=ba, scale=scale, depth_inlier=depth_inlier,
+        range_used=range_used, links=links,
     )

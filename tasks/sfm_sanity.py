@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from graspcap.tasks.errors import StageError
 from graspcap.tasks.hand_model import KEYPOINT_PARENTS
+from graspcap.tasks.sfm_solve import rotation_span_deg
 
 BONES: tuple[tuple[int, int], ...] = tuple(
     (p, j) for j, p in enumerate(KEYPOINT_PARENTS) if p >= 0
@@ -74,3 +76,41 @@ def implausibility(
             "the keypoints are not those of one static hand"
         )
     return ""
+
+
+def check_result(
+    cfg, X: np.ndarray, T_c_w: np.ndarray, res: np.ndarray, inlier: np.ndarray, ok: np.ndarray,
+    steady_from: int, stage: str = "reconstruct_hand",
+) -> None:
+    """Raise a ``StageError`` naming the reason when a solve of ``reconstruct_hand`` (its
+    ``ReconstructConfig`` as ``cfg``) turned too little or is implausible (``implausibility``).
+
+    X : (21, 3) joints; T_c_w : (m, 4, 4) poses (NaN rows unposed); res : (m, 21) pixel
+    residuals; inlier, ok : (m, 21) inlier and usable observations.
+    """
+    m = len(T_c_w)
+    turn_deg = rotation_span_deg(T_c_w)
+    little = (
+        f"the hand turned only {turn_deg:.1f} deg relative to the camera from frame "
+        f"{steady_from} on: too little motion to triangulate the joints from; the participant "
+        "should turn the hand and object while holding the grasp"
+    )
+    if turn_deg < cfg.min_rotation_deg:
+        raise StageError(stage, f"{little} (need >= {cfg.min_rotation_deg:g} deg)")
+    n_inl = int((inlier & np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)[:, None]).sum())
+    reason = implausibility(
+        X,
+        T_c_w,
+        float(np.sqrt(np.mean(res[inlier] ** 2))) if inlier.any() else float("inf"),
+        n_inl / int(ok.sum()),
+        bone_range_m=cfg.bone_range_m,
+        distance_range_m=cfg.distance_range_m,
+        max_reproj_rmse_px=cfg.max_reproj_rmse_px,
+        min_inlier_ratio=cfg.min_inlier_ratio,
+    )
+    if reason:
+        raise StageError(
+            stage, reason if turn_deg >= cfg.little_rotation_deg else f"{reason}; likely cause: "
+            f"{little}",
+        )
+
