@@ -373,6 +373,11 @@ def run_stage(
     return stage.run(upstream["load_session"], config, **{k: upstream[k] for k in stage.upstream})
 
 
+NOTES = "notes"
+"""Key of :func:`run_session`'s results holding its notes (a tuple of str), beside the
+stages' names."""
+
+
 def run_session(
     session_dir: Path | str,
     configs: Mapping[str, StageConfig] | None = None,
@@ -380,13 +385,25 @@ def run_session(
 ) -> dict[str, Any]:
     """Every stage of one session, bare and in order; the results by stage name.
 
-    When ``timings_s`` is given it receives each stage's wall time in seconds.
+    A failing stage raises (``StageError`` with its reason), except an aid stage
+    (``AID_STAGES``: pictures), which fails as it does in a build: its result is left out and
+    ``results[NOTES]`` (always there; empty when nothing failed) says why. When ``timings_s``
+    is given it receives each stage's wall time in seconds.
     """
     configs = configs or configs_for()
     results: dict[str, Any] = {}
+    notes: list[str] = []
     for name, stage in STAGES.items():
         t0 = time.perf_counter()
-        results[name] = run_stage(stage, session_dir, configs[name], results)
+        try:
+            results[name] = run_stage(stage, session_dir, configs[name], results)
+        except Exception as exc:
+            if name not in AID_STAGES:
+                raise
+            why = (str(exc) if isinstance(exc, StageError)
+                   else f"{name}: {type(exc).__name__}: {exc}")
+            notes.append(f"{why} (a QA aid: the session's results stand without it)")
         if timings_s is not None:
             timings_s[name] = time.perf_counter() - t0
+    results[NOTES] = tuple(notes)
     return results
