@@ -3,10 +3,13 @@
     .venv/bin/python bench/qa_calibration.py [--realistic 20] [--hard 6] [--out /tmp/qa_cal]
     .venv/bin/python bench/qa_calibration.py --fresh   # re-run the stages (after code changes)
     .venv/bin/python bench/qa_calibration.py --cached-only   # re-judge the pickled sessions
+    .venv/bin/python bench/qa_calibration.py --seed 9000 --hard 0 --realistic 12 --frames 120 \
+        --out /tmp/qa_acc120   # the independent check: bench/accuracy.py's sessions
 
 Sessions are generated with seeds ``[9400, i]`` (realistic) and ``[9401, i]`` (hard), disjoint
-from the tests' and from ``bench/accuracy.py``'s (9000); their lengths cycle through
-``--frames`` (60, 90, 120). Every stage but ``pictures`` runs bare, in the order of
+from the tests' and from ``bench/accuracy.py``'s (9000; ``--seed 9000`` judges those sessions
+instead, the independent check of limits set here: never tune on them); their lengths cycle
+through ``--frames`` (60, 90, 120). Every stage but ``pictures`` runs bare, in the order of
 ``tasks.pipeline.STAGES``; the stage results are pickled under ``--out``, and a later run
 re-uses them (unless ``--fresh``), re-running only ``qa_metrics`` (the current code and
 preset) on them.
@@ -91,19 +94,19 @@ def _cache(out: Path, session_dir: Path) -> Path:
 
 
 def collect(out: Path, counts: dict[str, int], frames: tuple[int, ...], fresh: bool,
-            cached_only: bool = False) -> list[dict[str, Any]]:
+            cached_only: bool = False, seeds: dict[str, int] = SEEDS) -> list[dict[str, Any]]:
     rows = []
     for difficulty, n in counts.items():
         cfg_by_len = {f: config_for(difficulty, f) for f in frames}
         for i in range(n):
             length = frames[i % len(frames)]
             root = out / "sessions" / difficulty
-            done = sorted(root.glob(f"synth-s{SEEDS[difficulty]}-{i:03d}-*"))
+            done = sorted(root.glob(f"synth-s{seeds[difficulty]}-{i:03d}-*"))
             if cached_only and not (done and _cache(out, done[0]).exists()):
                 continue
             try:
                 d = (done[0] if done and (done[0] / "ground_truth").exists() else
-                     generate_session(root, [SEEDS[difficulty], i], cfg_by_len[length], None))
+                     generate_session(root, [seeds[difficulty], i], cfg_by_len[length], None))
             except StageError:
                 print(f"{difficulty} {i}: the rig could not stage this seed, skipped")
                 continue
@@ -182,10 +185,13 @@ def main() -> None:
                         help="re-run the stages even where pickled results exist")
     parser.add_argument("--cached-only", action="store_true",
                         help="only the sessions with pickled results (re-judge them)")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="first seed of every difficulty (default: 9400 realistic, 9401 hard)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    seeds = SEEDS if args.seed is None else dict.fromkeys(SEEDS, args.seed)
     rows = collect(args.out, {"hard": args.hard, "realistic": args.realistic},
-                   tuple(args.frames), args.fresh, args.cached_only)
+                   tuple(args.frames), args.fresh, args.cached_only, seeds)
     summary(rows)
     name = "qa_calibration_cached.csv" if args.cached_only else "qa_calibration.csv"
     write_csv(rows, args.out / name)
