@@ -29,9 +29,10 @@ from enum import StrEnum
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
+from graspcap.tasks.adjustment_region import grow_mask, near_hand
 from graspcap.tasks.config import StageConfig
+from graspcap.tasks.depth_agreement import views_agreement
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T, rotation_error_deg
 from graspcap.tasks.registration import (
@@ -48,7 +49,6 @@ from graspcap.tasks.registration import (
     to_pcd,
     valid_depth,
 )
-from graspcap.tasks.render import render
 
 STAGE_VERSION = "estimate_adjustment/6"
 STAGE = "estimate_adjustment"
@@ -215,87 +215,6 @@ def hand_mask_from_keypoints(
     return mask.astype(bool)
 
 
-def _score(
-    views: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
-    K: np.ndarray,
-    mesh: tuple[np.ndarray, np.ndarray],
-    T_w_o: np.ndarray,
-    tol_m: float,
-) -> tuple[float, float, int]:
-    """Does the depth show the object at ``T_w_o``? In every view ``(depth (h, w), keep
-    (h, w), T_ref_c (4, 4))`` renders the mesh at ``inv(T_ref_c) @ T_w_o``; over the pixels
-    where it is visible, ``keep`` is True (the hand is masked out) and the depth valid, a
-    pixel agrees when ``|depth - rendered| <= tol_m``. Depth further away means the camera
-    sees through where the object would be; nearer depth means something unmasked covers it
-    (or the pose is inside another surface): both count against the pose. Returns (agreeing
-    share, RMS depth difference of the agreeing pixels, pixels judged), over all views."""
-    n = n_agree = 0
-    sq = 0.0
-    for depth, keep, T_ref_c in views:
-        h, w = depth.shape
-        hits = render([mesh], [inv_T(T_ref_c) @ T_w_o], K, w, h)
-        seen = (hits.mesh_index == 0) & keep & (depth > 0)
-        diff = depth[seen] - hits.depth_m[seen]
-        agree = np.abs(diff) <= tol_m
-        n += int(seen.sum())
-        n_agree += int(agree.sum())
-        sq += float(np.sum(diff[agree] ** 2))
-    if n == 0 or n_agree == 0:
-        return 0.0, 0.0, n
-    return n_agree / n, float(np.sqrt(sq / n_agree)), n
-
-
-def _largest_cluster(points: np.ndarray, cfg: EstimateAdjustmentConfig) -> np.ndarray:
-    """The hand's own points (k, 3) among the masked pixels' ``points`` (n, 3): the largest
-    Euclidean cluster. The mask's rim and the gaps between fingers also hold pixels of the
-    table or platter behind the hand; counted as hand, they would make the background
-    "touch" it."""
-    down = to_pcd(points).voxel_down_sample(cfg.cluster_voxel_m)
-    labels = np.asarray(down.cluster_dbscan(cfg.cluster_eps_m, 4))
-    pts = np.asarray(down.points)
-    if not (labels >= 0).any():
-        return pts
-    return pts[labels == np.bincount(labels[labels >= 0]).argmax()]
-
-
-def _near_hand(
-    points: np.ndarray, hand_pts: np.ndarray, radius_m: float, cfg: EstimateAdjustmentConfig
-) -> np.ndarray:
-    """The points near the hand that may be the object: the Euclidean clusters no wider than
-    the object (every point within ``radius_m`` + margin of the cluster's centroid) that come
-    within ``radius_m`` + margin of the hand (the hand splits the object into pieces, so
-    several; the table and platter are wider or further), else the cluster nearest the hand.
-    Pieces of the hand the mask missed are kept too: registration treats them as outliers."""
-    if len(hand_pts) < cfg.min_hand_points:
-        return points
-    tree = cKDTree(_largest_cluster(hand_pts, cfg))
-    reach = radius_m + cfg.region_margin_m
-    # clusters on the voxel grid; full-resolution points only inside the kept clusters' box
-    # (KD queries of a whole frame's points cost seconds)
-    grid = np.asarray(to_pcd(points).voxel_down_sample(cfg.cluster_voxel_m).points)
-    pts = grid[tree.query(grid, k=1)[0] <= 2 * reach]
-    if len(pts) == 0:
-        return points[:0]
-    labels = np.asarray(to_pcd(pts).cluster_dbscan(cfg.cluster_eps_m, 4))
-    clustered = labels >= 0
-    if not clustered.any():
-        kept = pts
-    else:
-        gap = tree.query(pts, k=1)[0]
-        object_like = []
-        for label in range(labels.max() + 1):
-            piece = labels == label
-            width = np.linalg.norm(pts[piece] - pts[piece].mean(0), axis=1).max()
-            if width <= reach and gap[piece].min() <= reach:
-                object_like.append(label)
-        touching = object_like or labels[clustered][[np.argmin(gap[clustered])]]
-        kept = pts[np.isin(labels, touching)]
-    tol = cfg.cluster_voxel_m * 1.5
-    box = np.all((points >= kept.min(0) - tol) & (points <= kept.max(0) + tol), axis=1)
-    cand = points[box]
-    return cand[cKDTree(kept).query(cand, k=1)[0] <= tol]
-
-
 def estimate_adjustment(
     depth_m: np.ndarray,
     K: np.ndarray,
@@ -336,7 +255,7 @@ def estimate_adjustment(
     hand = np.asarray(hand_mask, bool)
     if hand.shape != depth.shape:
         raise StageError(STAGE, f"hand mask has shape {hand.shape}, depth {depth.shape}")
-    views = [(depth, ~_grown(hand, config), np.eye(4))]
+    views = [(depth, ~grow_mask(hand, config.mask_dilate_px), np.eye(4))]
     n = len(cloud_from_depth(depth, K, views[0][1]))
     if n < config.min_points:
         raise StageError(STAGE, f"only {n} depth points outside the hand mask")
@@ -379,7 +298,8 @@ def estimate_adjustment(
     for v in other_views():  # carried into this frame by the virtual cameras
         hands.append(np.asarray(v.hand_mask, bool))
         d = valid_depth(v.depth_m, config.max_range_m)
-        views.append((d, ~_grown(hands[-1], config), np.asarray(v.T_ref_c, float)))
+        keep = ~grow_mask(hands[-1], config.mask_dilate_px)
+        views.append((d, keep, np.asarray(v.T_ref_c, float)))
     if len(views) == 1:
         if single is None:
             raise failed
@@ -390,7 +310,7 @@ def estimate_adjustment(
         if single is None:
             raise failed from None
         return single
-    if single is None or multi.fitness > config.views_margin + _score(
+    if single is None or multi.fitness > config.views_margin + views_agreement(
         views, K, mesh, single.T_w_o, config.agree_tol_m
     )[0]:
         return multi
@@ -407,13 +327,6 @@ def spread_frames(pose_valid: np.ndarray, ref: int, count: int) -> list[int]:
     pick = np.unique(np.round(np.linspace(0, len(posed) - 1, count + 1)[1:]).astype(int))
     return [int(posed[i]) for i in pick]
 
-
-def _grown(hand: np.ndarray, config: EstimateAdjustmentConfig) -> np.ndarray:
-    """The hand mask (h, w) grown by ``mask_dilate_px``."""
-    if config.mask_dilate_px <= 0:
-        return hand
-    k = 2 * config.mask_dilate_px + 1
-    return cv2.dilate(hand.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
 
 
 @dataclass(frozen=True)
@@ -446,7 +359,7 @@ def _from_hypothesis(
     reach1 = np.linalg.norm(points - centre1, axis=1) <= model.radius_m + config.stage1_reach_m
     scene_all = to_pcd(points[reach1])
     first = refine(scene_all, model, inv_T(T_w_o1), cfg, "stage1")
-    fit, rmse, n = _score(views, K, mesh, inv_T(first.T_o_s), config.agree_tol_m)
+    fit, rmse, n = views_agreement(views, K, mesh, inv_T(first.T_o_s), config.agree_tol_m)
     if n >= config.min_points and fit >= config.accept_fitness:
         T_w_o = inv_T(first.T_o_s)
         return Adjustment(
@@ -454,7 +367,7 @@ def _from_hypothesis(
         )
 
     # Path 2: global registration on the depth around the hand.
-    region = _near_hand(points, hand_pts, model.radius_m, config)
+    region = near_hand(points, hand_pts, model.radius_m, config)
     if len(region) < config.min_points:
         raise StageError(
             STAGE, f"only {len(region)} depth points near the hand: the object is not in view"
@@ -472,7 +385,7 @@ def _from_hypothesis(
         rotation_error_deg(c.T_o_s, chosen.T_o_s) >= cfg.ambiguity_min_deg for c in equal
     )
     T_w_o = inv_T(chosen.T_o_s)
-    fit, rmse, n = _score(views, K, mesh, T_w_o, config.agree_tol_m)
+    fit, rmse, n = views_agreement(views, K, mesh, T_w_o, config.agree_tol_m)
     if n < config.min_points or fit < config.min_fitness:
         raise StageError(
             STAGE,

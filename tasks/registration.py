@@ -8,10 +8,11 @@ share of observed points explained by the model". The transforms returned
 here are therefore ``T_o_s`` (scene frame into object frame); stages invert
 them into ``T_s_o``.
 
-Pipeline pieces: cloud from depth, crop to the platter, FPFH features,
-RANSAC global registration with restarts, coarse-to-fine point-to-plane ICP,
-and a symmetry check that re-runs ICP from the best pose turned about the
-model's principal axes.
+Pipeline pieces: FPFH features, RANSAC global registration with restarts,
+coarse-to-fine point-to-plane ICP, and a symmetry check that re-runs ICP from
+the best pose turned about the model's principal axes. Clouds from depth and the
+platter crop are in :mod:`point_clouds`, the rendered-depth check in
+:mod:`depth_agreement`.
 """
 
 from __future__ import annotations
@@ -26,14 +27,24 @@ import trimesh
 from pydantic import model_validator
 
 from graspcap.tasks.config import StageConfig
-from graspcap.tasks.geometry import (
-    depth_to_points,
-    inv_T,
-    make_T,
-    rotation_error_deg,
-    transform_points,
+from graspcap.tasks.depth_agreement import depth_agreement
+from graspcap.tasks.geometry import inv_T, make_T, rotation_error_deg, transform_points
+from graspcap.tasks.point_clouds import (
+    PlatterCrop,
+    cloud_from_depth,
+    crop_platter,
+    estimate_normals,
+    to_pcd,
+    valid_depth,
 )
-from graspcap.tasks.render import render
+
+__all__ = [  # the cloud helpers and the depth agreement are re-exported for the stages
+    "Ambiguity", "Candidate", "Model", "PlatterCrop", "RegistrationConfig", "about_axis",
+    "as_good_as", "cloud_from_depth", "crop_platter", "depth_agreement", "distinct_from",
+    "estimate_normals", "evaluate", "fpfh", "prepare_model", "prepare_scene", "probe_symmetry",
+    "rank", "ransac", "refine", "register", "strided", "surface_distance", "tls_cost", "to_pcd",
+    "valid_depth",
+]  # fmt: skip
 
 reg = o3d.pipelines.registration
 
@@ -96,21 +107,6 @@ class RegistrationConfig(StageConfig):
         return self
 
 
-class PlatterCrop(StageConfig):
-    """The space over the platter where the object is looked for (turntable frame)."""
-
-    radius_m: float = 0.15
-    """Radius of the platter's top surface."""
-    margin_m: float = 0.03
-    """Kept beyond the platter's rim (objects overhanging it)."""
-    min_height_m: float = 0.004
-    """Points at most this high over the platter top are the platter itself and dropped."""
-    max_height_m: float = 0.35
-    """Points higher than this over the platter are not the object."""
-    max_range_m: float = 3.0
-    """Depth beyond this is treated as invalid."""
-
-
 @dataclass(frozen=True)
 class Candidate:
     """One registration hypothesis.
@@ -160,50 +156,6 @@ class Model:
     axes: np.ndarray
     radius_m: float
     surface: o3d.t.geometry.RaycastingScene
-
-
-def to_pcd(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
-    """Open3D cloud from ``points`` (n, 3) and optional ``normals`` (n, 3)."""
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
-    if normals is not None:
-        pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=float))
-    return pcd
-
-
-def valid_depth(depth_m: np.ndarray, max_range_m: float) -> np.ndarray:
-    """Depth (h, w) with non-finite, negative and beyond-range values set to 0."""
-    d = np.asarray(depth_m, dtype=float)
-    if d.ndim != 2:
-        raise ValueError(f"depth has shape {d.shape}, expected (h, w)")
-    return np.where(np.isfinite(d) & (d > 0) & (d <= max_range_m), d, 0.0)
-
-
-def cloud_from_depth(
-    depth_m: np.ndarray, K: np.ndarray, keep: np.ndarray | None = None
-) -> np.ndarray:
-    """Camera-frame points (n, 3) of the valid pixels of ``depth_m`` (h, w), optionally only
-    where the boolean image ``keep`` (h, w) is True."""
-    d = depth_m if keep is None else np.where(keep, depth_m, 0.0)
-    return depth_to_points(d, np.asarray(K, dtype=float))[0]
-
-
-def crop_platter(
-    depth_m: np.ndarray, K: np.ndarray, T_color_turntable: np.ndarray, crop: PlatterCrop
-) -> np.ndarray:
-    """Colour-frame points (n, 3) of the valid pixels of ``depth_m`` (h, w) that lie over the
-    platter (turntable frame: origin at the centre of its top, z up)."""
-    pts_c = cloud_from_depth(valid_depth(depth_m, crop.max_range_m), K)
-    pts_t = transform_points(inv_T(np.asarray(T_color_turntable, float)), pts_c)
-    r = np.linalg.norm(pts_t[:, :2], axis=1)
-    z = pts_t[:, 2]
-    keep = (r <= crop.radius_m + crop.margin_m) & (z >= crop.min_height_m)
-    return pts_c[keep & (z <= crop.max_height_m)]
-
-
-def estimate_normals(pcd: o3d.geometry.PointCloud, radius_m: float, viewpoint: np.ndarray) -> None:
-    """Normals by local PCA (in place), oriented towards ``viewpoint`` (3,)."""
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=30))
-    pcd.orient_normals_towards_camera_location(np.asarray(viewpoint, dtype=float))
 
 
 def fpfh(pcd: o3d.geometry.PointCloud, cfg: RegistrationConfig) -> reg.Feature:
@@ -356,62 +308,6 @@ def _settled(refined: list[Candidate], cfg: RegistrationConfig) -> bool:
         for i, a in enumerate(refined)
         for b in refined[i + 1 :]
     )
-
-
-def _image_box(
-    K: np.ndarray, points_c: np.ndarray, width: int, height: int
-) -> tuple[int, int, int, int]:
-    """Pixel box (u0, v0, u1, v1), end exclusive, within the image, holding every pixel whose
-    centre ray can hit the convex hull of ``points_c`` (n, 3) (camera frame); the whole image
-    when a point is not in front of the camera."""
-    if not np.all(points_c[:, 2] > 1e-9):
-        return 0, 0, width, height
-    uv = points_c[:, :2] / points_c[:, 2:] * np.diag(K)[:2] + K[:2, 2]
-    lo = np.floor(uv.min(axis=0)).astype(int) - 1
-    hi = np.ceil(uv.max(axis=0)).astype(int) + 2
-    return (
-        int(np.clip(lo[0], 0, width)), int(np.clip(lo[1], 0, height)),
-        int(np.clip(hi[0], 0, width)), int(np.clip(hi[1], 0, height)),
-    )  # fmt: skip
-
-
-def depth_agreement(
-    depth_m: np.ndarray,
-    K: np.ndarray,
-    mesh: tuple[np.ndarray, np.ndarray],
-    T_c_o: np.ndarray,
-    tol_m: float,
-    keep: np.ndarray | None = None,
-) -> tuple[float, float, int]:
-    """Does the depth (h, w) show the mesh (vertices (n, 3), faces (m, 3)) at ``T_c_o``?
-
-    The mesh is rendered; over the pixels where it is visible, the depth valid and ``keep``
-    (h, w) bool True (all when None), a pixel agrees when ``|depth - rendered| <= tol_m``.
-    Depth further away means the camera sees through where the model would be (a handle
-    placed where there is none); nearer depth means something covers it: both count against
-    the pose. Unlike a nearest-neighbour fitness, this penalises model surface that the depth
-    does not show. Returns (agreeing share, RMS depth difference of the agreeing pixels,
-    pixels judged).
-    """
-    h, w = depth_m.shape
-    T_c_o = np.asarray(T_c_o, float)
-    K = np.asarray(K, float)
-    u0, v0, u1, v1 = _image_box(K, transform_points(T_c_o, mesh[0]), w, h)
-    if u1 <= u0 or v1 <= v0:
-        return 0.0, 0.0, 0
-    K_box = K.copy()  # rays through the pixels of the box only: identical rays, fewer
-    K_box[:2, 2] -= (u0, v0)
-    hits = render([mesh], [T_c_o], K_box, u1 - u0, v1 - v0)
-    depth_m = depth_m[v0:v1, u0:u1]
-    seen = (hits.mesh_index == 0) & (depth_m > 0)
-    if keep is not None:
-        seen &= keep[v0:v1, u0:u1]
-    diff = depth_m[seen] - hits.depth_m[seen]
-    agree = np.abs(diff) <= tol_m
-    n = int(seen.sum())
-    if n == 0 or not agree.any():
-        return 0.0, 0.0, n
-    return float(agree.sum() / n), float(np.sqrt(np.mean(diff[agree] ** 2))), n
 
 
 def tls_cost(c: Candidate, distance_m: float) -> float:

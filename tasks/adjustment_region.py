@@ -1,0 +1,83 @@
+"""Where the held object can be in a steady frame: the depth around the hand.
+
+Used by :mod:`estimate_adjustment`: the hand's own points (its largest Euclidean cluster),
+the clusters near it that are no wider than the object, the grown hand mask.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from graspcap.tasks.point_clouds import to_pcd
+
+
+class RegionConfig(Protocol):
+    """The settings :func:`near_hand` reads (fields of ``EstimateAdjustmentConfig``)."""
+
+    min_hand_points: int
+    region_margin_m: float
+    cluster_voxel_m: float
+    cluster_eps_m: float
+
+
+def hand_cluster(points: np.ndarray, voxel_m: float, eps_m: float) -> np.ndarray:
+    """The hand's own points (k, 3) among the masked pixels' ``points`` (n, 3): the largest
+    Euclidean cluster. The mask's rim and the gaps between fingers also hold pixels of the
+    table or platter behind the hand; counted as hand, they would make the background
+    "touch" it."""
+    down = to_pcd(points).voxel_down_sample(voxel_m)
+    labels = np.asarray(down.cluster_dbscan(eps_m, 4))
+    pts = np.asarray(down.points)
+    if not (labels >= 0).any():
+        return pts
+    return pts[labels == np.bincount(labels[labels >= 0]).argmax()]
+
+
+def near_hand(
+    points: np.ndarray, hand_pts: np.ndarray, radius_m: float, cfg: RegionConfig
+) -> np.ndarray:
+    """The points near the hand that may be the object: the Euclidean clusters no wider than
+    the object (every point within ``radius_m`` + margin of the cluster's centroid) that come
+    within ``radius_m`` + margin of the hand (the hand splits the object into pieces, so
+    several; the table and platter are wider or further), else the cluster nearest the hand.
+    Pieces of the hand the mask missed are kept too: registration treats them as outliers."""
+    if len(hand_pts) < cfg.min_hand_points:
+        return points
+    tree = cKDTree(hand_cluster(hand_pts, cfg.cluster_voxel_m, cfg.cluster_eps_m))
+    reach = radius_m + cfg.region_margin_m
+    # clusters on the voxel grid; full-resolution points only inside the kept clusters' box
+    # (KD queries of a whole frame's points cost seconds)
+    grid = np.asarray(to_pcd(points).voxel_down_sample(cfg.cluster_voxel_m).points)
+    pts = grid[tree.query(grid, k=1)[0] <= 2 * reach]
+    if len(pts) == 0:
+        return points[:0]
+    labels = np.asarray(to_pcd(pts).cluster_dbscan(cfg.cluster_eps_m, 4))
+    clustered = labels >= 0
+    if not clustered.any():
+        kept = pts
+    else:
+        gap = tree.query(pts, k=1)[0]
+        object_like = []
+        for label in range(labels.max() + 1):
+            piece = labels == label
+            width = np.linalg.norm(pts[piece] - pts[piece].mean(0), axis=1).max()
+            if width <= reach and gap[piece].min() <= reach:
+                object_like.append(label)
+        touching = object_like or labels[clustered][[np.argmin(gap[clustered])]]
+        kept = pts[np.isin(labels, touching)]
+    tol = cfg.cluster_voxel_m * 1.5
+    box = np.all((points >= kept.min(0) - tol) & (points <= kept.max(0) + tol), axis=1)
+    cand = points[box]
+    return cand[cKDTree(kept).query(cand, k=1)[0] <= tol]
+
+
+def grow_mask(mask: np.ndarray, dilate_px: int) -> np.ndarray:
+    """The boolean image ``mask`` (h, w) grown by ``dilate_px`` pixels."""
+    if dilate_px <= 0:
+        return mask
+    k = 2 * dilate_px + 1
+    return cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
