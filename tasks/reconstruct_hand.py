@@ -52,7 +52,7 @@ from graspcap.tasks.sfm_solve import (
 __all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",
            "STAGE_VERSION", "reconstruct_hand"]  # the result types live in sfm_result
 
-STAGE_VERSION = "reconstruct_hand/8"
+STAGE_VERSION = "reconstruct_hand/9"
 
 
 class ReconstructConfig(StageConfig):
@@ -87,6 +87,11 @@ class ReconstructConfig(StageConfig):
     visual_relative_tol: float = 1e-7
     """Levenberg-Marquardt's relative error decrease at which each reprojection-only solve
     stops when range factors follow."""
+    robust_relative_tol: float = 1e-3
+    """Relative error decrease at which the first, Huber-weighted solve stops: it only sorts
+    the detections into inliers and outliers, and the inliers' plain solve that follows
+    converges from it (under the Huber loss LM reweights every iteration and crawls: 35-55
+    iterations to 1e-7, 10-15 to 1e-3, the same outliers)."""
     scale_prior_rel: float = 1e-3
     """Relative sigma of the soft prior holding the distance between the initial pair's cameras
     in the reprojection-only solves (the gauge of scale). A stiff prior makes LM crawl along

@@ -282,7 +282,7 @@ def icp_batch(
         flat = (t_base + node[..., 1] * t_shape[..., 1] + node[..., 0])[ok]
         row[ok] = index[flat.astype(np.int64)]
         ok &= row >= 0
-        qn = surface[row]  # row -1 (not ok) reads a real point, weighted 0 below
+        qn = np.take(surface, row, axis=0)  # row -1 (not ok) reads a real point, weighted 0
         q, nq = qn[..., :3], qn[..., 3:]
         d = moved - q
         ok &= np.einsum("kpi,kpi->kp", d, d) < max_distance_m**2

@@ -114,7 +114,11 @@ def solve_visual(cfg, uv, ok, sigma, K, T_c_w, X, pair):
                 else cfg.max_iterations
             ),
             relative_tol=(
-                cfg.visual_relative_tol if cfg.depth_use is DepthUse.FACTORS else 1e-7
+                cfg.robust_relative_tol
+                if huber is not None
+                else cfg.visual_relative_tol
+                if cfg.depth_use is DepthUse.FACTORS
+                else 1e-7
             ),
         )
         T_c_w, X = ba.T_c_w, ba.points_w
