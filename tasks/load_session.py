@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal
@@ -115,16 +115,35 @@ def discover_sessions(roots: Sequence[Path]) -> list[Path]:
     return sorted(found.values())
 
 
-def _inside(root: Path, rel: str | Path) -> tuple[Path | None, str | None]:
-    """``root / rel`` resolved, or why it is not a path inside the session directory."""
-    if PurePosixPath(rel).is_absolute() or Path(rel).is_absolute():
-        return None, f"absolute path {str(rel)!r}; paths are relative to the session directory"
-    if ".." in PurePosixPath(rel).parts:
-        return None, f"path {str(rel)!r} climbs out with '..'"
-    resolved = (root / rel).resolve()
-    if not resolved.is_relative_to(root.resolve()):
-        return None, f"path {str(rel)!r} leaves the session directory (resolves to {resolved})"
-    return resolved, None
+class _Resolver:
+    """Resolves paths relative to one session directory, checking that they stay inside it.
+
+    Equivalent to ``(root / rel).resolve()`` followed by a containment check, but each
+    directory is resolved once: frames share their folder, so a file costs one ``lstat``
+    (whether it is itself a symlink, which is then followed) instead of one per component.
+    """
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        self.real_root = self.root.resolve()
+        self._dirs: dict[str, Path] = {}
+
+    def __call__(self, rel: str | Path) -> tuple[Path | None, str | None]:
+        """``root / rel`` resolved, or why it is not a path inside the session directory."""
+        if PurePosixPath(rel).is_absolute() or Path(rel).is_absolute():
+            return None, f"absolute path {str(rel)!r}; paths are relative to the session directory"
+        if ".." in PurePosixPath(rel).parts:
+            return None, f"path {str(rel)!r} climbs out with '..'"
+        parent, name = os.path.split(os.fspath(rel))
+        real_dir = self._dirs.get(parent)
+        if real_dir is None:
+            real_dir = self._dirs[parent] = (self.root / parent).resolve()
+        resolved = real_dir / name
+        if name and os.path.islink(resolved):
+            resolved = resolved.resolve()
+        if not resolved.is_relative_to(self.real_root):
+            return None, f"path {str(rel)!r} leaves the session directory (resolves to {resolved})"
+        return resolved, None
 
 
 @dataclass(frozen=True)
@@ -133,6 +152,10 @@ class Session:
 
     root: Path
     manifest: SessionManifest
+    _resolve: _Resolver = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_resolve", _Resolver(self.root))
 
     @property
     def session_id(self) -> str:
@@ -140,7 +163,7 @@ class Session:
 
     def path(self, rel: str | Path) -> Path:
         """``rel`` resolved against the root; raises :class:`SessionInvalid` if it leaves it."""
-        path, why = _inside(self.root, rel)
+        path, why = self._resolve(rel)
         if path is None:
             raise SessionInvalid([Problem(self.session_id, str(rel), WHOLE_FILE, why or "")])
         return path
@@ -284,13 +307,14 @@ class _Checker:
 
     def __init__(self, root: Path, session: str):
         self.root, self.session, self.problems = root, session, []
+        self.inside = _Resolver(root)
 
     def add(self, file: str, field: str, message: str,
             severity: Severity = Severity.ERROR) -> None:
         self.problems.append(Problem(self.session, file, field, message, severity))
 
     def existing(self, rel: str, field: str, report_missing: bool = True) -> Path | None:
-        path, why = _inside(self.root, rel)
+        path, why = self.inside(rel)
         if path is None:
             self.add(rel, field, why or "")
         elif not path.is_file():
@@ -310,7 +334,7 @@ class _Checker:
             rel = grasp.frame_path(kind, i) or ""
             path = self.existing(rel, field, report_missing=False)
             if path is None:
-                if _inside(self.root, rel)[0] is not None:
+                if self.inside(rel)[0] is not None:
                     missing.append(i)
             elif kind == "keypoints":
                 self.keypoints(path, rel, field)
@@ -331,7 +355,7 @@ class _Checker:
             if len(missing) > MAX_LISTED:
                 self.add(pattern, field, f"{len(missing) - MAX_LISTED} more frames missing")
         beyond = pattern.format(index=count)
-        if _inside(self.root, beyond)[0] is not None and (self.root / beyond).is_file():
+        if (path := self.inside(beyond)[0]) is not None and path.is_file():
             self.add(beyond, "grasp.count", f"frame {count} exists but count is {count}")
 
     def keypoints(self, path: Path, rel: str, field: str) -> None:

@@ -53,6 +53,36 @@ def _jpeg_problem(data: bytes) -> str | None:
     return None
 
 
+_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+"""JPEG start-of-frame markers (the others in C0..CF are tables)."""
+
+
+def _jpeg_header(data: bytes) -> tuple[int, int, int] | None:
+    """(width, height, channels) from a baseline 8-bit JPEG's start-of-frame segment, or None
+    (no such segment before the scan, or another precision: decode it fully instead)."""
+    pos = 2
+    while pos + 4 <= len(data):
+        if data[pos] != 0xFF:
+            return None
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD8)):  # markers without a segment
+            pos += 2
+            continue
+        if marker == 0xDA:  # start of scan: no frame header before it
+            return None
+        length = struct.unpack(">H", data[pos + 2 : pos + 4])[0]
+        if marker in _SOF:
+            if pos + 10 > len(data) or data[pos + 4] != 8:
+                return None
+            height, width = struct.unpack(">HH", data[pos + 5 : pos + 9])
+            return width, height, 1 if data[pos + 9] == 1 else 3
+        pos += 2 + length
+    return None
+
+
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
 """Channels by PNG colour type (a palette image decodes to 3 channels)."""
@@ -107,9 +137,10 @@ def image_problems(
 ) -> list[str]:
     """Why the image at ``path`` is not a decodable ``kind`` image of ``size`` (width, height).
 
-    ``size`` None skips the size check (the camera's size is itself invalid). PNGs are
-    checked structurally (``fast_png``, see :func:`_png_header`); other formats, and
-    interlaced PNGs, are decoded with ``cv2.imdecode(..., IMREAD_UNCHANGED)``.
+    ``size`` None skips the size check (the camera's size is itself invalid). With
+    ``fast_png``, PNGs are checked structurally (see :func:`_png_header`) and 8-bit JPEGs
+    take size and channels from their frame header and are decoded at 1/8 scale; other
+    formats, and interlaced PNGs, are decoded with ``cv2.imdecode(..., IMREAD_UNCHANGED)``.
     """
     try:
         data = path.read_bytes()
@@ -122,8 +153,16 @@ def image_problems(
     header = _png_header(data) if fast_png and data.startswith(PNG_SIGNATURE) else None
     if isinstance(header, str):
         return [header]
+    jpeg = _jpeg_header(data) if fast_png and data.startswith(b"\xff\xd8") else None
     if header is not None and header[4] == 0:
         width, height, dtype, channels, _ = header
+    elif jpeg is not None:
+        # the size and channels from the frame header; the whole entropy-coded scan is still
+        # decoded (at 1/8 scale, which skips most of the inverse DCT) to know that it decodes
+        buffer = np.frombuffer(data, np.uint8)
+        if cv2.imdecode(buffer, cv2.IMREAD_REDUCED_GRAYSCALE_8) is None:
+            return ["does not decode as an image (corrupt or unsupported)"]
+        (width, height, channels), dtype = jpeg, np.dtype(np.uint8)
     else:
         image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None:

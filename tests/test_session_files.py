@@ -70,3 +70,31 @@ def test_fast_png_check_agrees_with_cv2(tmp_path: Path, image_name, kind):
             assert fast == full
         else:
             assert fast, variant
+
+
+def _jpeg_variants(data: bytes) -> dict[str, bytes]:
+    sof = max(data.find(b"\xff\xc0"), data.find(b"\xff\xc2"))
+    bad_sof = bytearray(data)
+    bad_sof[sof + 5 : sof + 9] = b"\x00\x00\x00\x00"  # zero height and width
+    return {
+        "valid": data,
+        "truncated": data[: len(data) * 2 // 3],
+        "no SOI": data[2:],
+        "zero-size frame header": bytes(bad_sof),
+    }
+
+
+@pytest.mark.parametrize("image_name", ["gray8", "bgr8"])
+@pytest.mark.parametrize("kind", [ImageKind.COLOR, ImageKind.DEPTH])
+def test_fast_jpeg_check_agrees_with_cv2(tmp_path: Path, image_name, kind):
+    """Size and channels from the JPEG frame header, and a 1/8-scale decode, report what a
+    full decode reports: the same messages for a valid file, a problem for each broken one."""
+    ok, encoded = cv2.imencode(".jpg", IMAGES[image_name])
+    assert ok
+    for size in [(32, 24), (64, 48)]:
+        for variant, data in _jpeg_variants(encoded.tobytes()).items():
+            path = tmp_path / f"{variant}.jpg"
+            path.write_bytes(data)
+            fast = image_problems(path, kind, size)
+            full = image_problems(path, kind, size, fast_png=False)
+            assert fast == full if variant == "valid" else (fast and full), (variant, fast, full)
