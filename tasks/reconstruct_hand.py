@@ -133,6 +133,11 @@ class ReconstructConfig(StageConfig):
     """The stage raises when fewer of the detections are inliers of the final solve."""
     depth_links: DepthLinkConfig = DepthLinkConfig()
     """Dense depth links between frames (RGB-D only, see ``sfm_depth_icp``)."""
+    prefetch_depth: bool = True
+    """Read the next depth frame on a second thread during the depth sweep (through
+    ``depth_frame``; OpenCV decodes the PNG without the GIL). Identical results; saves wall
+    time when a core is free (a session's ~90 PNG decodes overlap the sampling), costs ~3 %
+    CPU when none is (measured on a loaded machine: 1.65 -> 1.70 s CPU for the sweep)."""
     depth_init_score: bool = True
     """Choose the initial pair among near-equally good ones by how many depth readings one
     scale explains: pixels of a small, distant hand barely tell the hand from its
@@ -188,7 +193,10 @@ def reconstruct_hand(
         -> metres) or the aligned depth frames (n, h, w) in metres.
     surface_offset_m : (21,) depth of each joint centre below the skin the camera sees.
     depth_frame : whole aligned depth frames by video frame index, for the dense depth links
-        (``depth_icp``); taken from ``depth_at`` when that is the frames array.
+        (``depth_icp``); taken from ``depth_at`` when that is the frames array. It is also
+        called one frame ahead of the depth sweep on a second thread (``prefetch_depth``),
+        so it should be the cached reader behind ``depth_at`` (as ``pipeline`` passes it):
+        the next frame then decodes while this one is sampled.
     T_c_tt : (4, 4) turntable pose in the colour camera: the platter and table below its top
         plane are cut from the depth links' surfaces; without it there are no depth links.
     """
@@ -311,8 +319,10 @@ def _reconstruct(
         )  # fmt: skip
 
     depth, z, surfaces = sample_depth(
-        cfg, uv, conf, inlier, T_c_w, X, depth_at, steady_from, surface_at if use_links else None
-    )
+        cfg, uv, conf, inlier, T_c_w, X, depth_at, steady_from,
+        surface_at if use_links else None,
+        prefetch=depth_frame if use_links and cfg.prefetch_depth else None,
+    )  # fmt: skip
     sampled = np.isfinite(depth)
     scale = estimate_scale(
         z[sampled],

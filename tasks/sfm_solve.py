@@ -7,6 +7,7 @@ them together.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from enum import StrEnum
 
 import numpy as np
@@ -48,19 +49,36 @@ def fill_poses(T_c_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([inv_T(T) for T in out]), valid
 
 
-def sample_depth(cfg, uv, conf, inlier, T_c_w, X, depth_at, steady_from, surface_at=None):
+def sample_depth(
+    cfg, uv, conf, inlier, T_c_w, X, depth_at, steady_from, surface_at=None, prefetch=None
+):
     """Depth readings (m, 21) (NaN where not sampled), camera-frame joint z (m, 21) and, with
     ``surface_at(i, uv (k, 2), depth (k,))``, each frame's surface (list, None where none),
-    built in the same sweep over the frames (each depth frame is read once)."""
+    built in the same sweep over the frames (each depth frame is read once).
+
+    ``prefetch(video frame)``, when given, is called one frame ahead on a second thread: the
+    cached frame reader that ``depth_at`` and ``surface_at`` share, so the next frame's PNG
+    decodes (OpenCV, without the GIL) while this one is sampled. The values do not change.
+    """
     m = len(uv)
     sample = inlier & (conf >= cfg.depth_min_confidence)
     depth = np.full((m, 21), np.nan)
     surfaces: list = [None] * m
-    for i in np.flatnonzero(sample.any(1)):
-        j = np.flatnonzero(sample[i])
-        depth[i, j] = np.asarray(depth_at(steady_from + int(i), uv[i, j]), dtype=float)
-        if surface_at is not None:
-            surfaces[i] = surface_at(int(i), uv[i, j], depth[i, j])
+    frames = np.flatnonzero(sample.any(1))
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ahead = None
+        for n, i in enumerate(frames):
+            if ahead is not None:
+                ahead.result()  # in the reader's cache now (re-raises a failed read)
+            ahead = (
+                pool.submit(prefetch, steady_from + int(frames[n + 1]))
+                if prefetch is not None and n + 1 < len(frames)
+                else None
+            )
+            j = np.flatnonzero(sample[i])
+            depth[i, j] = np.asarray(depth_at(steady_from + int(i), uv[i, j]), dtype=float)
+            if surface_at is not None:
+                surfaces[i] = surface_at(int(i), uv[i, j], depth[i, j])
     z = np.einsum("mb,jb->mj", T_c_w[:, 2, :3], X) + T_c_w[:, 2, 3][:, None]
     return depth, z, surfaces
 

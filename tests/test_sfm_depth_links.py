@@ -154,3 +154,46 @@ def test_hand_centre_behind_the_median_reading():
     c = hand_centre(K, uv, depth, 0.01)
     np.testing.assert_allclose(c, [0.0, 0.0, 0.52], atol=1e-12)
     assert hand_centre(K, uv, np.zeros(4), 0.01) is None
+
+
+def test_depth_sweep_prefetch_changes_nothing():
+    """``sample_depth`` with a reader called one frame ahead on a second thread returns the
+    same readings and surfaces as without, and reads every later frame ahead, in order."""
+    from functools import lru_cache
+
+    from graspcap.tasks.depth_scale import depth_lookup_from_frames
+    from graspcap.tasks.reconstruct_hand import ReconstructConfig
+    from graspcap.tasks.sfm_solve import sample_depth
+
+    rng = np.random.default_rng(3)
+    m, first = 6, 2
+    frames = 0.5 + 0.02 * rng.random((first + m, H, W))
+    uv = np.stack([rng.uniform(200, 440, (m, 21)), rng.uniform(150, 330, (m, 21))], axis=2)
+    conf = rng.uniform(0.3, 1.0, (m, 21))
+    inlier = rng.random((m, 21)) < 0.9
+    inlier[3] = False  # a frame without a sample is skipped, not read
+    T_c_w = np.tile(np.eye(4), (m, 1, 1))
+    X = rng.normal(0.0, 0.05, (21, 3)) + [0.0, 0.0, 0.5]
+    cfg = ReconstructConfig()
+
+    def run(prefetch_log):
+        read = lru_cache(maxsize=4)(lambda i: frames[i])
+        depth_at = depth_lookup_from_frames(frames)
+
+        def surface_at(i, uv_i, depth_i):
+            centre = hand_centre(K, uv_i, depth_i, 0.01)
+            return surface_cloud(read(first + i), K, centre, radius_m=0.1, stride_px=3)
+
+        def prefetch(frame):
+            prefetch_log.append(frame)
+            return read(frame)
+
+        return sample_depth(cfg, uv, conf, inlier, T_c_w, X, depth_at, first, surface_at,
+                            prefetch=prefetch if prefetch_log is not None else None)
+
+    log: list[int] = []
+    d0, z0, s0 = run(None)
+    d1, z1, s1 = run(log)
+    assert np.array_equal(d0, d1, equal_nan=True) and np.array_equal(z0, z1)
+    assert all(np.array_equal(a.points, b.points) for a, b in zip(s0, s1, strict=True) if a)
+    assert log == [first + i for i in (1, 2, 4, 5)]
