@@ -4,18 +4,22 @@ Detection, a change point in how rigid the hand is:
 
 1. The end of the video is certainly steady, so a fixed 3D hand is reconstructed (up to
    scale) from a window of final frames.
-2. Every frame is posed against that hand (robust PnP); its residual vectors (21 x 2 px) are
-   what no rigid motion of the fixed hand explains. Gross detection errors are dropped.
-3. While the fingers still close, the residuals are a smooth signal that changes little
-   between neighbouring frames, while detection noise is independent per frame; averaging the
-   residual vectors over a short centred window keeps the one and shrinks the other, so the
-   closing stays visible far closer to the onset than a per-frame error norm.
-4. The window energy is standardised by its median and robust spread (MAD) over the steady
-   reference frames, which is the known noise level of that video.
-5. The onset is the change point ``t`` maximising ``sum_{i < t} (z_i - drift)`` (a CUSUM):
-   frames before it must on average stand out by more than ``drift`` noise spreads; a single
-   spike in the steady phase or a dip during closing does not move it.
-6. The hand is rebuilt from all frames found steady and the frames re-scored.
+2. Every frame is posed against that hand (RANSAC PnP, then a robust Levenberg-Marquardt of
+   all frames at once); its residual vectors (21 x 2 px) are what no rigid motion of the fixed
+   hand explains. Gross detection errors are dropped.
+3. Coarse onset: the residual vectors averaged over a short centred window, their energy
+   standardised by the median and robust spread (MAD) over the steady reference frames, and
+   the change point ``t`` maximising ``sum_{i < t} (z_i - drift)`` (a CUSUM). The hand is
+   rebuilt from the frames found steady and the frames re-scored.
+4. Refined onset: a hand that settles slows down, and in its last moving frames the fingers
+   are a fraction of a pixel to a few pixels from their final place, which an energy (a sum
+   over 42 noisy coordinates) cannot tell from noise. But a smooth motion arrives at its end
+   along one direction, so those frames' residual vectors share one pattern: the sum of the
+   residual vectors of the frames just before the coarse onset. Each frame's residual is
+   projected on that pattern (leaving the frame itself out of it), a matched filter whose
+   noise is one coordinate's, not 42's; standardised by the steady frames, its CUSUM from
+   the start of the pattern window gives the onset. Pattern and onset are re-estimated until
+   the onset settles.
 """
 
 from __future__ import annotations
@@ -25,13 +29,15 @@ from enum import StrEnum
 
 import numpy as np
 
+from graspcap.tasks.batch_pnp import ransac_poses, refine_poses, residual_vectors
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError
+from graspcap.tasks.geometry import umeyama
 from graspcap.tasks.sfm_graph import bundle_adjust
-from graspcap.tasks.sfm_init import initialise, pnp
+from graspcap.tasks.sfm_init import initialise
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/2"
+STAGE_VERSION = "select_steady/3"
 
 
 class SteadyMethod(StrEnum):
@@ -46,33 +52,50 @@ class SelectSteadyConfig(StageConfig):
     """Final frames assumed steady for the first hand model (at most ``window_share``)."""
     window_share: float = 0.7
     """Largest share of the video the first window may take."""
-    model_frames: int = 40
+    model_frames: int = 24
     """Evenly spaced frames of a window that the hand model is reconstructed from."""
     pair_candidates: int = 10
     """Evenly spaced frames of the first window among which the two-view start is chosen."""
+    pair_hypotheses: int = 6
+    """Two-view hypotheses (largest parallax first) grown and compared by agreement."""
+    check_frames: int = 15
+    """Evenly spaced frames of the window each hypothesis is grown on to compare them."""
     min_confidence: float = 0.2
     """Detections with a lower confidence are treated as missing."""
     ransac_px: float = 8.0
     """RANSAC threshold (pixels) of the initialisation and of the per-frame PnP."""
+    huber_px: float = 5.0
+    """Huber threshold (pixels) of the per-frame pose refinement (about twice the noise)."""
     outlier_px: float = 15.0
     """Residuals longer than this (pixels) are gross detection errors and ignored."""
     smooth_frames: int = 3
-    """Centred window (frames) over which residual vectors are averaged."""
+    """Centred window (frames) over which residual vectors are averaged (coarse onset)."""
     drift_sigmas: float = 2.0
-    """CUSUM drift: how many noise spreads a frame must stand out by to count as moving."""
+    """Coarse CUSUM drift: how many noise spreads a frame must stand out by to count as
+    moving."""
+    pattern_frames: int = 8
+    """Frames before the onset whose summed residual vectors give the direction in which the
+    hand was still moving (refined onset)."""
+    pattern_drift_sigmas: float = 1.0
+    """Refined CUSUM drift, in noise spreads of the projection on that direction: half the
+    smallest shift to detect (2 spreads, what a frame 3-4 frames before a smooth stop shows
+    under 2.5 px noise)."""
+    pattern_passes: int = 3
+    """At most this many re-estimates of the direction and the refined onset."""
     min_points: int = 6
     """A frame needs this many detected joints to be scored."""
-    refinements: int = 3
+    refinements: int = 2
     """At most this many times the hand is re-adjusted over the frames found steady and the
-    frames re-scored (stops when the onset settles)."""
+    frames re-scored (stops when the coarse onset settles)."""
     ba_iterations: int = 60
     """Levenberg-Marquardt iterations of the hand model's bundle adjustment."""
 
 
 PRESETS: dict[str, SelectSteadyConfig] = {
     "default": SelectSteadyConfig(),
-    "openpose": SelectSteadyConfig(ransac_px=12.0, outlier_px=25.0, drift_sigmas=2.5),
-}
+    "openpose": SelectSteadyConfig(ransac_px=12.0, huber_px=8.0, outlier_px=25.0,
+                                   drift_sigmas=2.5),
+}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -83,11 +106,16 @@ class SteadySelection:
     scores_px : (n,) float, per frame the RMS length (px) of the window-averaged residual
         vectors against the fixed hand, scaled to one frame's noise (NaN where not scored;
         all NaN from the manifest).
-    z : (n,) float, the scores standardised by the steady reference frames (NaN likewise).
-    threshold_px : the score a frame needs to count as moving, median + drift * spread of the
-        reference frames (NaN from the manifest).
-    cusum : (n + 1,) float, ``sum_{i < t} (z_i - drift)`` for every candidate onset ``t``;
-        the onset is its argmax (empty from the manifest).
+    threshold_px : the score a frame needs to count as moving in the coarse onset, median +
+        drift * spread of the reference frames (NaN from the manifest).
+    coarse_from : the coarse onset (CUSUM of ``scores_px``); -1 from the manifest.
+    pattern_px : (21, 2) float, unit direction of the last residual vectors before the onset
+        (the refined onset's matched filter; empty from the manifest).
+    z : (n,) float, each frame's residual projected on ``pattern_px``, standardised by the
+        steady reference frames (NaN where not scored).
+    cusum : (n + 1,) float, ``sum_{start <= i < t} (z_i - drift)`` for every candidate onset
+        ``t`` (-inf before ``start``, the start of the pattern window); the onset is its
+        argmax (empty from the manifest).
     model_frames : (k,) int, video frames the final hand model was reconstructed from.
     """
 
@@ -95,6 +123,8 @@ class SteadySelection:
     method: SteadyMethod
     scores_px: np.ndarray
     threshold_px: float
+    coarse_from: int
+    pattern_px: np.ndarray
     z: np.ndarray
     cusum: np.ndarray
     model_frames: np.ndarray
@@ -128,6 +158,8 @@ def _reconstruct(uv, ok, K, cfg, frames):
         ransac_px=cfg.ransac_px,
         min_points=cfg.min_points,
         min_parallax_deg=2.0,
+        n_hypotheses=cfg.pair_hypotheses,
+        n_check_frames=cfg.check_frames,
     )
     if init is None:
         return None
@@ -136,7 +168,7 @@ def _reconstruct(uv, ok, K, cfg, frames):
 
 
 def _refine(uv, ok, K, cfg, frames, T_c_w, X):
-    """The hand re-adjusted over ``frames``, warm-started from per-frame PnP poses (n, 4, 4)
+    """The hand re-adjusted over ``frames``, warm-started from per-frame poses (n, 4, 4)
     against ``X``; None when fewer than two of the frames are posed."""
     T = T_c_w[frames]
     posed = np.flatnonzero(np.all(np.isfinite(T.reshape(len(frames), -1)), axis=1))
@@ -169,27 +201,42 @@ def _fixed_hand(uv, ok, K, cfg, n, max_frames):
         window = min(2 * window, n)
 
 
-def _residual_vectors(K, X, uv, ok, cfg) -> tuple[np.ndarray, np.ndarray]:
-    """Each frame's robust PnP against X: residual vectors (n, 21, 2) px and T_c_w (n, 4, 4),
-    NaN where unknown."""
-    n = len(uv)
-    out = np.full((n, 21, 2), np.nan)
-    poses = np.full((n, 4, 4), np.nan)
+def _same_gauge(X_new, X_old):
+    """``X_new`` (21, 3) moved by the similarity that best maps it onto ``X_old``, so that
+    poses found against ``X_old`` stay good starts (a bundle's gauge may drift)."""
+    both = np.all(np.isfinite(X_new), axis=1) & np.all(np.isfinite(X_old), axis=1)
+    if both.sum() < 3:
+        return X_new
+    T, s = umeyama(X_new[both], X_old[both])
+    return s * X_new @ T[:3, :3].T + T[:3, 3]
+
+
+def _pose_frames(K, X, uv, ok, cfg, start=None):
+    """Every frame posed against X: T_c_w (n, 4, 4) (NaN where unknown) and residual vectors
+    (n, 21, 2) px (NaN where unknown or gross). ``start`` warm-starts the refinement; frames
+    without a start pose, and those the warm start leaves mostly unexplained (the hand
+    changed too much for it), get a RANSAC one."""
     known = np.all(np.isfinite(X), axis=1)
-    for i in range(n):
-        sel = ok[i] & known
-        if sel.sum() < cfg.min_points:
-            continue  # no detection (or too few joints): not scored
-        T = pnp(K, X[sel], uv[i, sel], cfg.ransac_px, cfg.min_points)
-        if T is None:
-            continue
-        poses[i] = T
-        Xc = X[sel] @ T[:3, :3].T + T[:3, 3]
-        proj = (Xc[:, :2] / Xc[:, 2:]) * np.diag(K)[:2] + K[:2, 2]
-        out[i, sel] = uv[i, sel] - proj
-    gross = np.linalg.norm(out, axis=2) > cfg.outlier_px
-    out[gross] = np.nan
-    return out, poses
+    use = ok & known[None]
+    scored = use.sum(1) >= cfg.min_points
+    T = np.full((len(uv), 4, 4), np.nan) if start is None else np.array(start)
+    cold = scored & ~np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
+    for attempt in range(2):
+        if cold.any():
+            T[cold] = ransac_poses(K, X, uv[cold], use[cold], cfg.ransac_px, cfg.min_points)[0]
+        T = refine_poses(K, X, uv, use, T, huber_px=cfg.huber_px, outlier_px=cfg.outlier_px)
+        res, Xc = residual_vectors(K, np.nan_to_num(T), np.nan_to_num(X), uv)
+        near = use & (np.linalg.norm(res, axis=2) < cfg.outlier_px)
+        lost = scored & ~cold & (near.sum(1) < 0.5 * use.sum(1))
+        if attempt or start is None or not lost.any():
+            break
+        cold = lost
+    res[~use | (Xc[..., 2] <= 0) | (np.linalg.norm(res, axis=2) > cfg.outlier_px)] = np.nan
+    res[~scored] = np.nan
+    front = np.sum(use & (Xc[..., 2] > 0), axis=1) > 0.5 * np.maximum(use.sum(1), 1)
+    bad = ~np.all(np.isfinite(T.reshape(len(T), -1)), axis=1) | ~front
+    res[bad], T[bad] = np.nan, np.nan
+    return T, res
 
 
 def _window_scores(res: np.ndarray, half: int, min_points: int) -> np.ndarray:
@@ -214,23 +261,105 @@ def _window_scores(res: np.ndarray, half: int, min_points: int) -> np.ndarray:
     return scores
 
 
-def _score(K, X, uv, ok, cfg, ref):
-    """(onset, z, cusum, threshold, scores_px, poses) of every frame against the hand X."""
-    res, poses = _residual_vectors(K, X, uv, ok, cfg)
+def _standardise(values, ref):
+    """(values - median) / (1.4826 MAD) over the finite values of the reference frames, and
+    (median, spread); None when fewer than 3 reference values are finite."""
+    ref_values = values[ref][np.isfinite(values[ref])]
+    if len(ref_values) < 3:
+        return None
+    med = float(np.median(ref_values))
+    spread = 1.4826 * float(np.median(np.abs(ref_values - med)))
+    spread = max(spread, 1e-3 * max(abs(med), 1e-9), 1e-12)
+    return (values - med) / spread, med, spread
+
+
+def _cusum(z, drift, start=0):
+    """(n + 1,) ``sum_{start <= i < t} (z_i - drift)``, NaN frames counting 0; -inf before
+    ``start``."""
+    steps = np.where(np.isfinite(z[start:]), z[start:] - drift, 0.0)
+    return np.concatenate([np.full(start, -np.inf), [0.0], np.cumsum(steps)])
+
+
+def _coarse(res, ref, cfg):
+    """(onset, scores, threshold) of the windowed residual energy against frames ``ref``."""
     scores = _window_scores(res, cfg.smooth_frames // 2, cfg.min_points)
-    return (*_change_point(scores, ref, cfg.drift_sigmas), scores, poses)
-
-
-def _change_point(scores, ref, drift):
-    """(onset, z, cusum, threshold) of the scores against the reference frames ``ref``."""
-    ref_scores = scores[ref][np.isfinite(scores[ref])]
-    if len(ref_scores) < 3:
+    found = _standardise(scores, ref)
+    if found is None:
         raise StageError(STAGE, "cannot detect the steady phase: too few final frames posed")
-    med = float(np.median(ref_scores))
-    spread = max(1.4826 * float(np.median(np.abs(ref_scores - med))), 1e-3 * max(med, 1e-9))
-    z = (scores - med) / spread
-    cusum = np.concatenate([[0.0], np.cumsum(np.where(np.isfinite(z), z - drift, 0.0))])
-    return int(np.argmax(cusum)), z, cusum, med + drift * spread
+    z, med, spread = found
+    onset = int(np.argmax(_cusum(z, cfg.drift_sigmas)))
+    return onset, scores, med + cfg.drift_sigmas * spread
+
+
+def _matched(res, onset, cfg):
+    """(pattern (21, 2), z (n,), cusum (n + 1,), onset) of the projection of every frame's
+    residual on the direction of the frames ``onset - pattern_frames .. onset - 1``; None
+    when that window holds no residual or too few steady frames follow."""
+    n = len(res)
+    hi = onset
+    lo = max(hi - cfg.pattern_frames, 0)
+    valid = np.isfinite(res[..., 0])
+    r = np.where(valid[..., None], res, 0.0)
+    total = r[lo:hi].sum(0)
+    if hi <= 0 or not np.any(total):
+        return None
+    D = np.broadcast_to(total, r.shape).copy()
+    D[lo:hi] -= r[lo:hi]  # leave each window frame out of its own direction
+    norm = np.sqrt(np.sum(D**2 * valid[..., None], axis=(1, 2)))
+    a = np.sum(r * D, axis=(1, 2)) / np.maximum(norm, 1e-12)
+    a[(valid.sum(1) < cfg.min_points) | (norm <= 0)] = np.nan
+    found = _standardise(a, np.arange(min(onset + cfg.smooth_frames, n - 1), n))
+    if found is None:
+        return None
+    z = found[0]
+    cusum = _cusum(z, cfg.pattern_drift_sigmas, lo)
+    return total / np.linalg.norm(total), z, cusum, int(np.argmax(cusum))
+
+
+def _detect(uv, ok, K, cfg):
+    """(coarse onset, scores, threshold, matched result or None, model frames)."""
+    n = len(uv)
+    half = cfg.smooth_frames // 2
+    X, model = _fixed_hand(uv, ok, K, cfg, n, cfg.model_frames)
+    T, res = _pose_frames(K, X, uv, ok, cfg)
+    onset, scores, threshold = _coarse(res, np.arange(model[0], n), cfg)
+    if onset > model[0] + half + 1:
+        # The model's own frames look moving: a poor start (or a very long adjustment).
+        # Retry from every frame of the window; keep it when it is self-consistent.
+        X2, model2 = _fixed_hand(uv, ok, K, cfg, n, n)
+        if len(model2) > len(model):
+            T2, res2 = _pose_frames(K, X2, uv, ok, cfg)
+            coarse2 = _coarse(res2, np.arange(model2[0], n), cfg)
+            if coarse2[0] <= model2[0] + half + 1:
+                X, model, T, res = X2, model2, T2, res2
+                onset, scores, threshold = coarse2
+    for _ in range(cfg.refinements):
+        # More viewpoints give a better hand for the next pass; skip the smoothing margin.
+        first = min(onset + half + 1, n - 3)
+        frames = _spread(first, n, cfg.model_frames)
+        if np.array_equal(frames, model):
+            break
+        X_new = _refine(uv, ok, K, cfg, frames, T, X)
+        if X_new is None:
+            break
+        X, model = _same_gauge(X_new, X), frames
+        T, res = _pose_frames(K, X, uv, ok, cfg, start=T)
+        onset_new, scores, threshold = _coarse(res, np.arange(first, n), cfg)
+        settled = onset_new == onset
+        onset = onset_new
+        if settled:
+            break
+    matched, guess, seen = None, onset, set()
+    for _ in range(cfg.pattern_passes):
+        found = _matched(res, guess, cfg)
+        if found is None:
+            break
+        matched = found
+        seen.add(guess)
+        guess = found[3]
+        if guess in seen:
+            break
+    return onset, scores, threshold, matched, model
 
 
 def select_steady(
@@ -255,9 +384,8 @@ def select_steady(
         if not 0 <= steady_from < n:
             raise StageError(STAGE, f"grasp.steady_from = {steady_from} is outside 0..{n - 1}")
         nan = np.full(n, np.nan)
-        return SteadySelection(
-            int(steady_from), SteadyMethod.MANIFEST, nan, np.nan, nan, np.empty(0), np.empty(0, int)
-        )
+        return SteadySelection(int(steady_from), SteadyMethod.MANIFEST, nan, np.nan, -1,
+                               np.empty((0, 2)), nan, np.empty(0), np.empty(0, int))  # fmt: skip
     K = np.asarray(K, dtype=float)
     uv = kp[..., :2]
     ok = (kp[..., 2] >= cfg.min_confidence) & np.all(np.isfinite(kp), axis=2)
@@ -267,30 +395,13 @@ def select_steady(
             f"cannot detect the steady phase: fewer than 5 frames have >= "
             f"{cfg.min_points} detected joints",
         )
-    half = cfg.smooth_frames // 2
-    X, model = _fixed_hand(uv, ok, K, cfg, n, cfg.model_frames)
-    ref = np.arange(model[0], n)
-    onset, z, cusum, threshold, scores, poses = _score(K, X, uv, ok, cfg, ref)
-    if onset > model[0] + half + 1:
-        # The model's own frames look moving: a poor start (or a very long adjustment).
-        # Retry from every frame of the window; keep it when it is self-consistent.
-        X2, model2 = _fixed_hand(uv, ok, K, cfg, n, n)
-        if len(model2) > len(model):
-            scored = _score(K, X2, uv, ok, cfg, np.arange(model2[0], n))
-            if scored[0] <= model2[0] + half + 1:
-                X, model, ref = X2, model2, np.arange(model2[0], n)
-                onset, z, cusum, threshold, scores, poses = scored
-    for _ in range(cfg.refinements):
-        # More viewpoints give a better hand for the next pass; skip the smoothing margin.
-        first = min(onset + half + 1, n - 3)
-        frames = _spread(first, n, cfg.model_frames)
-        if np.array_equal(frames, model):
-            break
-        X_new = _refine(uv, ok, K, cfg, frames, poses, X)
-        if X_new is None:
-            break
-        X, model, ref = X_new, frames, np.arange(first, n)
-        onset, z, cusum, threshold, scores, poses = _score(K, X, uv, ok, cfg, ref)
+    coarse, scores, threshold, matched, model = _detect(uv, ok, K, cfg)
+    if matched is None:  # nothing moved before the coarse onset: it stands
+        pattern, z = np.empty((0, 2)), np.full(n, np.nan)
+        cusum = np.concatenate([np.full(coarse, -np.inf), np.zeros(n + 1 - coarse)])
+        onset = coarse
+    else:
+        pattern, z, cusum, onset = matched
     if onset >= n - 2:
         raise StageError(
             STAGE,
@@ -302,6 +413,8 @@ def select_steady(
         method=SteadyMethod.DETECTED,
         scores_px=scores,
         threshold_px=threshold,
+        coarse_from=coarse,
+        pattern_px=pattern,
         z=z,
         cusum=cusum,
         model_frames=model,

@@ -228,7 +228,7 @@ def _rig_onset_errors(tmp_path, sessions, seed, frames):
         # Frames without a detection are not scored; the onset is the CUSUM's argmax.
         assert np.isnan(sel.scores_px[kp[:, :, 2].max(1) == 0]).all()
         assert sel.steady_from == int(np.argmax(sel.cusum))
-        assert sel.model_frames.min() >= sel.steady_from
+        assert sel.model_frames.min() >= sel.coarse_from
         errors.append(sel.steady_from - truth)
     return np.array(errors)
 
