@@ -49,13 +49,29 @@ def depth_agreement(
     does not show. Returns (agreeing share, RMS depth difference of the agreeing pixels,
     pixels judged).
     """
+    n, n_agree, sq = _compare(depth_m, K, mesh, T_c_o, tol_m, keep)
+    if n == 0 or n_agree == 0:
+        return 0.0, 0.0, n
+    return n_agree / n, float(np.sqrt(sq / n_agree)), n
+
+
+def _compare(
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    mesh: tuple[np.ndarray, np.ndarray],
+    T_c_o: np.ndarray,
+    tol_m: float,
+    keep: np.ndarray | None,
+) -> tuple[int, int, float]:
+    """(pixels judged, pixels agreeing, sum of their squared depth differences): the mesh is
+    rendered only over the pixel box its vertices project into (identical rays, fewer)."""
     h, w = depth_m.shape
     T_c_o = np.asarray(T_c_o, float)
     K = np.asarray(K, float)
     u0, v0, u1, v1 = image_box(K, transform_points(T_c_o, mesh[0]), w, h)
     if u1 <= u0 or v1 <= v0:
-        return 0.0, 0.0, 0
-    K_box = K.copy()  # rays through the pixels of the box only: identical rays, fewer
+        return 0, 0, 0.0
+    K_box = K.copy()
     K_box[:2, 2] -= (u0, v0)
     hits = render([mesh], [T_c_o], K_box, u1 - u0, v1 - v0)
     depth_m = depth_m[v0:v1, u0:u1]
@@ -64,10 +80,7 @@ def depth_agreement(
         seen &= keep[v0:v1, u0:u1]
     diff = depth_m[seen] - hits.depth_m[seen]
     agree = np.abs(diff) <= tol_m
-    n = int(seen.sum())
-    if n == 0 or not agree.any():
-        return 0.0, 0.0, n
-    return float(agree.sum() / n), float(np.sqrt(np.mean(diff[agree] ** 2))), n
+    return int(seen.sum()), int(agree.sum()), float(np.sum(diff[agree] ** 2))
 
 
 def views_agreement(
@@ -87,14 +100,8 @@ def views_agreement(
     n = n_agree = 0
     sq = 0.0
     for depth, keep, T_ref_c in views:
-        h, w = depth.shape
-        hits = render([mesh], [inv_T(T_ref_c) @ T_w_o], K, w, h)
-        seen = (hits.mesh_index == 0) & keep & (depth > 0)
-        diff = depth[seen] - hits.depth_m[seen]
-        agree = np.abs(diff) <= tol_m
-        n += int(seen.sum())
-        n_agree += int(agree.sum())
-        sq += float(np.sum(diff[agree] ** 2))
+        dn, da, dsq = _compare(depth, K, mesh, inv_T(T_ref_c) @ T_w_o, tol_m, keep)
+        n, n_agree, sq = n + dn, n_agree + da, sq + dsq
     if n == 0 or n_agree == 0:
         return 0.0, 0.0, n
     return n_agree / n, float(np.sqrt(sq / n_agree)), n

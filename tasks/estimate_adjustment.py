@@ -35,6 +35,7 @@ from graspcap.tasks.config import StageConfig
 from graspcap.tasks.depth_agreement import views_agreement
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T, rotation_error_deg
+from graspcap.tasks.open3d_threads import single_threaded
 from graspcap.tasks.registration import (
     Candidate,
     Model,
@@ -50,7 +51,7 @@ from graspcap.tasks.registration import (
     valid_depth,
 )
 
-STAGE_VERSION = "estimate_adjustment/6"
+STAGE_VERSION = "estimate_adjustment/7"
 STAGE = "estimate_adjustment"
 
 HAND_BONES = (
@@ -215,6 +216,7 @@ def hand_mask_from_keypoints(
     return mask.astype(bool)
 
 
+@single_threaded()
 def estimate_adjustment(
     depth_m: np.ndarray,
     K: np.ndarray,

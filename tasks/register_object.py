@@ -25,6 +25,7 @@ from scipy.spatial.transform import Rotation
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T
+from graspcap.tasks.open3d_threads import single_threaded
 from graspcap.tasks.registration import (
     Candidate,
     PlatterCrop,
@@ -40,7 +41,7 @@ from graspcap.tasks.registration import (
     valid_depth,
 )
 
-STAGE_VERSION = "register_object/2"
+STAGE_VERSION = "register_object/3"
 STAGE = "register_object"
 
 
@@ -132,6 +133,7 @@ class ObjectRegistration:
     runner_up_depth_agreement: float
 
 
+@single_threaded()
 def register_object(
     depth_m: np.ndarray,
     K: np.ndarray,

@@ -31,7 +31,7 @@ from graspcap.tasks.registration import (
     to_pcd,
 )
 
-STAGE_VERSION = "register_scan/1"
+STAGE_VERSION = "register_scan/2"
 STAGE = "register_scan"
 
 

@@ -17,8 +17,7 @@ platter crop are in :mod:`point_clouds`, the rendered-depth check in
 
 from __future__ import annotations
 
-import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +28,7 @@ from pydantic import model_validator
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.depth_agreement import depth_agreement
 from graspcap.tasks.geometry import inv_T, make_T, rotation_error_deg, transform_points
+from graspcap.tasks.open3d_threads import single_threaded
 from graspcap.tasks.point_clouds import (
     PlatterCrop,
     cloud_from_depth,
@@ -37,13 +37,14 @@ from graspcap.tasks.point_clouds import (
     to_pcd,
     valid_depth,
 )
+from graspcap.tasks.ransac import GlobalMethod, ransac_restarts
 
 __all__ = [  # the cloud helpers and the depth agreement are re-exported for the stages
-    "Ambiguity", "Candidate", "Model", "PlatterCrop", "RegistrationConfig", "about_axis",
-    "as_good_as", "cloud_from_depth", "crop_platter", "depth_agreement", "distinct_from",
-    "estimate_normals", "evaluate", "fpfh", "prepare_model", "prepare_scene", "probe_symmetry",
-    "rank", "ransac", "refine", "register", "strided", "surface_distance", "tls_cost", "to_pcd",
-    "valid_depth",
+    "Ambiguity", "Candidate", "GlobalMethod", "Model", "PlatterCrop", "RegistrationConfig",
+    "about_axis", "as_good_as", "cloud_from_depth", "crop_platter", "depth_agreement",
+    "distinct_from", "estimate_normals", "evaluate", "fpfh", "global_starts", "prepare_model",
+    "prepare_scene", "probe_symmetry", "rank", "refine", "register", "strided",
+    "surface_distance", "tls_cost", "to_pcd", "valid_depth",
 ]  # fmt: skip
 
 reg = o3d.pipelines.registration
@@ -64,10 +65,12 @@ class RegistrationConfig(StageConfig):
     """RANSAC iteration cap per restart."""
     ransac_confidence: float = 0.999
     """RANSAC early-stop confidence."""
+    global_method: GlobalMethod = GlobalMethod.OPEN3D
+    """Which RANSAC draws the global starts; both are repeatable."""
     n_restarts: int = 4
     """RANSAC restarts, each with its own seed; the best after ICP wins (fitness, then RMSE)."""
     seed: int = 0
-    """Base seed of Open3D's RNG (restart k uses ``seed + k``) and of model sampling."""
+    """Base seed of the RANSAC draws (restart k uses ``seed + k``) and of model sampling."""
     model_points: int = 20_000
     """Points sampled on the mesh surface (with face normals) as the ICP target."""
     icp_voxels_m: tuple[float, ...] = (0.005, 0.0025, 0.0015)
@@ -84,7 +87,11 @@ class RegistrationConfig(StageConfig):
     good_fitness: float = 0.95
     """RANSAC restarts stop early once a refined candidate explains this share of the scene..."""
     agree_m: float = 0.005
-    """...or once two restarts' refined poses agree within ``ambiguity_min_deg`` and this."""
+    """...or once two restarts' refined poses agree within ``ambiguity_min_deg`` and this...
+    """
+    agree_min_fitness: float = 0.9
+    """...and both explain at least this share of the scene (two restarts that agree on a
+    poor pose, a realistic mug 109 deg off at 0.90, are no reason to stop drawing)."""
     eval_distance_m: float = 0.003
     """A scene point within this distance of the posed model counts as an inlier."""
     probe_angles_deg: tuple[float, ...] = (90.0, 180.0)
@@ -99,6 +106,9 @@ class RegistrationConfig(StageConfig):
     probe_levels: int = 1
     """ICP levels a probe runs before it is scored; only probes that come within twice the
     ambiguity tolerances of the best run the remaining levels."""
+    probe_eval_points: int = 2000
+    """At most this many scene points (even stride) score a probe after its first levels
+    (the full score follows for the probes that go on)."""
 
     @model_validator(mode="after")
     def _levels_match(self) -> RegistrationConfig:
@@ -165,9 +175,7 @@ def fpfh(pcd: o3d.geometry.PointCloud, cfg: RegistrationConfig) -> reg.Feature:
     return reg.compute_fpfh_feature(pcd, search)
 
 
-def prepare_model(
-    vertices: np.ndarray, faces: np.ndarray, cfg: RegistrationConfig
-) -> Model:
+def prepare_model(vertices: np.ndarray, faces: np.ndarray, cfg: RegistrationConfig) -> Model:
     """Sample the mesh (vertices (n, 3), faces (m, 3)) and compute its global features."""
     mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64), process=False)
     good = mesh.area_faces > 0
@@ -247,6 +255,7 @@ def evaluate(
     return float(inl.mean()), float(np.sqrt(np.mean(d[inl] ** 2)))
 
 
+@single_threaded()
 def refine(
     scene: o3d.geometry.PointCloud,
     model: Model,
@@ -255,9 +264,11 @@ def refine(
     origin: str,
     first: int = 0,
     stop: int | None = None,
+    eval_points: int | None = None,
 ) -> Candidate:
     """Coarse-to-fine point-to-plane ICP from ``T_o_s`` (4, 4) over the configured levels
-    ``first`` to ``stop`` (all by default)."""
+    ``first`` to ``stop`` (all by default), scored on at most ``eval_points`` scene points
+    (``cfg.eval_max_points`` by default)."""
     T = np.asarray(T_o_s, dtype=float)
     criteria = reg.ICPConvergenceCriteria(1e-7, 1e-7, cfg.icp_max_iterations)
     pairs = list(zip(cfg.icp_voxels_m, cfg.icp_max_distance_m, strict=True))[first:stop]
@@ -265,36 +276,23 @@ def refine(
         src = strided(scene.voxel_down_sample(voxel) if voxel > 0 else scene, cfg.icp_max_points)
         est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=dist))
         T = reg.registration_icp(src, model.dense, dist, T, est, criteria).transformation
-    fit, rmse = evaluate(scene, model, T, cfg.eval_distance_m, cfg.eval_max_points)
+    n_eval = cfg.eval_max_points if eval_points is None else eval_points
+    fit, rmse = evaluate(scene, model, T, cfg.eval_distance_m, n_eval)
     return Candidate(np.asarray(T).copy(), fit, rmse, origin)
 
 
-_RANSAC_LOCK = threading.Lock()
-"""Open3D's RANSAC draws from one process-wide RNG: stages running in threads of one build
-would race on it and make results depend on timing, so seeding and drawing are serialised."""
-
-
-def ransac(
+def global_starts(
     scene_down: o3d.geometry.PointCloud,
     scene_fpfh: reg.Feature,
     model: Model,
     cfg: RegistrationConfig,
-    restart: int,
-) -> np.ndarray:
-    """One FPFH + RANSAC run with seed ``cfg.seed + restart``: ``T_o_s`` (4, 4)."""
-    dist = cfg.ransac_distance_factor * cfg.voxel_m
-    checkers = [
-        reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-        reg.CorrespondenceCheckerBasedOnDistance(dist),
-    ]
-    criteria = reg.RANSACConvergenceCriteria(cfg.ransac_max_iterations, cfg.ransac_confidence)
-    with _RANSAC_LOCK:
-        o3d.utility.random.seed(cfg.seed + restart)
-        res = reg.registration_ransac_based_on_feature_matching(
-            scene_down, model.down, scene_fpfh, model.fpfh, False, dist,
-            reg.TransformationEstimationPointToPoint(False), 3, checkers, criteria,
-        )
-    return np.asarray(res.transformation).copy()
+) -> Iterator[np.ndarray]:
+    """``T_o_s`` (4, 4) of RANSAC restart 0, 1, ... (seed ``cfg.seed + k``), repeatable."""
+    return ransac_restarts(
+        cfg.global_method, scene_down, scene_fpfh, model.down, model.fpfh,
+        cfg.ransac_distance_factor * cfg.voxel_m, cfg.seed, cfg.n_restarts,
+        cfg.ransac_max_iterations, cfg.ransac_confidence,
+    )  # fmt: skip
 
 
 def _settled(refined: list[Candidate], cfg: RegistrationConfig) -> bool:
@@ -304,7 +302,7 @@ def _settled(refined: list[Candidate], cfg: RegistrationConfig) -> bool:
     return any(
         rotation_error_deg(a.T_o_s, b.T_o_s) < cfg.ambiguity_min_deg
         and np.linalg.norm(a.T_o_s[:3, 3] - b.T_o_s[:3, 3]) <= cfg.agree_m
-        and min(a.fitness, b.fitness) > 0
+        and min(a.fitness, b.fitness) >= cfg.agree_min_fitness
         for i, a in enumerate(refined)
         for b in refined[i + 1 :]
     )
@@ -367,6 +365,7 @@ def distinct_from(best: Candidate, others: list[Candidate], cfg: RegistrationCon
     return Ambiguity(as_good_as(runner, best, cfg), angle, runner)
 
 
+@single_threaded()
 def probe_symmetry(
     scene: o3d.geometry.PointCloud,
     model: Model,
@@ -394,13 +393,17 @@ def probe_symmetry(
             starts.append((f"probe:grid:{j}", make_T(R_o, model.centroid - R_o @ model.centroid)))
     for origin, T_probe in starts:
         start = inv_T(T_probe) @ best.T_o_s
-        c = refine(scene, model, start, cfg, origin, stop=cfg.probe_levels)
+        c = refine(
+            scene, model, start, cfg, origin, stop=cfg.probe_levels,
+            eval_points=cfg.probe_eval_points,
+        )  # fmt: skip
         if c.fitness >= best.fitness - 2 * cfg.ambiguity_fitness_tol:
             c = refine(scene, model, c.T_o_s, cfg, origin, first=cfg.probe_levels)
         probes.append(c)
     return rank(probes, cfg.eval_distance_m)
 
 
+@single_threaded()
 def register(
     scene: o3d.geometry.PointCloud,
     scene_down: o3d.geometry.PointCloud,
@@ -413,10 +416,8 @@ def register(
     all candidates, best first. RANSAC restarts (at most ``n_restarts``) stop early once the
     candidates have settled (:func:`_settled`)."""
     refined = [refine(scene, model, T, cfg, origin) for origin, T in extra_starts]
-    for k in range(cfg.n_restarts):
-        refined.append(
-            refine(scene, model, ransac(scene_down, scene_fpfh, model, cfg, k), cfg, f"ransac:{k}")
-        )
+    for k, T in enumerate(global_starts(scene_down, scene_fpfh, model, cfg)):
+        refined.append(refine(scene, model, T, cfg, f"ransac:{k}"))
         if _settled(refined, cfg):
             break
     return rank(refined, cfg.eval_distance_m)
