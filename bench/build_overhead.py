@@ -2,7 +2,7 @@
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/build_overhead.py [--sessions 8] [--frames 40]
         [--difficulty easy] [--preset fast] [--repeat 3] [--dask-repeat 1] [--no-dask]
-        [--budget-s 840]
+        [--only-dask] [--pools-check] [--budget-s 840]
 
 On fresh synthetic sessions (seed 11, easy), in this order:
 
@@ -16,7 +16,13 @@ On fresh synthetic sessions (seed 11, easy), in this order:
    worker preload, close), and trivial Prefect tasks through it (the per-task dispatch cost);
 5. ``--dask-repeat`` times: cold builds on a Dask LocalCluster of 1 and of 2 single-threaded
    worker processes (order alternated between rounds): the fixed cost F = build wall - W,
-   W = the stage bodies' seconds; and a no-op Dask rebuild (starts no cluster).
+   W = the stage bodies' seconds; the CPU seconds of every process (parent: flow, Dask
+   scheduler and nannies; the Prefect API server; each worker; ``other``: the rest of the
+   machine) and of the stage bodies (their own thread, and their whole process: the native
+   pools beside them); with ``--pools-check`` also 1 worker with Open3D's pool at 1 thread
+   (the product's ``local:1`` sizes it to every core); and a no-op Dask rebuild.
+
+``--only-dask`` skips steps 1-3 (to iterate on the Dask numbers).
 
 Ratios are per round (a build and its baseline measured back to back), then the median over
 the rounds. Rounds stop early when the next would end after ``--budget-s`` (40 % of it kept
@@ -35,6 +41,8 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+from proc_cpu import ProcessCPU  # noqa: E402 - bench/ is the script's folder
+
 
 def _fmt(values: list[float], unit: str = "s", digits: int = 1) -> str:
     med = statistics.median(values)
@@ -52,6 +60,10 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="rounds of bare / cold / no-op")
     ap.add_argument("--dask-repeat", type=int, default=1, help="rounds of Dask 1 / 2 workers")
     ap.add_argument("--no-dask", action="store_true")
+    ap.add_argument("--only-dask", action="store_true", help="skip the bare / cold / no-op "
+                    "rounds and the structure comparison")
+    ap.add_argument("--pools-check", action="store_true", help="also time 1 Dask worker with "
+                    "Open3D's pool at 1 thread (the product's local:1 uses every core)")
     ap.add_argument("--budget-s", type=float, default=840.0,
                     help="start no further round once the next would likely end after this "
                          "(the first round of each kind always runs)")
@@ -117,7 +129,7 @@ def main() -> None:
     note(f"warm-up (one session bare, not counted): {time.perf_counter() - t:.1f} s")
     bare, cold, noop, r_build, r_noop = [], [], [], [], []
     t_rounds = time.perf_counter() - t_start
-    for i in range(args.repeat):
+    for i in range(0 if args.only_dask else args.repeat):
         spent = time.perf_counter() - t_start
         if i and spent + (spent - t_rounds) / i > args.budget_s * (
                 0.6 if not args.no_dask else 0.95):
@@ -152,8 +164,9 @@ def main() -> None:
             for what, rep in (("cold", report), ("no-op", again)):
                 note(f"{what} build phases (s): "
                      + ", ".join(f"{k} {v:.2f}" for k, v in rep.seconds.items()))
-    note(f"bare sequential, median: {_fmt(bare)}; cold build {_fmt(cold)}; "
-         f"no-op rebuild {_fmt(noop, digits=2)}")
+    if bare:
+        note(f"bare sequential, median: {_fmt(bare)}; cold build {_fmt(cold)}; "
+             f"no-op rebuild {_fmt(noop, digits=2)}")
 
     from graspcap.catalog.workarea import WorkArea
     from graspcap.flows.session import session_flow, submit_session
@@ -174,7 +187,8 @@ def main() -> None:
                 f.wait()
 
     with build_settings():
-        for name, fn in (("a subflow per session", as_subflows), ("one flow run", as_tasks)):
+        for name, fn in (() if args.only_dask else (("a subflow per session", as_subflows),
+                                                    ("one flow run", as_tasks))):
             t = time.perf_counter()
             fn()
             note(f"all cached, {len(sdirs)} sessions as {name}: {time.perf_counter() - t:.2f} s")
@@ -194,11 +208,29 @@ def main() -> None:
                 note(f"stopped after {i} Dask round(s): time budget")
                 break
             took, work_s = {}, {}
-            for n in ((1, 2) if i % 2 == 0 else (2, 1)):
-                took[n], rep = timed_build(tmp / f"dask{i}-{n}", dask=f"local:{n}")
+            kinds: list = [1, 2] if i % 2 == 0 else [2, 1]
+            if args.pools_check and i == 0:
+                kinds.append("1-pool1")
+            for n in kinds:
+                kw = {"dask": f"local:{n}"} if isinstance(n, int) else {
+                    "task_runner_": _one_worker_pool1()}
+                with ProcessCPU() as cpu:
+                    took[n], rep = timed_build(tmp / f"dask{i}-{n}", **kw)
                 assert not rep.failed or len(rep.failed) < len(sdirs), rep.summary()
-                work_s[n] = sum(r["seconds"] for r in WorkArea(
-                    tmp / f"dask{i}-{n}" / "work").executions())
+                recs = WorkArea(tmp / f"dask{i}-{n}" / "work").executions()
+                work_s[n] = sum(r["seconds"] for r in recs)
+                thread_s = sum(r.get("thread_cpu_s", 0.0) for r in recs)
+                proc_s = sum(r.get("cpu_s", 0.0) for r in recs)
+                label = f"{n} worker(s)" if isinstance(n, int) else (
+                    "1 worker, Open3D pool at 1 thread")
+                note(f"Dask {label}: {took[n]:.1f} s, {len(rep.failed)} failed; {cpu.summary()}")
+                note(f"Dask {label}, stage bodies: wall {work_s[n]:.1f} s, CPU of their thread "
+                     f"{thread_s:.1f} s ({thread_s / work_s[n]:.2f} per wall s), of their "
+                     f"process {proc_s:.1f} s ({proc_s / work_s[n]:.2f}): the native pools "
+                     f"beside them {proc_s - thread_s:.1f} s")
+            if "1-pool1" in took:
+                note(f"1 worker with Open3D's pool at 1 thread: {took['1-pool1']:.1f} s against "
+                     f"{took[1]:.1f} s at {os.cpu_count()} threads (the product's local:1)")
             speedups.append(took[1] / took[2])
             fixed = took[1] - work_s[1]
             note(f"Dask round {i + 1}: 1 worker {took[1]:.1f} s, 2 workers {took[2]:.1f} s, "
@@ -214,10 +246,12 @@ def main() -> None:
           f"{time.perf_counter() - t_start:.0f} s in all\n")
     for line in details:
         print(f"- {line}")
-    rows = [(f"build wall time / bare sequential, {args.sessions} sessions",
-             statistics.median(r_build), "<= 1.15", statistics.median(r_build) <= 1.15),
-            (f"no-op rebuild / cold build, {args.sessions} sessions",
-             statistics.median(r_noop), "<= 0.05", statistics.median(r_noop) <= 0.05)]
+    rows = []
+    for name, ratios, limit in (("build wall time / bare sequential", r_build, 1.15),
+                                ("no-op rebuild / cold build", r_noop, 0.05)):
+        value = statistics.median(ratios) if ratios else None
+        rows.append((f"{name}, {args.sessions} sessions", value, f"<= {limit}",
+                     None if value is None else value <= limit))
     if speedups:
         rows.append(("Dask LocalCluster 2 workers / 1 worker, speed-up",
                      statistics.median(speedups), ">= 1.7", statistics.median(speedups) >= 1.7))
@@ -225,8 +259,20 @@ def main() -> None:
         rows.append(("Dask LocalCluster 2 workers / 1 worker, speed-up", None, ">= 1.7", None))
     print("\n| measure | value | target | met? |\n|---|---|---|---|")
     for name, value, target, met in rows:
-        shown = "not run (--no-dask)" if value is None else f"{value:.3f}"
+        shown = "not run" if value is None else f"{value:.3f}"
         print(f"| {name} | {shown} | {target} | {'-' if met is None else 'yes' if met else 'NO'} |")
+
+
+def _one_worker_pool1():
+    """``--dask local:1`` as the product makes it, but with Open3D's pool at 1 thread."""
+    from prefect_dask import DaskTaskRunner
+
+    from graspcap.flows.runtime import task_runner
+    from graspcap.flows.worker import THREADS_ENV
+
+    runner = task_runner("local:1")
+    kwargs = {**runner.cluster_kwargs, "env": {**runner.cluster_kwargs["env"], THREADS_ENV: "1"}}
+    return DaskTaskRunner(cluster_class=runner.cluster_class, cluster_kwargs=kwargs)
 
 
 def _dask_costs() -> tuple[float, float, float, float]:
@@ -243,9 +289,9 @@ def _dask_costs() -> tuple[float, float, float, float]:
 
     runner = task_runner("local:2")
     t = time.perf_counter()
-    from distributed import LocalCluster
+    from graspcap.flows.worker import local_cluster
 
-    cluster = LocalCluster(**runner.cluster_kwargs)
+    cluster = local_cluster(**runner.cluster_kwargs)
     start_s = time.perf_counter() - t
     t = time.perf_counter()
     cluster.close()

@@ -13,8 +13,8 @@ reason): running the same stage version and config on the same bytes fails the s
 unchanged rebuild replays it instead of running the stage again; ``--retry-failed`` ignores it.
 
 ``executions.jsonl`` is the side channel of stage-body executions: one JSON line per
-attempt (stage, session, key, build, seconds, ok, error), appended with ``O_APPEND`` in
-one ``write``, so lines from concurrent workers never interleave.
+attempt (stage, session, key, build, seconds, CPU seconds, pid, ok, error), appended with
+``O_APPEND`` in one ``write``, so lines from concurrent workers never interleave.
 """
 
 from __future__ import annotations

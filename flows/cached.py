@@ -167,6 +167,19 @@ def _held(stage_name: str, key: str | None, work: WorkArea,
     return None
 
 
+def _cpu_clocks() -> tuple[float, float]:
+    return time.process_time(), time.thread_time()
+
+
+def _cpu_since(clocks: tuple[float, float]) -> dict:
+    """CPU seconds of a stage body for its execution record: ``cpu_s`` of the whole process
+    (with any native pool threads, and with whatever else the process ran meanwhile: another
+    session's thread in the thread-pool runner, Prefect's and Dask's background threads) and
+    ``thread_cpu_s`` of the body's own thread; ``pid`` says which process ran it."""
+    return {"cpu_s": round(time.process_time() - clocks[0], 4),
+            "thread_cpu_s": round(time.thread_time() - clocks[1], 4), "pid": os.getpid()}
+
+
 def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config: StageConfig,
                upstream: Mapping[str, ResultRef], work: WorkArea, build_id: str,
                replay_failures: bool = True) -> ResultRef:
@@ -185,18 +198,18 @@ def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config
     if held is not None:
         return held
     results = {k: WorkArea.load(upstream[k]) for k in stage.upstream}
-    t0 = time.perf_counter()
+    t0, clocks = time.perf_counter(), _cpu_clocks()
     record = {"stage": stage_name, "session_id": session_id, "key": key, "build_id": build_id}
     try:
         result = run_stage(stage, session_dir, config, results)
     except BaseException as exc:
         work.record_execution(**record, seconds=round(time.perf_counter() - t0, 4), ok=False,
-                              error=f"{type(exc).__name__}: {exc}"[:2000])
+                              error=f"{type(exc).__name__}: {exc}"[:2000], **_cpu_since(clocks))
         if key is not None and isinstance(exc, StageError):
             work.save_failure(stage_name, key, exc.stage, exc.reason, exc.session, build_id)
         raise
     seconds = round(time.perf_counter() - t0, 4)
-    work.record_execution(**record, seconds=seconds, ok=True, error=None)
+    work.record_execution(**record, seconds=seconds, ok=True, error=None, **_cpu_since(clocks))
     if key is None:  # no trustworthy key: never stored, but handed on
         key = "uncached-" + hashlib.sha256(f"{session_dir}{time.time_ns()}".encode()).hexdigest()
     ref = work.save(stage_name, key, result, build_id, seconds=seconds)

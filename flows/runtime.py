@@ -112,7 +112,7 @@ def task_runner(dask: str | None = None, workers: int = 2):
 
         n = int(dask.split(":", 1)[1])
         threads = max(1, (os.cpu_count() or 1) // n)  # Open3D's pool: the worker's cores
-        return DaskTaskRunner(cluster_class="distributed.LocalCluster", cluster_kwargs={
+        return DaskTaskRunner(cluster_class="graspcap.flows.worker.local_cluster", cluster_kwargs={
             "n_workers": n, "threads_per_worker": 1, "processes": True,
             "dashboard_address": None, "preload": ["graspcap.flows.worker"],
             "env": {THREADS_ENV: str(threads)}})

@@ -241,3 +241,52 @@ def test_a_session_task_runs_the_stages_left_and_says_how_each_ended(warm, synth
         assert inner[name] == ("NotReady", None), name
     ran = {st for _, st in executions(tmp_path, "b-session")}  # downstream: hits if unchanged
     assert {"fit_hand"} <= ran <= {"fit_hand", "estimate_adjustment", "propagate_poses"}
+
+
+def _worker_settings() -> dict:
+    """What a build's Dask worker runs with (called in the worker)."""
+    import os
+
+    import dask
+    import open3d as o3d
+
+    return {"trim": os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+            "omp": os.environ.get("OMP_NUM_THREADS"),
+            "open3d_threads": o3d.utility.get_max_threads(),
+            "profile": dask.config.get("distributed.worker.profile.enabled"),
+            "tick": dask.config.get("distributed.admin.tick.interval")}
+
+
+def test_local_runner_sizes_each_workers_pools_to_its_share_of_the_cores():
+    import os
+
+    from graspcap.flows.runtime import task_runner
+    from graspcap.flows.worker import THREADS_ENV
+
+    for n in (1, 2):
+        kwargs = task_runner(f"local:{n}").cluster_kwargs
+        assert kwargs["n_workers"] == n and kwargs["threads_per_worker"] == 1
+        assert kwargs["env"][THREADS_ENV] == str(max(1, os.cpu_count() // n))
+        assert kwargs["preload"] == ["graspcap.flows.worker"]
+
+
+@pytest.mark.slow
+def test_local_cluster_workers_get_the_build_settings(monkeypatch):
+    """``--dask local:1`` as the product makes it: Open3D's pool sized to the worker's cores,
+    Dask's profiler off, slow ticks, and no ``MALLOC_TRIM_THRESHOLD_`` from Dask (it fixes
+    glibc's mmap threshold: 12x the page faults on the stages)."""
+    import os
+
+    from distributed import Client
+
+    from graspcap.flows.runtime import task_runner
+    from graspcap.flows.worker import DASK_CONFIG, local_cluster
+
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    runner = task_runner("local:1")
+    assert runner.cluster_class == "graspcap.flows.worker.local_cluster"
+    with local_cluster(**runner.cluster_kwargs) as cluster, Client(cluster) as client:
+        got = client.submit(_worker_settings, pure=False).result(timeout=120)
+    assert got == {"trim": None, "omp": "1", "open3d_threads": os.cpu_count(),
+                   "profile": False, "tick": DASK_CONFIG["distributed.admin.tick.interval"]}
+    assert "MALLOC_TRIM_THRESHOLD_" not in os.environ  # nor leaked into this process
