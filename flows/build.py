@@ -227,7 +227,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         seen.setdefault(sid, d)
     t_discover = time.perf_counter()
 
-    # on Dask, one task per session (its stages nested in it): a dispatch costs ~0.4 s
+    # on Dask, one task per session (its stages plain calls in it): a dispatch costs ~0.4 s
     runner = getattr(FlowRunContext.get(), "task_runner", None)
     per_session = type(runner).__name__ == "DaskTaskRunner"
     submitted = {str(d): submit_session(d, configs, work, build_id, session_id=sid,

@@ -18,6 +18,7 @@ says which stages hit the cache; in Prefect's UI a build's flow run lists the ta
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -105,16 +106,36 @@ def failure_text(stage: str, exc: BaseException | None, message: str | None = No
     return f"{stage}: {message}"
 
 
+def run_retrying(stage: str, session_dir: str, session_id: str, config: StageConfig,
+                 work: WorkArea, build_id: str, replay_failures: bool,
+                 upstream: Mapping[str, ResultRef]) -> ResultRef:
+    """``run_cached`` with the stage tasks' retry policy (``RETRIES`` attempts more, after
+    ``RETRY_DELAYS_S``, for transient faults only), without a Prefect task run of its own."""
+    for attempt in range(RETRIES + 1):
+        try:
+            return run_cached(stage, session_dir, session_id, config, upstream, work, build_id,
+                              replay_failures)
+        except Exception as exc:
+            if attempt == RETRIES or not is_transient(exc):
+                raise
+            time.sleep(RETRY_DELAYS_S[attempt])
+    raise AssertionError("unreachable")
+
+
 @task(persist_result=False, cache_policy=NONE, retries=RETRIES,
       retry_delay_seconds=RETRY_DELAYS_S, retry_condition_fn=_retry_condition,
       log_prints=False)
 def run_session_task(session_dir: str, session_id: str, configs: Mapping[str, StageConfig],
                      work: WorkArea, build_id: str, replay_failures: bool,
                      settled: Mapping[str, ResultRef], to_run: list[str]) -> dict[str, Settled]:
-    """The stages ``to_run`` of one session, in DAG order, each as its own (nested) task run
-    in this process: what a Dask worker gets, one dispatch per session instead of per stage
-    (a dispatch through Dask costs ~0.4 s: the flow's context serialised, the settings
-    re-validated in the worker). ``settled``: refs of the stages already cached."""
+    """The stages ``to_run`` of one session, in DAG order, in this process: what a Dask worker
+    gets, one dispatch per session instead of per stage (a dispatch through Dask costs ~0.4 s:
+    the flow's context serialised, the settings re-validated in the worker). Each stage is a
+    plain call with the stage tasks' cache, retry and failure rules (:func:`run_retrying`), not
+    a nested task run: a task run costs the API server ~0.2 s of CPU (its state changes),
+    which on two cores competes with the stage bodies. ``settled``: refs of the stages
+    already cached. A lost worker fails the session task, which is retried: the stages that
+    completed are then cache hits."""
     from graspcap.tasks.pipeline import STAGES
 
     refs = dict(settled)
@@ -124,15 +145,13 @@ def run_session_task(session_dir: str, session_id: str, configs: Mapping[str, St
         if any(up not in refs for up in stage.upstream):
             out[name] = Settled("NotReady")
             continue
-        state = stage_task(name, session_id)(
-            name, session_dir, session_id, configs[name], work, build_id, replay_failures,
-            return_state=True, **{up: refs[up] for up in stage.upstream})
-        if state.is_completed():
-            refs[name] = state.result()
+        try:
+            refs[name] = run_retrying(name, session_dir, session_id, configs[name], work,
+                                      build_id, replay_failures,
+                                      {up: refs[up] for up in stage.upstream})
             out[name] = Settled("Completed", ref=refs[name])
-        else:
-            exc = state.result(raise_on_failure=False)
-            out[name] = Settled("Failed", why=failure_text(name, exc, state.message))
+        except Exception as exc:  # noqa: BLE001 - the session goes on; the build reports it
+            out[name] = Settled("Failed", why=failure_text(name, exc))
     return out
 
 

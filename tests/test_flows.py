@@ -202,7 +202,8 @@ def test_settle_session_settles_hits_and_failures_and_leaves_the_rest(warm, synt
 def test_a_session_task_runs_the_stages_left_and_says_how_each_ended(warm, synth_root,
                                                                      tmp_path, monkeypatch):
     """What a Dask worker gets (``per_session=True``): one task for the session's stages that
-    must run, each a nested task run; a failed stage's downstream is NotReady inside it."""
+    must run, each a plain call (no task run of its own); a failed stage's downstream is
+    NotReady inside it."""
     from prefect import flow
 
     from graspcap.flows.session import InSession, Settled, submit_session
@@ -290,3 +291,46 @@ def test_local_cluster_workers_get_the_build_settings(monkeypatch):
     assert got == {"trim": None, "omp": "1", "open3d_threads": os.cpu_count(),
                    "profile": False, "tick": DASK_CONFIG["distributed.admin.tick.interval"]}
     assert "MALLOC_TRIM_THRESHOLD_" not in os.environ  # nor leaked into this process
+
+
+def test_a_stage_in_a_session_task_retries_transient_faults_only(warm, synth_root, tmp_path,
+                                                                 monkeypatch):
+    """``run_retrying`` (a stage inside a Dask session task): an ``OSError`` twice, then the
+    stage runs; a ``StageError`` is raised at once; every attempt is an execution record."""
+    from graspcap.flows import session as fs
+    from graspcap.tasks import pipeline
+
+    catalog, _ = warm
+    shutil.copytree(catalog / "work", tmp_path / "work")
+    shutil.rmtree(tmp_path / "work" / "results" / "register_scan")
+    work = WorkArea(tmp_path / "work")
+    monkeypatch.setattr(fs, "RETRY_DELAYS_S", [0.0, 0.0, 0.0])
+    original = pipeline.STAGES["register_scan"]
+    calls = []
+
+    def flaky(session, config, **kw):
+        calls.append(1)
+        if len(calls) <= 2:
+            raise OSError(5, "Input/output error (injected)")
+        return original.run(session, config, **kw)
+
+    monkeypatch.setitem(pipeline.STAGES, "register_scan",
+                        dataclasses.replace(original, run=flaky))
+    session = str(sorted(p for p in synth_root.iterdir() if p.is_dir())[0].resolve())
+    up = fs.settle_session(session, pipeline.configs_for(PRESET), work)["load_session"].ref
+    ref = fs.run_retrying("register_scan", session, "s0", pipeline.configs_for(PRESET)[
+        "register_scan"], work, "b-retry", True, {"load_session": up})
+    assert ref.stage == "register_scan" and not ref.cached and len(calls) == 3
+    assert [r["ok"] for r in work.executions("b-retry")] == [False, False, True]
+
+    def broken(session, config, **_):
+        calls.append(1)
+        raise StageError("register_scan", "fitness 0.1 below 0.5", session="x")
+
+    shutil.rmtree(tmp_path / "work" / "results" / "register_scan")
+    monkeypatch.setitem(pipeline.STAGES, "register_scan",
+                        dataclasses.replace(original, run=broken))
+    with pytest.raises(StageError, match="fitness 0.1"):
+        fs.run_retrying("register_scan", session, "s0", pipeline.configs_for(PRESET)[
+            "register_scan"], work, "b-det", True, {"load_session": up})
+    assert len(calls) == 4 and len(work.executions("b-det")) == 1
