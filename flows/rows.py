@@ -72,6 +72,9 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
     kp = results["detect_keypoints"].keypoints  # (n_frames, 21, 3)
     sfm = results["reconstruct_hand"]
     fit = results["fit_hand"]
+    refined = results.get("refine_grasp")
+    hand = fit if refined is None else refined  # the final hand: palm and angles
+    joints_hand_w = fit.joints_fit_w if refined is None else refined.joints_w
     T_w_o1 = results["register_object"].T_w_o
     T_adj = results["estimate_adjustment"].T_adj
     scan = results.get("register_scan")
@@ -85,10 +88,10 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         "keypoint_backend": str(detected["backend"]),
         "keypoint_frames_detected": int(detected["frames_with_hand"]),
         "steady_from": int(results["select_steady"].steady_from),
-        "T_w_o_stage1": _flat(T_w_o1), "T_adj": _flat(T_adj), "T_w_p": _flat(fit.T_w_p),
+        "T_w_o_stage1": _flat(T_w_o1), "T_adj": _flat(T_adj), "T_w_p": _flat(hand.T_w_p),
         "T_turntable_o_scan": _flat(T_tt_o),
-        "hand_scale": float(fit.scale), "joint_angles_rad": _flat(fit.angles_rad),
-        "joints_w": _flat(sfm.joints_w), "joints_fit_w": _flat(fit.joints_fit_w),
+        "hand_scale": float(fit.scale), "joint_angles_rad": _flat(hand.angles_rad),
+        "joints_w": _flat(sfm.joints_w), "joints_fit_w": _flat(joints_hand_w),
         **{f"qa_{name}": qa.metrics.get(name) for name in QA_COLUMNS},
         "input_digest": input_digest, "code_version": code_version, "build_id": build_id,
         "config_digest": config_digest,
@@ -107,7 +110,6 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
             "build_id": build_id,
         })
     V, F = read_mesh(session)
-    refined = results.get("refine_grasp")
     if refined is not None:  # the refined hand (stage 5), object frame
         hand_v, hand_f, joints_o = refined.hand_vertices_o, refined.hand_faces, refined.joints_o
     else:  # the stage-3 fit, moved into the object at the first steady frame

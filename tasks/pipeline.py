@@ -245,14 +245,19 @@ def _propagate_poses(
     fit_hand,
     register_object,
     estimate_adjustment,
+    refine_grasp=None,
     **_,
 ):
     s = select_steady.steady_from
     frames = np.arange(s, session.manifest.grasp.count)
+    if refine_grasp is None:  # the stage-3 fit
+        T_w_p, joints_hand_w = fit_hand.T_w_p, fit_hand.joints_fit_w
+    else:  # the final hand of stage 5
+        T_w_p, joints_hand_w = refine_grasp.T_w_p, refine_grasp.joints_w
     return propagate_poses.propagate_poses(
         reconstruct_hand.T_w_c, estimate_adjustment.T_adj, register_object.T_w_o,
-        fit_hand.T_w_p, reconstruct_hand.joints_w, _K(session), frames,
-        detect_keypoints.keypoints[frames], joints_fit_w=fit_hand.joints_fit_w, config=config,
+        T_w_p, reconstruct_hand.joints_w, _K(session), frames,
+        detect_keypoints.keypoints[frames], joints_fit_w=joints_hand_w, config=config,
     )
 
 
@@ -293,8 +298,8 @@ def _pictures(session, config, **up):
 # --- the DAG ----------------------------------------------------------------------------------
 
 _REFINE: tuple[str, ...] = ("refine_grasp",)
-"""``("refine_grasp",)`` once stage 5 is in the DAG: qa_metrics and pictures then use the
-refined hand (``final_hand``); until then the stage-3 fit."""
+"""``("refine_grasp",)`` once stage 5 is in the DAG: propagate_poses, qa_metrics and pictures
+then use the refined hand (``final_hand``); until then the stage-3 fit."""
 
 STAGES: dict[str, Stage] = {
     s.name: s
@@ -331,7 +336,7 @@ STAGES: dict[str, Stage] = {
               ("manifest", "object_mesh"), _refine_grasp),
         Stage("propagate_poses", propagate_poses.STAGE_VERSION, propagate_poses.PRESETS,
               ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
-               "fit_hand", "register_object", "estimate_adjustment"),
+               "fit_hand", "register_object", "estimate_adjustment") + _REFINE,
               ("manifest",), _propagate_poses),
         Stage("qa_metrics", qa_metrics.STAGE_VERSION, qa_metrics.PRESETS,
               ("load_session", "reconstruct_hand", "crosscheck_sfm", "fit_hand",

@@ -108,3 +108,35 @@ def test_rows_from_before_format_3_get_the_new_qa_columns_from_cached_results(
     again = build_dataset([synth_root], catalog, PRESET, build_id="noop3")
     assert again.catalog_version is None and sorted(again.unchanged) == sorted(
         r["session_id"] for r in new.to_pylist())
+
+
+def test_rows_carry_the_refined_hand_and_frames_propagate_it(warm):
+    """The catalog's hand is stage 5's (pipeline.md: refine_grasp -> propagate_poses): the
+    row's palm, angles and joints are the refinement's, and every frame's ``T_c_p`` is
+    ``inv(T_w_c) @ T_w_p`` of that palm."""
+    import pickle
+
+    import numpy as np
+
+    catalog, _ = warm
+    refined = [pickle.loads(p.read_bytes())
+               for p in (catalog / "work" / "results" / "refine_grasp").glob("*.pkl")]
+    fitted = [pickle.loads(p.read_bytes()).joints_fit_w
+              for p in (catalog / "work" / "results" / "fit_hand").glob("*.pkl")]
+    cat = gc.open(catalog)
+    frames = cat.table("frames").to_pandas()
+    rows = cat.table("sessions").to_pylist()
+    moved = [not any(np.array_equal(f, np.reshape(r["joints_fit_w"], (21, 3))) for f in fitted)
+             for r in rows]
+    assert any(moved)  # the refinement moved a hand, so the fit would not pass for it
+    for r in rows:
+        joints = np.reshape(r["joints_fit_w"], (21, 3))
+        ref = next(g for g in refined if np.array_equal(g.joints_w, joints))
+        T_w_p = np.reshape(r["T_w_p"], (4, 4))
+        assert np.array_equal(T_w_p, ref.T_w_p)
+        assert np.array_equal(r["joint_angles_rad"], ref.angles_rad)
+        mine = frames[frames.session_id == r["session_id"]]
+        assert len(mine) > 10
+        for T_w_c, T_c_p in zip(mine.T_w_c, mine.T_c_p, strict=True):
+            T_w_c, T_c_p = np.reshape(T_w_c, (4, 4)), np.reshape(T_c_p, (4, 4))
+            np.testing.assert_allclose(T_w_c @ T_c_p, T_w_p, atol=1e-9)
