@@ -9,7 +9,7 @@ from pathlib import Path
 BENCHES = [
     "synth_speed.py", "validate_speed.py", "hand_model_speed.py", "fit_hand_speed.py",
     "bench_sfm.py", "steady_bench.py", "registration_bench.py", "accuracy.py", "catalog_bench.py",
-    "contactmap_speed.py", "detect_speed.py", "build_overhead.py",
+    "contactmap_speed.py", "detect_speed.py", "core_scaling.py", "build_overhead.py",
 ]
 
 
