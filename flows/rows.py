@@ -64,7 +64,7 @@ def qa_report(results: Mapping[str, Any]) -> QaReport:
 def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version: str,
                  build_id: str, config_digest: str) -> SessionRows:
     """Rows and arrays of a session whose stages all completed (``results`` by stage name)."""
-    from graspcap.tasks.pipeline import read_mesh
+    from graspcap.tasks.pipeline import final_pose, read_mesh
 
     session = results["load_session"]
     m = session.manifest
@@ -73,8 +73,7 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
     sfm = results["reconstruct_hand"]
     fit = results["fit_hand"]
     refined = results.get("refine_grasp")
-    hand = fit if refined is None else refined  # the final hand: palm and angles
-    joints_hand_w = fit.joints_fit_w if refined is None else refined.joints_w
+    T_w_p, angles_rad, joints_hand_w = final_pose(fit, refined)
     T_w_o1 = results["register_object"].T_w_o
     T_adj = results["estimate_adjustment"].T_adj
     scan = results.get("register_scan")
@@ -88,9 +87,9 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         "keypoint_backend": str(detected["backend"]),
         "keypoint_frames_detected": int(detected["frames_with_hand"]),
         "steady_from": int(results["select_steady"].steady_from),
-        "T_w_o_stage1": _flat(T_w_o1), "T_adj": _flat(T_adj), "T_w_p": _flat(hand.T_w_p),
+        "T_w_o_stage1": _flat(T_w_o1), "T_adj": _flat(T_adj), "T_w_p": _flat(T_w_p),
         "T_turntable_o_scan": _flat(T_tt_o),
-        "hand_scale": float(fit.scale), "joint_angles_rad": _flat(hand.angles_rad),
+        "hand_scale": float(fit.scale), "joint_angles_rad": _flat(angles_rad),
         "joints_w": _flat(sfm.joints_w), "joints_fit_w": _flat(joints_hand_w),
         **{f"qa_{name}": qa.metrics.get(name) for name in QA_COLUMNS},
         "input_digest": input_digest, "code_version": code_version, "build_id": build_id,

@@ -250,15 +250,21 @@ def _propagate_poses(
 ):
     s = select_steady.steady_from
     frames = np.arange(s, session.manifest.grasp.count)
-    if refine_grasp is None:  # the stage-3 fit
-        T_w_p, joints_hand_w = fit_hand.T_w_p, fit_hand.joints_fit_w
-    else:  # the final hand of stage 5
-        T_w_p, joints_hand_w = refine_grasp.T_w_p, refine_grasp.joints_w
+    T_w_p, _, joints_hand_w = final_pose(fit_hand, refine_grasp)
     return propagate_poses.propagate_poses(
         reconstruct_hand.T_w_c, estimate_adjustment.T_adj, register_object.T_w_o,
         T_w_p, reconstruct_hand.joints_w, _K(session), frames,
         detect_keypoints.keypoints[frames], joints_fit_w=joints_hand_w, config=config,
     )
+
+
+def final_pose(fit: Any, refined: Any | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The session's final hand pose from the results of ``fit_hand`` and ``refine_grasp``
+    (None when it did not run): palm ``T_w_p`` (4, 4), ``angles_rad`` (20,) and joints
+    (21, 3) in the world; the refinement's when there is one, else the stage-3 fit's."""
+    if refined is not None:
+        return refined.T_w_p, refined.angles_rad, refined.joints_w
+    return fit.T_w_p, fit.angles_rad, fit.joints_fit_w
 
 
 def final_hand(results: Mapping[str, Any]) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
