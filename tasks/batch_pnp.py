@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.geometry import make_T
 
@@ -41,17 +42,6 @@ def ransac_poses(
         T[i] = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
         inliers[i, sel[inl.ravel()]] = True
     return T, inliers
-
-
-def _rotations(rotvec: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula for (n, 3) rotation vectors -> (n, 3, 3)."""
-    theta = np.linalg.norm(rotvec, axis=1)
-    k = rotvec / np.maximum(theta, 1e-12)[:, None]
-    Kx = np.zeros((len(rotvec), 3, 3))
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    Kx -= Kx.transpose(0, 2, 1)
-    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
-    return np.eye(3) + s * Kx + (1 - c) * (Kx @ Kx)
 
 
 def residual_vectors(
@@ -115,7 +105,7 @@ def refine_poses(
         H_d[~active] = np.eye(6)
         g[~active] = 0.0
         delta = -np.linalg.solve(H_d, g[..., None])[..., 0]
-        R_d = _rotations(delta[:, :3])
+        R_d = Rotation.from_rotvec(delta[:, :3]).as_matrix()
         T_new = T.copy()
         T_new[:, :3, :3] = R_d @ T[:, :3, :3]
         T_new[:, :3, 3] = np.einsum("nab,nb->na", R_d, T[:, :3, 3]) + delta[:, 3:]
