@@ -30,14 +30,19 @@ def window_median(depth_m: np.ndarray, uv_px: np.ndarray, window_px: int = 2) ->
     u, v = np.rint(np.asarray(uv_px, dtype=float).reshape(-1, 2)).astype(int).T
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     offsets = np.arange(-window_px, window_px + 1)
-    rows = np.clip(v[:, None] + offsets, -1, h)[:, :, None]  # -1 / h: the zero border
-    cols = np.clip(u[:, None] + offsets, -1, w)[:, None, :]
-    win = np.pad(depth_m, 1)[rows + 1, cols + 1].reshape(len(u), -1)
-    win = np.where(win > 0, win, np.nan)  # NaN > 0 is False: invalid readings drop out too
-    has = inside & np.isfinite(win).any(axis=1)
+    rows, cols = v[:, None] + offsets, u[:, None] + offsets  # (k, 2 * window_px + 1)
+    in_rows, in_cols = (rows >= 0) & (rows < h), (cols >= 0) & (cols < w)
+    win = depth_m[np.clip(rows, 0, h - 1)[:, :, None], np.clip(cols, 0, w - 1)[:, None, :]]
+    # NaN > 0 is False: invalid readings drop out too, as do pixels beyond the border
+    valid = ((win > 0) & in_rows[:, :, None] & in_cols[:, None, :]).reshape(len(u), -1)
+    n = valid.sum(axis=1)
+    # each row's median of the valid readings (as np.nanmedian): sorted with the invalid ones
+    # last, the middle one or the mean of the middle two, in the depth's own float type
+    ranked = np.sort(np.where(valid, win.reshape(len(u), -1), np.inf), axis=1)
+    has = np.flatnonzero(inside & (n > 0))
+    lo, hi = ranked[has, (n[has] - 1) // 2], ranked[has, n[has] // 2]
     out = np.zeros(len(u))
-    if has.any():
-        out[has] = np.nanmedian(win[has], axis=1)
+    out[has] = (lo + hi) / ranked.dtype.type(2)
     return out
 
 
