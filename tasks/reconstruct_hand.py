@@ -16,6 +16,7 @@ the registered surface pins it to a few tenths (rig sessions: 1.6-2.2 deg -> 0.2
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 
 import numpy as np
@@ -36,7 +37,8 @@ from graspcap.tasks.sfm_depth_icp import (
     surface_cloud,
 )
 from graspcap.tasks.sfm_depth_init import depth_initialisation
-from graspcap.tasks.sfm_init import Initialisation, initialise
+from graspcap.tasks.sfm_depth_sweep import DepthSweep, FrameDepth, frame_depth
+from graspcap.tasks.sfm_init import Initialisation, check_frames, initialise
 from graspcap.tasks.sfm_restart import solve_with_restarts
 from graspcap.tasks.sfm_result import HandReconstruction, SfmDiagnostics, assemble
 from graspcap.tasks.sfm_sanity import check_result
@@ -52,7 +54,7 @@ from graspcap.tasks.sfm_solve import (
 __all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",
            "STAGE_VERSION", "reconstruct_hand"]  # the result types live in sfm_result
 
-STAGE_VERSION = "reconstruct_hand/9"
+STAGE_VERSION = "reconstruct_hand/10"
 
 
 class ReconstructConfig(StageConfig):
@@ -134,10 +136,11 @@ class ReconstructConfig(StageConfig):
     depth_links: DepthLinkConfig = DepthLinkConfig()
     """Dense depth links between frames (RGB-D only, see ``sfm_depth_icp``)."""
     prefetch_depth: bool = True
-    """Read the next depth frame on a second thread during the depth sweep (through
-    ``depth_frame``; OpenCV decodes the PNG without the GIL). Identical results; saves wall
-    time when a core is free (a session's ~90 PNG decodes overlap the sampling), costs ~3 %
-    CPU when none is (measured on a loaded machine: 1.65 -> 1.70 s CPU for the sweep)."""
+    """Do the depth work (``sfm_depth_sweep``: each frame's readings at the keypoints and its
+    surface) ahead on a second thread from the start of the stage, while the solves run;
+    OpenCV decodes the depth PNGs without the GIL. Identical results (each frame is computed
+    by one pure function, on whichever thread asks first); saves wall time when a core is
+    free. Only with whole depth frames (``depth_frame``)."""
     depth_init_score: bool = True
     """Choose the initial pair among near-equally good ones by how many depth readings one
     scale explains: pixels of a small, distant hand barely tell the hand from its
@@ -193,10 +196,10 @@ def reconstruct_hand(
         -> metres) or the aligned depth frames (n, h, w) in metres.
     surface_offset_m : (21,) depth of each joint centre below the skin the camera sees.
     depth_frame : whole aligned depth frames by video frame index, for the dense depth links
-        (``depth_icp``); taken from ``depth_at`` when that is the frames array. It is also
-        called one frame ahead of the depth sweep on a second thread (``prefetch_depth``),
-        so it should be the cached reader behind ``depth_at`` (as ``pipeline`` passes it):
-        the next frame then decodes while this one is sampled.
+        (``depth_icp``); taken from ``depth_at`` when that is the frames array. Each frame's
+        depth work is done once per call (``sfm_depth_sweep``), with ``prefetch_depth`` on a
+        second thread: ``depth_frame`` should be the cached reader behind ``depth_at`` (as
+        ``pipeline`` passes it), so that a frame decodes once for both.
     T_c_tt : (4, 4) turntable pose in the colour camera: the platter and table below its top
         plane are cut from the depth links' surfaces; without it there are no depth links.
     """
@@ -204,42 +207,71 @@ def reconstruct_hand(
         frames_m = np.asarray(depth_at)
         depth_frame = depth_frame or (lambda i: frames_m[i])
         depth_at = depth_lookup_from_frames(frames_m)
-    solve = partial(
-        _reconstruct, keypoints, K, steady_from, depth_at, surface_offset_m, config,
-        depth_frame=depth_frame, T_c_tt=T_c_tt,
-    )  # fmt: skip
-
-    def restarts():
-        """Solves from the depth initialisation: through the reprojection-only solve like
-        the first, then straight into the RGB-D solve (pixels alone may prefer a wrong hand
-        even from a right start)."""
-        kp = np.asarray(keypoints, dtype=float)[steady_from:]
-        ok = (kp[..., 2] >= config.min_confidence) & np.all(np.isfinite(kp), axis=2)
-        init = depth_initialisation(
-            kp[..., :2], ok, np.asarray(K, dtype=float), depth_at,
-            np.broadcast_to(np.asarray(surface_offset_m, dtype=float), (21,)), steady_from,
-            ransac_px=config.ransac_px, min_points=config.min_points_per_frame,
-        )  # fmt: skip
-        if init is not None:
-            yield partial(solve, initialisation=init)
-            yield partial(solve, initialisation=init, rgbd_from_start=True)
-
-    return solve_with_restarts(
-        solve, restarts, enabled=config.depth_restart, min_share=config.restart_depth_share,
-        margin=config.restart_share_margin,
+    cfg = config
+    K = np.asarray(K, dtype=float)
+    kp = np.asarray(keypoints, dtype=float)[steady_from:]
+    ok = (kp[..., 2] >= cfg.min_confidence) & np.all(np.isfinite(kp), axis=2)
+    confident = ok & (kp[..., 2] >= cfg.depth_min_confidence)
+    link_cfg = cfg.depth_links
+    use_links = (  # without the turntable the static scene would be registered too
+        cfg.depth_use is DepthUse.FACTORS
+        and link_cfg.enabled
+        and depth_frame is not None
+        and T_c_tt is not None
     )
+
+    def surface_at(i: int, uv_i: np.ndarray, depth_i: np.ndarray):
+        centre = hand_centre(K, uv_i, depth_i, link_cfg.centre_below_skin_m)
+        if centre is None:
+            return None
+        return surface_cloud(
+            depth_frame(steady_from + i), K, centre, radius_m=link_cfg.radius_m,
+            stride_px=link_cfg.stride_px, T_c_tt=T_c_tt, min_height_m=link_cfg.min_height_m,
+        )  # fmt: skip
+
+    compute = partial(
+        frame_depth, uv=kp[..., :2], usable=ok, depth_at=depth_at, first_frame=steady_from,
+        surface_at=surface_at if use_links else None, confident=confident,
+    )  # fmt: skip
+    # ahead: the pair scoring's frames first, then every other frame the sweep samples
+    swept = np.flatnonzero(confident.any(1))
+    first = np.intersect1d(check_frames(len(kp)), swept)
+    order = np.concatenate([first, np.setdiff1d(swept, first)])
+    background = cfg.prefetch_depth and depth_frame is not None
+    with DepthSweep(compute, order, background=background) as sweep:
+        solve = partial(
+            _reconstruct, keypoints, K, steady_from, sweep.get, surface_offset_m, cfg,
+            use_links=use_links,
+        )  # fmt: skip
+
+        def restarts():
+            """Solves from the depth initialisation: through the reprojection-only solve
+            like the first, then straight into the RGB-D solve (pixels alone may prefer a
+            wrong hand even from a right start)."""
+            init = depth_initialisation(
+                kp[..., :2], ok, K, sweep.readings(range(len(kp))),
+                np.broadcast_to(np.asarray(surface_offset_m, dtype=float), (21,)),
+                steady_from, ransac_px=cfg.ransac_px, min_points=cfg.min_points_per_frame,
+            )  # fmt: skip
+            if init is not None:
+                yield partial(solve, initialisation=init)
+                yield partial(solve, initialisation=init, rgbd_from_start=True)
+
+        return solve_with_restarts(
+            solve, restarts, enabled=cfg.depth_restart, min_share=cfg.restart_depth_share,
+            margin=cfg.restart_share_margin,
+        )
 
 
 def _reconstruct(
     keypoints: np.ndarray,
     K: np.ndarray,
     steady_from: int,
-    depth_at: DepthLookup,
+    frame_at: Callable[[int], FrameDepth],
     surface_offset_m: np.ndarray,
     config: ReconstructConfig,
     *,
-    depth_frame: DepthFrame | None,
-    T_c_tt: np.ndarray | None,
+    use_links: bool,
     initialisation: Initialisation | None = None,
     rgbd_from_start: bool = False,
 ) -> HandReconstruction:
@@ -275,7 +307,7 @@ def _reconstruct(
         min_points=cfg.min_points_per_frame,
         min_parallax_deg=cfg.min_parallax_deg,
         depth_score=(
-            depth_scorer(cfg, uv, conf, ok, depth_at, offset, steady_from)
+            depth_scorer(cfg, conf, ok, frame_at, offset)
             if cfg.depth_init_score
             else None
         ),
@@ -302,27 +334,7 @@ def _reconstruct(
         )
 
     link_cfg = cfg.depth_links
-    use_links = (  # without the turntable the static scene would be registered too
-        cfg.depth_use is DepthUse.FACTORS
-        and link_cfg.enabled
-        and depth_frame is not None
-        and T_c_tt is not None
-    )
-
-    def surface_at(i: int, uv_i: np.ndarray, depth_i: np.ndarray):
-        centre = hand_centre(K, uv_i, depth_i, link_cfg.centre_below_skin_m)
-        if centre is None:
-            return None
-        return surface_cloud(
-            depth_frame(steady_from + i), K, centre, radius_m=link_cfg.radius_m,
-            stride_px=link_cfg.stride_px, T_c_tt=T_c_tt, min_height_m=link_cfg.min_height_m,
-        )  # fmt: skip
-
-    depth, z, surfaces = sample_depth(
-        cfg, uv, conf, inlier, T_c_w, X, depth_at, steady_from,
-        surface_at if use_links else None,
-        prefetch=depth_frame if use_links and cfg.prefetch_depth else None,
-    )  # fmt: skip
+    depth, z, surfaces = sample_depth(cfg, conf, inlier, T_c_w, X, frame_at)
     sampled = np.isfinite(depth)
     scale = estimate_scale(
         z[sampled],

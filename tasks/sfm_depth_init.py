@@ -34,7 +34,7 @@ def backprojected_joints(
     uv: np.ndarray,
     ok: np.ndarray,
     K: np.ndarray,
-    depth_at: DepthLookup,
+    depth_at: DepthLookup | np.ndarray,
     offset_m: np.ndarray,
     first_frame: int,
 ) -> np.ndarray:
@@ -42,13 +42,18 @@ def backprojected_joints(
     observation is unusable or has no depth.
 
     uv : (m, 21, 2) pixels; ok : (m, 21) usable observations; offset_m : (21,) depth of each
-    joint centre below the skin; row i is video frame ``first_frame + i``.
+    joint centre below the skin; row i is video frame ``first_frame + i``; ``depth_at`` a
+    lookup or the readings (m, 21) at the keypoints (``sfm_depth_sweep``).
     """
     m = len(uv)
     out = np.full((m, 21, 3), np.nan)
     for i in np.flatnonzero(ok.any(1)):
         j = np.flatnonzero(ok[i])
-        d = np.asarray(depth_at(first_frame + int(i), uv[i, j]), dtype=float)
+        d = (
+            np.asarray(depth_at[i, j], dtype=float)
+            if isinstance(depth_at, np.ndarray)
+            else np.asarray(depth_at(first_frame + int(i), uv[i, j]), dtype=float)
+        )
         good = np.isfinite(d) & (d > 0)
         out[i, j[good]] = backproject(K, uv[i, j[good]], d[good] + offset_m[j[good]])
     return out
@@ -90,7 +95,7 @@ def depth_initialisation(
     uv: np.ndarray,
     ok: np.ndarray,
     K: np.ndarray,
-    depth_at: DepthLookup,
+    depth_at: DepthLookup | np.ndarray,
     offset_m: np.ndarray,
     first_frame: int,
     *,
@@ -103,7 +108,8 @@ def depth_initialisation(
     pixels, frames re-posed by PnP; metric, in the frame of the reference camera.
 
     uv : (m, 21, 2) pixels; ok : (m, 21) usable observations (row i is video frame
-    ``first_frame + i``); offset_m : (21,) joint centre below the skin.
+    ``first_frame + i``); offset_m : (21,) joint centre below the skin; depth_at : a lookup
+    or the readings (m, 21) at the keypoints.
     The reference is the frame with the most depth readings; a frame is posed when at
     least ``min_points`` of its readings agree with the reference within ``inlier_m``.
     Returns None when fewer than two frames can be posed or no joint can be triangulated.

@@ -225,6 +225,11 @@ def _agreement(uv, ok, K, T, X, ransac_px):
     return float((res[valid] < ransac_px).sum()) / max(int(ok.sum()), 1)
 
 
+def check_frames(m: int, n_check_frames: int = 15) -> np.ndarray:
+    """The evenly spaced frames of ``m`` on which :func:`initialise` checks the pairs."""
+    return np.unique(np.round(np.linspace(0, m - 1, n_check_frames)).astype(int))
+
+
 def initialise(
     uv: np.ndarray,
     ok: np.ndarray,
@@ -257,7 +262,7 @@ def initialise(
     if not hyps:
         return None, best_parallax
     m = len(ok)
-    check = np.unique(np.round(np.linspace(0, m - 1, n_check_frames)).astype(int))
+    check = check_frames(m, n_check_frames)
     scored = []
     for h in hyps:
         T, X = _grow(uv, ok, K, h, check, ransac_px, min_points, passes=1)

@@ -7,7 +7,6 @@ them together.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from enum import StrEnum
 
 import numpy as np
@@ -49,44 +48,29 @@ def fill_poses(T_c_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([inv_T(T) for T in out]), valid
 
 
-def sample_depth(
-    cfg, uv, conf, inlier, T_c_w, X, depth_at, steady_from, surface_at=None, prefetch=None
-):
-    """Depth readings (m, 21) (NaN where not sampled), camera-frame joint z (m, 21) and, with
-    ``surface_at(i, uv (k, 2), depth (k,))``, each frame's surface (list, None where none),
-    built in the same sweep over the frames (each depth frame is read once).
+def sample_depth(cfg, conf, inlier, T_c_w, X, frame_at):
+    """Depth readings (m, 21) of the confident inliers (NaN where not sampled), camera-frame
+    joint z (m, 21) and the surfaces (list, None where none) of the frames sampled.
 
-    ``prefetch(video frame)``, when given, is called one frame ahead on a second thread: the
-    cached frame reader that ``depth_at`` and ``surface_at`` share, so the next frame's PNG
-    decodes (OpenCV, without the GIL) while this one is sampled. The values do not change.
+    ``frame_at(i) -> FrameDepth`` (``sfm_depth_sweep``) gives solve frame i's readings at
+    every usable keypoint and its surface, each frame computed once per stage call.
     """
-    m = len(uv)
+    m = len(conf)
     sample = inlier & (conf >= cfg.depth_min_confidence)
     depth = np.full((m, 21), np.nan)
     surfaces: list = [None] * m
-    frames = np.flatnonzero(sample.any(1))
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        ahead = None
-        for n, i in enumerate(frames):
-            if ahead is not None:
-                ahead.result()  # in the reader's cache now (re-raises a failed read)
-            ahead = (
-                pool.submit(prefetch, steady_from + int(frames[n + 1]))
-                if prefetch is not None and n + 1 < len(frames)
-                else None
-            )
-            j = np.flatnonzero(sample[i])
-            depth[i, j] = np.asarray(depth_at(steady_from + int(i), uv[i, j]), dtype=float)
-            if surface_at is not None:
-                surfaces[i] = surface_at(int(i), uv[i, j], depth[i, j])
+    for i in np.flatnonzero(sample.any(1)):
+        fd = frame_at(int(i))
+        depth[i, sample[i]] = fd.readings[sample[i]]
+        surfaces[i] = fd.surface
     z = np.einsum("mb,jb->mj", T_c_w[:, 2, :3], X) + T_c_w[:, 2, 3][:, None]
     return depth, z, surfaces
 
 
-def depth_scorer(cfg, uv, conf, ok, depth_at, offset, steady_from):
+def depth_scorer(cfg, conf, ok, frame_at, offset):
     """``score(frames, T_c_w, X)``: share of depth readings within ``scale_rel_tol`` / 2 of the
-    densest ratio ``(depth + offset) / z`` (scale-free, so it applies before the scale)."""
-    cache: dict[int, np.ndarray] = {}
+    densest ratio ``(depth + offset) / z`` (scale-free, so it applies before the scale);
+    ``frame_at`` as in :func:`sample_depth`."""
     sample = ok & (conf >= cfg.depth_min_confidence)
 
     def score(frames: np.ndarray, T_c_w: np.ndarray, X: np.ndarray) -> float:
@@ -94,12 +78,9 @@ def depth_scorer(cfg, uv, conf, ok, depth_at, offset, steady_from):
         for i, T in zip(frames, T_c_w, strict=True):
             if not np.all(np.isfinite(T)):
                 continue
-            if int(i) not in cache:
-                cache[int(i)] = np.where(
-                    sample[i], depth_at(steady_from + int(i), uv[i]), np.nan
-                ).astype(float)
+            readings = np.where(sample[i], frame_at(int(i)).readings, np.nan)
             z = X @ T[2, :3] + T[2, 3]
-            ratios.append((cache[int(i)] + offset) / z)
+            ratios.append((readings + offset) / z)
         r = np.concatenate(ratios) if ratios else np.zeros(0)
         r = r[np.isfinite(r) & (r > 0)]
         if len(r) < cfg.min_scale_samples:
