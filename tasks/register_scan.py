@@ -6,6 +6,14 @@ depth is cropped to the platter and brought into the turntable frame at angle
 fused (normals estimated per view, facing that view's camera) and the mesh is
 registered against the fused cloud at once: FPFH + RANSAC with restarts, then
 point-to-plane ICP, then the symmetry probes of stage 1.
+
+Candidates are ranked by their fitness times the share of the mesh's surface samples that
+no view sees through (:mod:`scan_free_space`). The fitness alone cannot tell a mug from the
+same mug upside down on its rim (registered 180 deg off, 100 mm up, at fitness 0.992
+against the true pose's 0.998, and RANSAC found the flipped basin 7 times in 8): model
+surface where the views saw empty space is what gives it away. While the best pose still
+leaves more than ``grid_above`` of the mesh in seen-empty space, the probes also try every
+rotation of a point group (the mug's flip axis lies between its principal axes).
 """
 
 from __future__ import annotations
@@ -13,11 +21,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T, rot_z, transform_points
 from graspcap.tasks.registration import (
+    Candidate,
     PlatterCrop,
     RegistrationConfig,
     crop_platter,
@@ -28,10 +38,13 @@ from graspcap.tasks.registration import (
     prepare_scene,
     probe_symmetry,
     register,
+    strided,
+    tls_cost,
     to_pcd,
 )
+from graspcap.tasks.scan_free_space import free_space_violation, prepare_views
 
-STAGE_VERSION = "register_scan/2"
+STAGE_VERSION = "register_scan/3"
 STAGE = "register_scan"
 
 
@@ -46,6 +59,29 @@ class RegisterScanConfig(StageConfig):
     """A fused registration with a lower fitness fails the stage."""
     check_ambiguity: bool = True
     """Run the symmetry probes on the fused cloud."""
+    check_free_space: bool = True
+    """Rank candidates by fitness times (1 - free-space violation): the share of the posed
+    mesh's surface samples that some view sees through counts against a pose. Off ranks by
+    fitness and RMSE alone (``register_scan/2``)."""
+    free_space_tol_m: float = 0.005
+    """A view sees through a model point when its depth is this much further than the point."""
+    free_space_window_px: int = 3
+    """The depth is eroded to the nearest valid depth in this window (silhouette pixels)."""
+    free_space_points: int = 3000
+    """At most this many mesh surface samples (even stride) are projected into the views."""
+    probe_grid: str = "O"
+    """Extra probes: every rotation of this point group (scipy ``Rotation.create_group``,
+    ``"O"`` 24, ``"I"`` 60) about the model's centroid and principal axes, applied to the best
+    pose; ``""`` for none. They run only while the free space contradicts the best pose."""
+    grid_above: float = 0.05
+    """The grid probes run while the best pose's free-space violation is above this."""
+    grid_chunk: int = 3
+    """Grid rotations probed before the best pose is judged again (half turns first)."""
+    probe_rounds: int = 2
+    """Passes over the grid (another pass starts from a new best pose)."""
+    ambiguous_violation: float = 0.01
+    """A distinct pose is as good only if its free-space violation exceeds the best's by at
+    most this much (on top of the fitness and RMSE tolerances of ``registration``)."""
     registration: RegistrationConfig = RegistrationConfig()
     """Global registration and ICP settings."""
 
@@ -53,7 +89,7 @@ class RegisterScanConfig(StageConfig):
 PRESETS: dict[str, RegisterScanConfig] = {
     "default": RegisterScanConfig(),
     "fast": RegisterScanConfig(
-        check_ambiguity=False, registration=RegistrationConfig(n_restarts=2)
+        check_ambiguity=False, probe_rounds=1, registration=RegistrationConfig(n_restarts=2)
     ),
 }
 
@@ -78,6 +114,15 @@ class ScanRegistration:
         A distinct pose explains the fused cloud as well (symmetric object).
     ambiguity_deg : float
         Rotation to that runner-up (0 when there is none).
+    free_space_violation : float
+        Share of the posed mesh's surface samples (over the views that judge them) that a view
+        sees through; NaN when not checked.
+    T_turntable_o_runner_up : (4, 4) float or None
+        Best pose at least ``ambiguity_min_deg`` away from the result.
+    runner_up_fitness, runner_up_free_space_violation : float
+        Its fitness and free-space violation (NaN when there is none).
+    note : str
+        Why the pose may be wrong (ambiguous, or contradicted by the views); empty when none.
     """
 
     T_turntable_o_scan: np.ndarray
@@ -88,6 +133,11 @@ class ScanRegistration:
     per_view_points: np.ndarray
     ambiguous: bool
     ambiguity_deg: float
+    free_space_violation: float
+    T_turntable_o_runner_up: np.ndarray | None
+    runner_up_fitness: float
+    runner_up_free_space_violation: float
+    note: str
 
 
 def register_scan(
@@ -138,8 +188,12 @@ def register_scan(
         np.concatenate(pts_all), np.concatenate(nrm_all), np.zeros(3), cfg
     )
     candidates = register(scene, down, feats, model, cfg)
+    violation = _violation_of(views, K, T_t_c, model, config)
+    candidates = _ranked(candidates, violation, cfg)
     if config.check_ambiguity:
-        candidates = probe_symmetry(scene, model, candidates, cfg)
+        candidates = _ranked(probe_symmetry(scene, model, candidates, cfg), violation, cfg)
+    if config.check_free_space and config.probe_grid:
+        candidates = _grid_probes(scene, model, candidates, violation, config)
     best = candidates[0]
     if best.fitness < config.min_fitness:
         raise StageError(
@@ -148,10 +202,22 @@ def register_scan(
             "does not explain the fused scan (wrong object, mesh units or turntable angles?)",
         )
     amb = distinct_from(best, candidates[1:], cfg)
+    runner = amb.runner_up
+    ambiguous = amb.ambiguous
+    if config.check_free_space and runner is not None:
+        combined = [_combined(c, violation) for c in candidates]
+        amb = distinct_from(combined[0], combined[1:], cfg)
+        by_id = {id(m): c for m, c in zip(combined, candidates, strict=True)}
+        runner = None if amb.runner_up is None else by_id[id(amb.runner_up)]
+        ambiguous = amb.ambiguous and (
+            violation(runner) <= violation(best) + config.ambiguous_violation
+        )
     fits = [
         np.nan if p is None else evaluate(to_pcd(p), model, best.T_o_s, cfg.eval_distance_m)[0]
         for p in per_view
     ]
+    v_best = violation(best) if config.check_free_space else np.nan
+    v_runner = np.nan if runner is None or not config.check_free_space else violation(runner)
     return ScanRegistration(
         T_turntable_o_scan=inv_T(best.T_o_s),
         fitness=best.fitness,
@@ -159,6 +225,100 @@ def register_scan(
         n_points=len(scene.points),
         per_view_fitness=np.asarray(fits, float),
         per_view_points=np.asarray(counts, int),
-        ambiguous=amb.ambiguous,
+        ambiguous=ambiguous,
         ambiguity_deg=amb.ambiguity_deg,
+        free_space_violation=v_best,
+        T_turntable_o_runner_up=None if runner is None else inv_T(runner.T_o_s),
+        runner_up_fitness=np.nan if runner is None else runner.fitness,
+        runner_up_free_space_violation=v_runner,
+        note=_note(ambiguous, amb.ambiguity_deg, v_best, config),
     )
+
+
+def _violation_of(views, K, T_t_c, model, config: RegisterScanConfig):
+    """``violation(candidate) -> float``, memoised per candidate; 0 when not checked."""
+    if not config.check_free_space:
+        return lambda c: 0.0
+    crop = config.crop
+    r = crop.radius_m + crop.margin_m
+    corners = np.array(
+        [[x, y, z] for x in (-r, r) for y in (-r, r) for z in (0.0, crop.max_height_m)]
+    )
+    fs = prepare_views(
+        [(d, rot_z(-a) @ T_t_c) for d, a in views], K, config.free_space_window_px, corners
+    )
+    pts_o = np.asarray(strided(model.dense, config.free_space_points).points)
+    memo: dict[int, tuple[Candidate, float]] = {}
+
+    def violation(c: Candidate) -> float:
+        if id(c) not in memo:  # the candidate is kept too, so its id is not reused
+            pts_t0 = transform_points(inv_T(c.T_o_s), pts_o)
+            memo[id(c)] = (c, free_space_violation(fs, pts_t0, config.free_space_tol_m))
+        return memo[id(c)][1]
+
+    return violation
+
+
+def _grid_probes(scene, model, candidates, violation, config: RegisterScanConfig):
+    """Probe the point group's rotations (:func:`_grid`) from the best pose while the free
+    space contradicts it, ``grid_chunk`` at a time, until
+    the best pose is no longer contradicted or ``probe_rounds`` full passes found nothing."""
+    cfg = config.registration
+    grid = _grid(config)
+    for _ in range(config.probe_rounds):
+        before = candidates[0]
+        for k in range(0, len(grid), config.grid_chunk):
+            if violation(candidates[0]) <= config.grid_above:
+                return candidates
+            probes = probe_symmetry(scene, model, candidates, cfg, grid[k : k + config.grid_chunk])
+            candidates = _ranked(probes, violation, cfg)
+        if candidates[0] is before:
+            break
+    return candidates
+
+
+def _grid(config: RegisterScanConfig) -> np.ndarray:
+    """The point group's rotations (k, 3, 3) but the identity, half turns first, without the
+    turns about single principal axes that the symmetry probes already tried."""
+    group = Rotation.create_group(config.probe_grid)
+    angles = group.magnitude()
+    keep = angles > 1e-6
+    if config.check_ambiguity:
+        rotvecs = group.as_rotvec()
+        probed = np.radians(config.registration.probe_angles_deg)
+        for i in range(3):
+            for a in probed:
+                keep &= np.linalg.norm(rotvecs - a * np.eye(3)[i], axis=1) > 1e-6
+    order = np.argsort(-np.round(angles, 6), kind="stable")
+    return group[order[keep[order]]].as_matrix()
+
+
+def _combined(c: Candidate, violation) -> Candidate:
+    """``c`` with its fitness times (1 - its free-space violation)."""
+    return Candidate(c.T_o_s, c.fitness * (1.0 - violation(c)), c.inlier_rmse_m, c.origin)
+
+
+def _ranked(cands: list[Candidate], violation, cfg: RegistrationConfig) -> list[Candidate]:
+    """Best first by fitness times (1 - free-space violation), then TLS cost, then origin."""
+    return sorted(
+        cands,
+        key=lambda c: (
+            -c.fitness * (1.0 - violation(c)),
+            tls_cost(c, cfg.eval_distance_m),
+            c.origin,
+        ),
+    )
+
+
+def _note(ambiguous: bool, angle_deg: float, v_best: float, config: RegisterScanConfig) -> str:
+    """A sentence for QA on why the pose may be wrong; empty when there is no reason."""
+    notes = []
+    if ambiguous:
+        notes.append(
+            f"a pose {angle_deg:.0f} deg away explains the scan as well (symmetric object)"
+        )
+    if np.isfinite(v_best) and v_best > config.grid_above:
+        notes.append(
+            f"{100 * v_best:.0f} % of the posed mesh lies where the scan views see empty space"
+        )
+    return "; ".join(notes)
