@@ -153,8 +153,14 @@ def surface_cloud(
     u1 = int(np.clip(fx * (c[0] + radius_m) / z_near + cx + 1, 0, w))
     v0 = int(np.clip(fy * (c[1] - radius_m) / z_near + cy, 0, h))
     v1 = int(np.clip(fy * (c[1] + radius_m) / z_near + cy + 1, 0, h))
-    z = depth_m[v0:v1:stride_px, u0:u1:stride_px].astype(float)
     k = normal_step
+    # the box above bounds the sphere's image loosely (about twice its area for a hand at
+    # 0.45 m); cut it to the sphere's exact image plus the normals' reach, on the same
+    # lattice, which keeps the same points
+    margin = (k + 1) * stride_px + 1
+    u0, u1 = _tight(u0, u1, c[0], c[2], radius_m, fx, cx, margin, stride_px)
+    v0, v1 = _tight(v0, v1, c[1], c[2], radius_m, fy, cy, margin, stride_px)
+    z = depth_m[v0:v1:stride_px, u0:u1:stride_px].astype(float)
     if z.shape[0] <= 2 * k or z.shape[1] <= 2 * k:
         return None
     u = (np.arange(z.shape[1]) * stride_px + u0 - cx) / fx
@@ -181,6 +187,25 @@ def surface_cloud(
     index = np.full(keep.shape, -1, dtype=np.int32)
     index[keep] = np.arange(len(pts), dtype=np.int32)
     return SurfaceCloud(index, (u0 + k * stride_px, v0 + k * stride_px), stride_px, pts, n)
+
+
+def _tight(
+    lo: int, hi: int, c_a: float, c_z: float, r: float, f: float, c0: float, margin: int,
+    stride: int,
+) -> tuple[int, int]:
+    """Pixel range [lo, hi) along one image axis cut to the image of the ball of radius ``r``
+    around (c_a, c_z) (that axis and depth) widened by ``margin`` pixels; ``lo`` moves by
+    whole ``stride`` steps so that the lattice stays the same."""
+    rho = np.hypot(c_a, c_z)
+    if r >= rho:
+        return lo, hi
+    theta, half = np.arctan2(c_a, c_z), np.arcsin(r / rho)
+    if theta + half >= np.pi / 2 or theta - half <= -np.pi / 2:
+        return lo, hi
+    first = f * np.tan(theta - half) + c0 - margin
+    last = f * np.tan(theta + half) + c0 + margin
+    new_lo = lo + stride * max(int(np.floor((first - lo) / stride)), 0)
+    return new_lo, max(min(hi, int(np.ceil(last)) + 1), new_lo)
 
 
 def _exp_batch(step: np.ndarray) -> np.ndarray:
