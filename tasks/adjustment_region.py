@@ -47,10 +47,16 @@ def near_hand(
     Pieces of the hand the mask missed are kept too: registration treats them as outliers."""
     if len(hand_pts) < cfg.min_hand_points:
         return points
-    tree = cKDTree(hand_cluster(hand_pts, cfg.cluster_voxel_m, cfg.cluster_eps_m))
+    hand = hand_cluster(hand_pts, cfg.cluster_voxel_m, cfg.cluster_eps_m)
+    tree = cKDTree(hand)
     reach = radius_m + cfg.region_margin_m
-    # clusters on the voxel grid; full-resolution points only inside the kept clusters' box
-    # (KD queries of a whole frame's points cost seconds)
+    # clusters on the voxel grid of the points in the hand's box grown by twice the reach (no
+    # farther point can be kept; the box test is cheap, voxelising every frame's points is
+    # not); full-resolution points only inside the kept clusters' box (KD queries of a whole
+    # frame's points cost seconds)
+    grow = 2 * reach + cfg.cluster_voxel_m
+    around = np.all((points >= hand.min(0) - grow) & (points <= hand.max(0) + grow), axis=1)
+    points = points[around]
     grid = np.asarray(to_pcd(points).voxel_down_sample(cfg.cluster_voxel_m).points)
     pts = grid[tree.query(grid, k=1)[0] <= 2 * reach]
     if len(pts) == 0:

@@ -36,22 +36,19 @@ from graspcap.tasks.depth_agreement import views_agreement
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T, rotation_error_deg
 from graspcap.tasks.open3d_threads import single_threaded
+from graspcap.tasks.point_clouds import cloud_from_depth, to_pcd, valid_depth
 from graspcap.tasks.registration import (
     Candidate,
     Model,
     RegistrationConfig,
-    as_good_as,
-    cloud_from_depth,
     prepare_model,
     prepare_scene,
-    probe_symmetry,
     refine,
     register,
-    to_pcd,
-    valid_depth,
 )
+from graspcap.tasks.symmetry import as_good_as, probe_symmetry
 
-STAGE_VERSION = "estimate_adjustment/7"
+STAGE_VERSION = "estimate_adjustment/8"
 STAGE = "estimate_adjustment"
 
 HAND_BONES = (
@@ -118,6 +115,8 @@ class EstimateAdjustmentConfig(StageConfig):
     """Fewer unmasked pixels than this where the posed object is seen: the pose is not supported."""
     agree_tol_m: float = 0.006
     """A pixel agrees with the posed object when its depth is within this of the rendered depth."""
+    agree_stride_px: int = 2
+    """The depth agreement judges every this-th pixel of every this-th row."""
     accept_fitness: float = 0.85
     """ICP from the stage-1 pose is accepted at this fitness."""
     min_fitness: float = 0.5
@@ -132,14 +131,16 @@ class EstimateAdjustmentConfig(StageConfig):
     """...and their pose is kept when the views agree with it by this much more."""
     check_ambiguity: bool = True
     """Run the symmetry probes on the global path (finds the symmetric pose closest to stage 1)."""
-    registration: RegistrationConfig = RegistrationConfig()
-    """Global registration and ICP settings."""
+    registration: RegistrationConfig = RegistrationConfig(coarse_model_points=5000)
+    """Global registration and ICP settings (a probe's first ICP level against a quarter of
+    the model's points)."""
 
 
 PRESETS: dict[str, EstimateAdjustmentConfig] = {
     "default": EstimateAdjustmentConfig(),
     "fast": EstimateAdjustmentConfig(
-        check_ambiguity=False, registration=RegistrationConfig(n_restarts=2)
+        check_ambiguity=False,
+        registration=RegistrationConfig(n_restarts=2, coarse_model_points=5000),
     ),
     "always_global": EstimateAdjustmentConfig(accept_fitness=1.1),
 }
@@ -312,11 +313,18 @@ def estimate_adjustment(
         if single is None:
             raise failed from None
         return single
-    if single is None or multi.fitness > config.views_margin + views_agreement(
-        views, K, mesh, single.T_w_o, config.agree_tol_m
+    if single is None or multi.fitness > config.views_margin + _agreement(
+        views, K, mesh, single.T_w_o, config
     )[0]:
         return multi
     return single
+
+
+def _agreement(
+    views: list, K: np.ndarray, mesh: tuple, T_w_o: np.ndarray, config: EstimateAdjustmentConfig
+) -> tuple[float, float, int]:
+    """:func:`views_agreement` with the stage's tolerance and pixel stride."""
+    return views_agreement(views, K, mesh, T_w_o, config.agree_tol_m, config.agree_stride_px)
 
 
 def spread_frames(pose_valid: np.ndarray, ref: int, count: int) -> list[int]:
@@ -328,7 +336,6 @@ def spread_frames(pose_valid: np.ndarray, ref: int, count: int) -> list[int]:
         return []
     pick = np.unique(np.round(np.linspace(0, len(posed) - 1, count + 1)[1:]).astype(int))
     return [int(posed[i]) for i in pick]
-
 
 
 @dataclass(frozen=True)
@@ -361,7 +368,7 @@ def _from_hypothesis(
     reach1 = np.linalg.norm(points - centre1, axis=1) <= model.radius_m + config.stage1_reach_m
     scene_all = to_pcd(points[reach1])
     first = refine(scene_all, model, inv_T(T_w_o1), cfg, "stage1")
-    fit, rmse, n = views_agreement(views, K, mesh, inv_T(first.T_o_s), config.agree_tol_m)
+    fit, rmse, n = _agreement(views, K, mesh, inv_T(first.T_o_s), config)
     if n >= config.min_points and fit >= config.accept_fitness:
         T_w_o = inv_T(first.T_o_s)
         return Adjustment(
@@ -387,7 +394,7 @@ def _from_hypothesis(
         rotation_error_deg(c.T_o_s, chosen.T_o_s) >= cfg.ambiguity_min_deg for c in equal
     )
     T_w_o = inv_T(chosen.T_o_s)
-    fit, rmse, n = views_agreement(views, K, mesh, T_w_o, config.agree_tol_m)
+    fit, rmse, n = _agreement(views, K, mesh, T_w_o, config)
     if n < config.min_points or fit < config.min_fitness:
         raise StageError(
             STAGE,

@@ -26,23 +26,19 @@ from scipy.spatial.transform import Rotation
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T, rot_z, transform_points
+from graspcap.tasks.point_clouds import PlatterCrop, crop_platter, estimate_normals, to_pcd
 from graspcap.tasks.registration import (
     Candidate,
-    PlatterCrop,
     RegistrationConfig,
-    crop_platter,
-    distinct_from,
-    estimate_normals,
     evaluate,
     prepare_model,
     prepare_scene,
-    probe_symmetry,
     register,
     strided,
     tls_cost,
-    to_pcd,
 )
 from graspcap.tasks.scan_free_space import free_space_violation, prepare_views
+from graspcap.tasks.symmetry import distinct_from, probe_symmetry
 
 STAGE_VERSION = "register_scan/3"
 STAGE = "register_scan"

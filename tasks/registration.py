@@ -8,11 +8,10 @@ share of observed points explained by the model". The transforms returned
 here are therefore ``T_o_s`` (scene frame into object frame); stages invert
 them into ``T_s_o``.
 
-Pipeline pieces: FPFH features, RANSAC global registration with restarts,
-coarse-to-fine point-to-plane ICP, and a symmetry check that re-runs ICP from
-the best pose turned about the model's principal axes. Clouds from depth and the
-platter crop are in :mod:`point_clouds`, the rendered-depth check in
-:mod:`depth_agreement`.
+Pipeline pieces: FPFH features, RANSAC global registration with restarts and
+coarse-to-fine point-to-plane ICP. The symmetry check (ICP from the best pose turned about
+the model's principal axes) is in :mod:`symmetry`, clouds from depth and the platter crop
+in :mod:`point_clouds`, the rendered-depth check in :mod:`depth_agreement`.
 """
 
 from __future__ import annotations
@@ -26,26 +25,10 @@ import trimesh
 from pydantic import model_validator
 
 from graspcap.tasks.config import StageConfig
-from graspcap.tasks.depth_agreement import depth_agreement
-from graspcap.tasks.geometry import inv_T, make_T, rotation_error_deg, transform_points
+from graspcap.tasks.geometry import rotation_error_deg, transform_points
 from graspcap.tasks.open3d_threads import single_threaded
-from graspcap.tasks.point_clouds import (
-    PlatterCrop,
-    cloud_from_depth,
-    crop_platter,
-    estimate_normals,
-    to_pcd,
-    valid_depth,
-)
-from graspcap.tasks.ransac import GlobalMethod, ransac_restarts
-
-__all__ = [  # the cloud helpers and the depth agreement are re-exported for the stages
-    "Ambiguity", "Candidate", "GlobalMethod", "Model", "PlatterCrop", "RegistrationConfig",
-    "about_axis", "as_good_as", "cloud_from_depth", "crop_platter", "depth_agreement",
-    "distinct_from", "estimate_normals", "evaluate", "fpfh", "global_starts", "prepare_model",
-    "prepare_scene", "probe_symmetry", "rank", "refine", "register", "strided",
-    "surface_distance", "tls_cost", "to_pcd", "valid_depth",
-]  # fmt: skip
+from graspcap.tasks.point_clouds import estimate_normals, to_pcd
+from graspcap.tasks.ransac import ransac_restarts
 
 reg = o3d.pipelines.registration
 
@@ -65,8 +48,6 @@ class RegistrationConfig(StageConfig):
     """RANSAC iteration cap per restart."""
     ransac_confidence: float = 0.999
     """RANSAC early-stop confidence."""
-    global_method: GlobalMethod = GlobalMethod.OPEN3D
-    """Which RANSAC draws the global starts; both are repeatable."""
     n_restarts: int = 4
     """RANSAC restarts, each with its own seed; the best after ICP wins (fitness, then RMSE)."""
     seed: int = 0
@@ -79,6 +60,12 @@ class RegistrationConfig(StageConfig):
     """Correspondence distance per ICP level."""
     icp_max_iterations: int = 20
     """ICP iterations per level."""
+    coarse_model_points: int = 0
+    """At most this many of the model's points (an even stride) are the target of a symmetry
+    probe's first ICP level; 0 uses them all. Its correspondence search gathers every model
+    point within ``icp_max_distance_m[0]``, so its cost grows with the square of the sampling
+    density. (The global step's starts keep every point: a realistic mug from RANSAC
+    converged 9.5 deg off on 5000.)"""
     icp_max_points: int = 3000
     """At most this many scene points per ICP level (an even stride over the voxel grid's
     points): ICP's cost grows with the points, its accuracy stops improving long before."""
@@ -147,6 +134,8 @@ class Model:
     ----------
     dense : o3d.geometry.PointCloud
         Surface samples with face normals (ICP target).
+    coarse : o3d.geometry.PointCloud
+        At most ``coarse_model_points`` of them (a probe's first ICP level's target).
     down, fpfh
         Voxel-downsampled samples and their FPFH features (global step).
     centroid : (3,) float
@@ -160,6 +149,7 @@ class Model:
     """
 
     dense: o3d.geometry.PointCloud
+    coarse: o3d.geometry.PointCloud
     down: o3d.geometry.PointCloud
     fpfh: o3d.pipelines.registration.Feature
     centroid: np.ndarray
@@ -198,7 +188,8 @@ def prepare_model(vertices: np.ndarray, faces: np.ndarray, cfg: RegistrationConf
     radius = float(np.linalg.norm(pts - centroid, axis=1).max())
     surface = o3d.t.geometry.RaycastingScene()
     surface.add_triangles(mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32))
-    return Model(dense, down, fpfh(down, cfg), centroid, Vt.T, radius, surface)
+    coarse = strided(dense, cfg.coarse_model_points)
+    return Model(dense, coarse, down, fpfh(down, cfg), centroid, Vt.T, radius, surface)
 
 
 def prepare_scene(
@@ -265,17 +256,20 @@ def refine(
     first: int = 0,
     stop: int | None = None,
     eval_points: int | None = None,
+    coarse_target: bool = False,
 ) -> Candidate:
     """Coarse-to-fine point-to-plane ICP from ``T_o_s`` (4, 4) over the configured levels
     ``first`` to ``stop`` (all by default), scored on at most ``eval_points`` scene points
-    (``cfg.eval_max_points`` by default)."""
+    (``cfg.eval_max_points`` by default); the first level against ``model.coarse`` when
+    ``coarse_target``."""
     T = np.asarray(T_o_s, dtype=float)
     criteria = reg.ICPConvergenceCriteria(1e-7, 1e-7, cfg.icp_max_iterations)
-    pairs = list(zip(cfg.icp_voxels_m, cfg.icp_max_distance_m, strict=True))[first:stop]
-    for voxel, dist in pairs:
+    levels = list(enumerate(zip(cfg.icp_voxels_m, cfg.icp_max_distance_m, strict=True)))
+    for level, (voxel, dist) in levels[first:stop]:
         src = strided(scene.voxel_down_sample(voxel) if voxel > 0 else scene, cfg.icp_max_points)
         est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=dist))
-        T = reg.registration_icp(src, model.dense, dist, T, est, criteria).transformation
+        target = model.coarse if level == 0 and coarse_target else model.dense
+        T = reg.registration_icp(src, target, dist, T, est, criteria).transformation
     n_eval = cfg.eval_max_points if eval_points is None else eval_points
     fit, rmse = evaluate(scene, model, T, cfg.eval_distance_m, n_eval)
     return Candidate(np.asarray(T).copy(), fit, rmse, origin)
@@ -289,7 +283,7 @@ def global_starts(
 ) -> Iterator[np.ndarray]:
     """``T_o_s`` (4, 4) of RANSAC restart 0, 1, ... (seed ``cfg.seed + k``), repeatable."""
     return ransac_restarts(
-        cfg.global_method, scene_down, scene_fpfh, model.down, model.fpfh,
+        scene_down, scene_fpfh, model.down, model.fpfh,
         cfg.ransac_distance_factor * cfg.voxel_m, cfg.seed, cfg.n_restarts,
         cfg.ransac_max_iterations, cfg.ransac_confidence,
     )  # fmt: skip
@@ -318,89 +312,6 @@ def rank(candidates: list[Candidate], distance_m: float) -> list[Candidate]:
     """Best first by :func:`tls_cost` at ``distance_m``, then origin (a stable order)."""
     return sorted(candidates, key=lambda c: (tls_cost(c, distance_m), c.origin))
 
-
-def about_axis(model: Model, axis: np.ndarray, angle_rad: float) -> np.ndarray:
-    """Object-frame rotation (4, 4) by ``angle_rad`` about ``axis`` through the model centroid."""
-    R = trimesh.transformations.rotation_matrix(angle_rad, axis)[:3, :3]
-    return make_T(R, model.centroid - R @ model.centroid)
-
-
-@dataclass(frozen=True)
-class Ambiguity:
-    """Outcome of the symmetry check.
-
-    Attributes
-    ----------
-    ambiguous : bool
-        A pose at least ``ambiguity_min_deg`` away explains the data about as well.
-    ambiguity_deg : float
-        Rotation between the best pose and the runner-up (0 when there is none).
-    runner_up : Candidate or None
-        Best candidate distinct from the winner.
-    """
-
-    ambiguous: bool
-    ambiguity_deg: float
-    runner_up: Candidate | None
-
-
-def as_good_as(c: Candidate, best: Candidate, cfg: RegistrationConfig) -> bool:
-    """``c`` explains the scene as well as ``best`` within the ambiguity tolerances."""
-    excess_sq = max(c.inlier_rmse_m**2 - best.inlier_rmse_m**2, 0.0)
-    return (
-        c.fitness >= best.fitness - cfg.ambiguity_fitness_tol
-        and excess_sq <= cfg.ambiguity_excess_rmse_m**2
-    )
-
-
-def distinct_from(best: Candidate, others: list[Candidate], cfg: RegistrationConfig) -> Ambiguity:
-    """Compare ``best`` with the best of ``others`` that is a distinct rotation."""
-    distinct = [
-        c for c in others if rotation_error_deg(c.T_o_s, best.T_o_s) >= cfg.ambiguity_min_deg
-    ]
-    if not distinct:
-        return Ambiguity(False, 0.0, None)
-    runner = rank(distinct, cfg.eval_distance_m)[0]
-    angle = rotation_error_deg(runner.T_o_s, best.T_o_s)
-    return Ambiguity(as_good_as(runner, best, cfg), angle, runner)
-
-
-@single_threaded()
-def probe_symmetry(
-    scene: o3d.geometry.PointCloud,
-    model: Model,
-    candidates: list[Candidate],
-    cfg: RegistrationConfig,
-    rotations: np.ndarray | None = None,
-) -> list[Candidate]:
-    """Re-run ICP from the best of ``candidates`` (ranked) turned about each principal axis
-    of the model by ``cfg.probe_angles_deg``, or, when ``rotations`` (k, 3, 3) are given, by
-    each of them (expressed in the principal-axes frame, turned about the centroid); returns
-    every candidate, the probes included, best first (a probe may beat the global step).
-    Pass the result to :func:`distinct_from`."""
-    best = candidates[0]
-    probes = list(candidates)
-    starts: list[tuple[str, np.ndarray]] = []
-    if rotations is None:
-        for i in range(3):
-            for angle in cfg.probe_angles_deg:
-                T_probe = about_axis(model, model.axes[:, i], np.radians(angle))
-                starts.append((f"probe:{i}:{angle:g}", T_probe))
-    else:
-        A = model.axes
-        for j, R in enumerate(np.asarray(rotations, float)):
-            R_o = A @ R @ A.T
-            starts.append((f"probe:grid:{j}", make_T(R_o, model.centroid - R_o @ model.centroid)))
-    for origin, T_probe in starts:
-        start = inv_T(T_probe) @ best.T_o_s
-        c = refine(
-            scene, model, start, cfg, origin, stop=cfg.probe_levels,
-            eval_points=cfg.probe_eval_points,
-        )  # fmt: skip
-        if c.fitness >= best.fitness - 2 * cfg.ambiguity_fitness_tol:
-            c = refine(scene, model, c.T_o_s, cfg, origin, first=cfg.probe_levels)
-        probes.append(c)
-    return rank(probes, cfg.eval_distance_m)
 
 
 @single_threaded()

@@ -10,9 +10,9 @@ import pytest
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import load_truth
 from graspcap.tasks import pipeline
+from graspcap.tasks.depth_agreement import depth_agreement
 from graspcap.tasks.geometry import pose_error
 from graspcap.tasks.register_object import register_object
-from graspcap.tasks.registration import depth_agreement
 
 ROT_DEG, TRANS_M = 1.0, 0.003
 

@@ -20,7 +20,8 @@ from graspcap.tasks.geometry import inv_T, pose_error, rotation_error_deg
 from graspcap.tasks.register_object import PRESETS as OBJECT_PRESETS
 from graspcap.tasks.register_object import register_object
 from graspcap.tasks.register_scan import register_scan
-from graspcap.tasks.registration import RegistrationConfig, about_axis, prepare_model
+from graspcap.tasks.registration import RegistrationConfig, prepare_model
+from graspcap.tasks.symmetry import about_axis
 from tests.registration_rig import (
     HEIGHT,
     WIDTH,

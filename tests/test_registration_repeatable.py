@@ -15,11 +15,8 @@ import sys
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
-from graspcap.tasks import ransac
 from graspcap.tasks.estimate_adjustment import estimate_adjustment
-from graspcap.tasks.geometry import from_rotvec, pose_error
 from graspcap.tasks.register_object import register_object
 from tests.registration_rig import (
     K,
@@ -101,43 +98,3 @@ def test_estimate_adjustment_global_path_is_repeatable(shared_data, tmp_path):
         mask=mask,
     )  # fmt: skip
     np.testing.assert_array_equal(child, runs[0].T_w_o)
-
-
-def _scene(seed: int, n: int = 400, outliers: float = 0.7):
-    """Model points, a rigid motion, scene points and correspondences of which the share
-    ``outliers`` pair a scene point with a random model point."""
-    rng = np.random.default_rng(seed)
-    model = rng.uniform(-0.05, 0.05, (n, 3))
-    T_o_s = from_rotvec(rng.normal(size=3), rng.uniform(-0.1, 0.1, 3))
-    T_s_o = np.linalg.inv(T_o_s)
-    scene = model @ T_s_o[:3, :3].T + T_s_o[:3, 3] + rng.normal(0, 0.0005, (n, 3))
-    partner = np.arange(n)
-    bad = rng.random(n) < outliers
-    partner[bad] = rng.integers(0, n, bad.sum())
-    pairs = np.stack([np.arange(n), partner], axis=1)
-    return ransac.Matches(scene, model, pairs, cKDTree(model)), T_o_s
-
-
-def test_kabsch_recovers_a_rigid_motion():
-    rng = np.random.default_rng(0)
-    R = np.stack([from_rotvec(rng.normal(size=3), np.zeros(3))[:3, :3] for _ in range(5)])
-    t = rng.normal(size=(5, 3))
-    src = rng.normal(size=(5, 3, 3))
-    dst = np.einsum("bij,bkj->bki", R, src) + t[:, None]
-    R_est, t_est = ransac.kabsch(src, dst)
-    np.testing.assert_allclose(R_est, R, atol=1e-9)
-    np.testing.assert_allclose(t_est, t, atol=1e-9)
-
-
-def test_ransac_finds_the_motion_among_outliers_and_repeats_it():
-    m, T_o_s = _scene(1)
-    T = ransac.ransac(m, distance_m=0.003, seed=5)
-    rot_deg, trans_m = pose_error(T, T_o_s)
-    assert rot_deg < 1.0 and trans_m < 0.002, (rot_deg, trans_m)
-    np.testing.assert_array_equal(T, ransac.ransac(m, distance_m=0.003, seed=5))
-    assert ransac.fitness(m, T, 0.003)[0] > 0.95  # every scene point has its model point
-
-
-def test_ransac_without_enough_correspondences_is_the_identity():
-    m, _ = _scene(2, n=2)
-    np.testing.assert_array_equal(ransac.ransac(m, 0.003, seed=0), np.eye(4))
