@@ -11,6 +11,10 @@ Detection, a change point in how rigid the hand is:
    standardised by the median and robust spread (MAD) over the steady reference frames, and
    the change point ``t`` maximising ``sum_{i < t} (z_i - drift)`` (a CUSUM). The hand is
    rebuilt from the frames found steady and the frames re-scored.
+   A hand fitted to late viewpoints only can fit early steady frames so poorly that they
+   look moving (the onset 40-60 frames late). So the model then grows backwards: refitted
+   with the block of frames just before its own, the block is kept while it fits as well as
+   the model's frames did before (a moving block, pulled into the fit, still stands out).
 4. Refined onset: a hand that settles slows down, and in its last moving frames the fingers
    are a fraction of a pixel to a few pixels from their final place, which an energy (a sum
    over 42 noisy coordinates) cannot tell from noise. But a smooth motion arrives at its end
@@ -18,8 +22,8 @@ Detection, a change point in how rigid the hand is:
    residual vectors of the frames just before the coarse onset. Each frame's residual is
    projected on that pattern (leaving the frame itself out of it), a matched filter whose
    noise is one coordinate's, not 42's; standardised by the steady frames, its CUSUM from
-   the start of the pattern window gives the onset. Pattern and onset are re-estimated until
-   the onset settles.
+   the start of the pattern window gives the onset, at most ``pattern_frames / 2`` after the
+   coarse one. Pattern and onset are re-estimated until the onset settles.
 """
 
 from __future__ import annotations
@@ -35,9 +39,10 @@ from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import umeyama
 from graspcap.tasks.sfm_graph import bundle_adjust
 from graspcap.tasks.sfm_init import initialise
+from graspcap.tasks.steady_stats import cusum, matched_filter, standardise, window_scores
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/3"
+STAGE_VERSION = "select_steady/4"
 
 
 class SteadyMethod(StrEnum):
@@ -56,7 +61,7 @@ class SelectSteadyConfig(StageConfig):
     """Evenly spaced frames of a window that the hand model is reconstructed from."""
     pair_candidates: int = 10
     """Evenly spaced frames of the first window among which the two-view start is chosen."""
-    pair_hypotheses: int = 6
+    pair_hypotheses: int = 3
     """Two-view hypotheses (largest parallax first) grown and compared by agreement."""
     check_frames: int = 15
     """Evenly spaced frames of the window each hypothesis is grown on to compare them."""
@@ -87,6 +92,13 @@ class SelectSteadyConfig(StageConfig):
     refinements: int = 2
     """At most this many times the hand is re-adjusted over the frames found steady and the
     frames re-scored (stops when the coarse onset settles)."""
+    grow_frames: int = 8
+    """Block of frames before the model's that the hand is refitted with, growing the model
+    backwards while the block fits like the steady frames (0: no growth)."""
+    grow_z: float = 1.0
+    """Largest mean score of a refitted block, standardised by the model's frames before the
+    refit, for it to count as steady (about 1.6 standard errors of a mean of 8 windowed
+    scores)."""
     ba_iterations: int = 60
     """Levenberg-Marquardt iterations of the hand model's bundle adjustment."""
 
@@ -239,81 +251,15 @@ def _pose_frames(K, X, uv, ok, cfg, start=None):
     return T, res
 
 
-def _window_scores(res: np.ndarray, half: int, min_points: int) -> np.ndarray:
-    """(n,) RMS px of the residual vectors averaged over frames i-half .. i+half.
-
-    Each joint's mean vector is weighted by its count, so pure noise gives the same expected
-    score whatever the window holds.
-    """
-    n = len(res)
-    valid = np.isfinite(res[..., 0])
-    filled = np.where(valid[..., None], res, 0.0)
-    c_sum = np.concatenate([np.zeros((1, 21, 2)), np.cumsum(filled, axis=0)])
-    c_cnt = np.concatenate([np.zeros((1, 21)), np.cumsum(valid, axis=0)])
-    lo = np.clip(np.arange(n) - half, 0, n)
-    hi = np.clip(np.arange(n) + half + 1, 0, n)
-    total = c_sum[hi] - c_sum[lo]
-    count = c_cnt[hi] - c_cnt[lo]
-    energy = np.sum(total**2, axis=2) / np.maximum(count, 1)  # count * |mean|^2
-    seen = count > 0
-    scores = np.sqrt(np.sum(energy, axis=1) / np.maximum(seen.sum(1), 1))
-    scores[(seen.sum(1) < min_points) | ~valid.any(1)] = np.nan
-    return scores
-
-
-def _standardise(values, ref):
-    """(values - median) / (1.4826 MAD) over the finite values of the reference frames, and
-    (median, spread); None when fewer than 3 reference values are finite."""
-    ref_values = values[ref][np.isfinite(values[ref])]
-    if len(ref_values) < 3:
-        return None
-    med = float(np.median(ref_values))
-    spread = 1.4826 * float(np.median(np.abs(ref_values - med)))
-    spread = max(spread, 1e-3 * max(abs(med), 1e-9), 1e-12)
-    return (values - med) / spread, med, spread
-
-
-def _cusum(z, drift, start=0):
-    """(n + 1,) ``sum_{start <= i < t} (z_i - drift)``, NaN frames counting 0; -inf before
-    ``start``."""
-    steps = np.where(np.isfinite(z[start:]), z[start:] - drift, 0.0)
-    return np.concatenate([np.full(start, -np.inf), [0.0], np.cumsum(steps)])
-
-
 def _coarse(res, ref, cfg):
     """(onset, scores, threshold) of the windowed residual energy against frames ``ref``."""
-    scores = _window_scores(res, cfg.smooth_frames // 2, cfg.min_points)
-    found = _standardise(scores, ref)
+    scores = window_scores(res, cfg.smooth_frames // 2, cfg.min_points)
+    found = standardise(scores, ref)
     if found is None:
         raise StageError(STAGE, "cannot detect the steady phase: too few final frames posed")
     z, med, spread = found
-    onset = int(np.argmax(_cusum(z, cfg.drift_sigmas)))
+    onset = int(np.argmax(cusum(z, cfg.drift_sigmas)))
     return onset, scores, med + cfg.drift_sigmas * spread
-
-
-def _matched(res, onset, cfg):
-    """(pattern (21, 2), z (n,), cusum (n + 1,), onset) of the projection of every frame's
-    residual on the direction of the frames ``onset - pattern_frames .. onset - 1``; None
-    when that window holds no residual or too few steady frames follow."""
-    n = len(res)
-    hi = onset
-    lo = max(hi - cfg.pattern_frames, 0)
-    valid = np.isfinite(res[..., 0])
-    r = np.where(valid[..., None], res, 0.0)
-    total = r[lo:hi].sum(0)
-    if hi <= 0 or not np.any(total):
-        return None
-    D = np.broadcast_to(total, r.shape).copy()
-    D[lo:hi] -= r[lo:hi]  # leave each window frame out of its own direction
-    norm = np.sqrt(np.sum(D**2 * valid[..., None], axis=(1, 2)))
-    a = np.sum(r * D, axis=(1, 2)) / np.maximum(norm, 1e-12)
-    a[(valid.sum(1) < cfg.min_points) | (norm <= 0)] = np.nan
-    found = _standardise(a, np.arange(min(onset + cfg.smooth_frames, n - 1), n))
-    if found is None:
-        return None
-    z = found[0]
-    cusum = _cusum(z, cfg.pattern_drift_sigmas, lo)
-    return total / np.linalg.norm(total), z, cusum, int(np.argmax(cusum))
 
 
 def _detect(uv, ok, K, cfg):
@@ -349,9 +295,40 @@ def _detect(uv, ok, K, cfg):
         onset = onset_new
         if settled:
             break
+    # Grow backwards: a hand fitted to late viewpoints can make earlier steady frames look
+    # moving. Refit with the block of frames just before the model's; keep it while the
+    # block then fits as well as the model's own frames did before (a moving block, pulled
+    # into the fit, still stands out and worsens the fit of the others).
+    before, rejected = (X, T, res, model, onset, scores, threshold), -1
+    while cfg.grow_frames > 0 and model[0] > 0:
+        first = int(model[0])
+        lo = max(first - cfg.grow_frames, 0)
+        ref = standardise(window_scores(res, half, cfg.min_points), np.arange(first, n))
+        if ref is None:
+            break
+        _, med, spread = ref
+        frames = np.union1d(np.arange(lo, first), _spread(first, n, cfg.model_frames))
+        X_new = _refine(uv, ok, K, cfg, frames, T, X)
+        if X_new is None:
+            break
+        X_new = _same_gauge(X_new, X)
+        T_new, res_new = _pose_frames(K, X_new, uv, ok, cfg, start=T)
+        z_block = (window_scores(res_new, half, cfg.min_points)[lo:first] - med) / spread
+        if not np.nanmean(z_block) <= cfg.grow_z:
+            rejected = lo
+            break
+        X, T, res, model = X_new, T_new, res_new, frames
+    if model[0] < before[3][0]:
+        onset, scores, threshold = _coarse(res, np.arange(model[0], n), cfg)
+        if onset < rejected:
+            # The grown hand calls steady a block the growth found moving: it absorbed a
+            # slow motion, so the hand before the growth stands.
+            X, T, res, model, onset, scores, threshold = before
     matched, guess, seen = None, onset, set()
+    latest = onset + cfg.pattern_frames // 2
     for _ in range(cfg.pattern_passes):
-        found = _matched(res, guess, cfg)
+        found = matched_filter(res, guess, cfg.pattern_frames, cfg.pattern_drift_sigmas,
+                               cfg.min_points, cfg.smooth_frames, latest)  # fmt: skip
         if found is None:
             break
         matched = found
