@@ -154,3 +154,32 @@ def test_hand_centre_behind_the_median_reading():
     c = hand_centre(K, uv, depth, 0.01)
     np.testing.assert_allclose(c, [0.0, 0.0, 0.52], atol=1e-12)
     assert hand_centre(K, uv, np.zeros(4), 0.01) is None
+
+
+def test_depth_links_the_same_on_one_or_two_threads_and_as_one_batch(frames):
+    """The pairs registered in two halves, the second on a second thread or not: the same
+    links, each as the pair's registration in one batch of all pairs."""
+    _, _, T_c_o, _ = frames
+    clouds = _clouds(frames)
+    rng = np.random.default_rng(1)
+    T_c_w = np.stack([
+        from_rotvec(rng.normal(0, np.radians(1.0), 3), rng.normal(0, 0.002, 3))
+        @ T @ inv_T(T_c_o[0]) for T in T_c_o
+    ])  # fmt: skip
+    runs = [depth_links(clouds, T_c_w, K, DepthLinkConfig(reference=0, threads=t))
+            for t in (1, 2)]
+    assert len(runs[0]) == 5
+    for a, b in zip(*runs, strict=True):
+        assert (a.a, a.b) == (b.a, b.b)
+        assert np.array_equal(a.T_a_b, b.T_a_b) and np.array_equal(a.information, b.information)
+    pairs = np.array([(k.a, k.b) for k in runs[0]])
+    T0 = np.stack([T_c_w[a] @ inv_T(T_c_w[b]) for a, b in pairs])
+    cfg = DepthLinkConfig()
+    T, info, _, _ = icp_batch(
+        clouds, pairs, T0, K, max_points=cfg.max_points, max_distance_m=cfg.max_distance_m,
+        huber_m=cfg.huber_m, iterations=cfg.iterations, sigma_m=cfg.sigma_m,
+        effective_points=cfg.effective_points,
+    )  # fmt: skip
+    for n, link in enumerate(runs[0]):
+        np.testing.assert_allclose(link.T_a_b, T[n], atol=1e-9)
+        np.testing.assert_allclose(link.information, info[n], rtol=1e-7)
