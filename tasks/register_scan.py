@@ -71,8 +71,6 @@ class RegisterScanConfig(StageConfig):
     pose; ``""`` for none. They run only while the free space contradicts the best pose."""
     grid_above: float = 0.05
     """The grid probes run while the best pose's free-space violation is above this."""
-    grid_chunk: int = 3
-    """Grid rotations probed before the best pose is judged again (half turns first)."""
     probe_rounds: int = 2
     """Passes over the grid (another pass starts from a new best pose)."""
     ambiguous_violation: float = 0.01
@@ -257,20 +255,29 @@ def _violation_of(views, K, T_t_c, model, config: RegisterScanConfig):
 
 def _grid_probes(scene, model, candidates, violation, config: RegisterScanConfig):
     """Probe the point group's rotations (:func:`_grid`) from the best pose while the free
-    space contradicts it, ``grid_chunk`` at a time, until
-    the best pose is no longer contradicted or ``probe_rounds`` full passes found nothing."""
+    space contradicts it; a pass stops at the first refined probe that the free space does
+    not contradict and that scores better; at most ``probe_rounds`` passes."""
     cfg = config.registration
     grid = _grid(config)
     for _ in range(config.probe_rounds):
         before = candidates[0]
-        for k in range(0, len(grid), config.grid_chunk):
-            if violation(candidates[0]) <= config.grid_above:
-                return candidates
-            probes = probe_symmetry(scene, model, candidates, cfg, grid[k : k + config.grid_chunk])
-            candidates = _ranked(probes, violation, cfg)
+        if violation(before) <= config.grid_above:
+            break
+        floor = _score(before, violation)
+
+        def found(c: Candidate, floor: float = floor) -> bool:
+            return violation(c) <= config.grid_above and _score(c, violation) > floor
+
+        probes = probe_symmetry(scene, model, candidates, cfg, grid, stop_when=found)
+        candidates = _ranked(probes, violation, cfg)
         if candidates[0] is before:
             break
     return candidates
+
+
+def _score(c: Candidate, violation) -> float:
+    """Fitness times (1 - free-space violation)."""
+    return c.fitness * (1.0 - violation(c))
 
 
 def _grid(config: RegisterScanConfig) -> np.ndarray:
@@ -291,7 +298,7 @@ def _grid(config: RegisterScanConfig) -> np.ndarray:
 
 def _combined(c: Candidate, violation) -> Candidate:
     """``c`` with its fitness times (1 - its free-space violation)."""
-    return Candidate(c.T_o_s, c.fitness * (1.0 - violation(c)), c.inlier_rmse_m, c.origin)
+    return Candidate(c.T_o_s, _score(c, violation), c.inlier_rmse_m, c.origin)
 
 
 def _ranked(cands: list[Candidate], violation, cfg: RegistrationConfig) -> list[Candidate]:
@@ -299,7 +306,7 @@ def _ranked(cands: list[Candidate], violation, cfg: RegistrationConfig) -> list[
     return sorted(
         cands,
         key=lambda c: (
-            -c.fitness * (1.0 - violation(c)),
+            -_score(c, violation),
             tls_cost(c, cfg.eval_distance_m),
             c.origin,
         ),
