@@ -28,18 +28,19 @@ MUG = procedural_object("mug", SYNTH.object_faces)
 OLD = RegisterScanConfig(check_free_space=False)  # register_scan/2's ranking
 
 
-def _mug_scan(seed: int, n_views: int = 11):
-    """Depth views of the synth mug resting on the realistic rig's turntable (as the session
-    generator renders them: platter and table behind, sensor noise, dropouts)."""
+def _scan(seed: int, mesh=(MUG.vertices, MUG.faces), T_to=None, n_views: int = 11):
+    """Depth views of ``mesh`` (the synth mug by default, resting on the platter in a random
+    stable pose unless ``T_to`` is given) on the realistic rig's turntable, as the session
+    generator renders them: platter and table behind, sensor noise, dropouts."""
     rng = np.random.default_rng(seed)
     T_ct = turntable_pose(SYNTH, rng)
     background = [platter_mesh(SYNTH), table_mesh(SYNTH)]
     cam = StaticCamera(color_K(SYNTH), SYNTH.width, SYNTH.height, background, [T_ct] * 2)
-    T_to = rest_on_platter(MUG, SYNTH, rng)
+    T_to = rest_on_platter(MUG, SYNTH, rng) if T_to is None else T_to
     views = []
     for k in range(n_views):
         angle = 2 * np.pi * k / n_views
-        hits = cam.render([(MUG.vertices, MUG.faces)], [T_ct @ rot_z(angle) @ T_to])
+        hits = cam.render([mesh], [T_ct @ rot_z(angle) @ T_to])
         depth_mm = noisy_depth_mm(hits.depth_m, hits.cos_incidence, SYNTH, rng)
         views.append((depth_mm / 1000.0, angle))
     return views, color_K(SYNTH), T_ct, T_to
@@ -48,7 +49,7 @@ def _mug_scan(seed: int, n_views: int = 11):
 @pytest.fixture(scope="module")
 def flipped_mug():
     """Rig seed 1: register_scan/2 registered this mug upside down."""
-    views, K, T_ct, T_to = _mug_scan(1)
+    views, K, T_ct, T_to = _scan(1)
     return views, K, T_ct, T_to, register_scan(views, K, T_ct, MUG.vertices, MUG.faces)
 
 
@@ -83,6 +84,21 @@ def test_a_contradicted_pose_is_reported_when_the_search_cannot_leave_it(flipped
     assert pose_error(r.T_turntable_o_scan, T_to)[0] > 170
     assert r.free_space_violation > PRESETS["default"].grid_above
     assert "empty space" in r.note
+
+
+def test_a_symmetric_object_is_still_reported_ambiguous():
+    """A plain cylinder on the platter: every turn about its axis explains the scan and the
+    free space alike; the result must say so instead of picking one silently."""
+    cyl = trimesh.creation.cylinder(radius=0.035, height=0.1, sections=96)
+    mesh = (np.asarray(cyl.vertices), np.asarray(cyl.faces))
+    views, K, T_ct, T_to = _scan(3, mesh, make_T(np.eye(3), [0.01, -0.02, 0.05]), n_views=8)
+    r = register_scan(views, K, T_ct, *mesh)
+    axis_err = np.degrees(np.arccos(np.clip(abs(r.T_turntable_o_scan[2, 2]), 0.0, 1.0)))
+    centre_err = np.linalg.norm(r.T_turntable_o_scan[:3, 3] - T_to[:3, 3])
+    assert axis_err <= ROT_DEG and centre_err <= TRANS_M, (axis_err, centre_err)
+    assert r.ambiguous and r.ambiguity_deg >= 10.0
+    assert "symmetric" in r.note
+    assert abs(r.runner_up_free_space_violation - r.free_space_violation) <= 0.01
 
 
 def _box_views(T_ref_o: np.ndarray, n_views: int = 4):
