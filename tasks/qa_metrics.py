@@ -10,7 +10,8 @@ when there is no refinement, by the same ``hand_surface`` functions).
 Each metric has a :class:`Bound` in the config: beyond ``flag`` the session is ``flagged``
 (usable, worth a look), beyond ``fail`` it is ``failed`` (the result cannot be trusted); the
 default limits are calibrated against synthetic truth (``bench/qa_calibration.py``). The
-stages' own warnings (an ambiguous scan registration of a symmetric object, an all-ambient
+stages' own warnings (an ambiguous scan registration of a symmetric object, scan views that
+see empty space where the registered mesh lies, an all-ambient
 thermal scan) flag the session too; an ambiguity the pipeline resolves itself (stage 1's and
 the adjustment's, see :func:`stage_notes`) is a note. A metric whose stage did not run
 (crosscheck disabled, no refinement yet) is reported in ``missing`` and never changes the
@@ -34,7 +35,7 @@ from graspcap.tasks.qa_measures import (
     window_outlier_share,
 )
 
-STAGE_VERSION = "qa_metrics/3"
+STAGE_VERSION = "qa_metrics/4"
 STAGE = "qa_metrics"
 
 
@@ -317,7 +318,10 @@ def stage_notes(results: Mapping[str, Any]) -> list[str]:
 def stage_warnings(results: Mapping[str, Any]) -> list[str]:
     """The warnings the stages raise themselves, as flag reasons."""
     reasons = []
-    if _attr(results, "register_scan", "ambiguous"):
+    note = _attr(results, "register_scan", "note")  # ambiguity, or views contradicting it
+    if note:
+        reasons.append(f"register_scan: {note}")
+    elif _attr(results, "register_scan", "ambiguous"):
         reasons.append("register_scan: symmetric object, scan registration ambiguous")
     if _attr(results, "build_contactmap", "all_ambient"):
         reasons.append("build_contactmap: no contact anywhere (the thermal scan is all ambient)")

@@ -245,6 +245,8 @@ def test_stage_warnings_flag_the_session(scene):
     V, F, hand, contact = scene
     cases = {
         ("register_scan", "ambiguous", True): "register_scan: symmetric object",
+        ("register_scan", "note", "18 % of the posed mesh lies where the scan views see empty"):
+            "register_scan: 18 % of the posed mesh",
         ("build_contactmap", "all_ambient", True): "build_contactmap: no contact anywhere",
         ("build_contactmap", "n_degenerate_faces", 3): "object mesh has 3 zero-area face(s)",
         ("propagate_poses", "n_behind", 2): "propagate_poses: 2 joint(s) at or behind",
