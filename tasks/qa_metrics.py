@@ -11,9 +11,9 @@ Each metric has a :class:`Bound` in the config: beyond ``flag`` the session is `
 (usable, worth a look), beyond ``fail`` it is ``failed`` (the result cannot be trusted); the
 default limits are calibrated against synthetic truth (``bench/qa_calibration.py``). The
 stages' own warnings (an ambiguous scan registration of a symmetric object, scan views that
-see empty space where the registered mesh lies, an all-ambient
-thermal scan) flag the session too; an ambiguity the pipeline resolves itself (stage 1's and
-the adjustment's, see :func:`stage_notes`) is a note. A metric whose stage did not run
+see empty space where the registered mesh lies, an all-ambient thermal scan) flag the session
+too; an ambiguity the pipeline resolves itself (stage 1's and the adjustment's, see
+:func:`stage_notes`) is a note. A metric whose stage did not run
 (crosscheck disabled, no refinement yet) is reported in ``missing`` and never changes the
 verdict. This module is the one place that decides a session's ``status``.
 """
