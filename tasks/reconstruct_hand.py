@@ -76,6 +76,9 @@ class ReconstructConfig(StageConfig):
     """Evenly spaced frames among which the initial pair is chosen by parallax."""
     min_parallax_deg: float = 2.0
     """Median triangulation angle the best initial pair must reach."""
+    pnp_threads: int = 2
+    """Threads of the initialisation's per-frame PnP (OpenCV's RANSAC runs without the GIL;
+    the frames are split in two fixed halves): the same poses with 1 or 2."""
     min_points_per_frame: int = 6
     """A frame needs this many detected joints to be posed."""
     min_frames: int = 5
@@ -306,6 +309,7 @@ def _reconstruct(
         ransac_px=cfg.ransac_px,
         min_points=cfg.min_points_per_frame,
         min_parallax_deg=cfg.min_parallax_deg,
+        threads=cfg.pnp_threads,
         depth_score=(
             depth_scorer(cfg, conf, ok, frame_at, offset)
             if cfg.depth_init_score

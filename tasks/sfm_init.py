@@ -9,6 +9,7 @@ scale is the two-view baseline (unit length); callers re-anchor and re-scale.
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -190,8 +191,26 @@ def triangulate_multiview(
     return X
 
 
-def _grow(uv, ok, K, pair, frames, ransac_px, min_points, passes):
-    """Triangulate the pair, PnP the given frames, triangulate the rest; (T_c_w, X)."""
+def _pnp_frames(K, X, uv, sel, frames, ransac_px, min_points, threads):
+    """:func:`pnp` of each of ``frames`` from its ``sel`` (m, 21) joints; with ``threads`` 2
+    the second half of the frames on a second thread (OpenCV's RANSAC runs without the GIL,
+    from a fixed seed per call): the same poses either way."""
+    frames = [int(i) for i in frames]
+
+    def solve(part):
+        return [pnp(K, X[sel[i]], uv[i, sel[i]], ransac_px, min_points) for i in part]
+
+    half = (len(frames) + 1) // 2
+    if threads < 2 or len(frames) < 8:
+        return solve(frames)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        second = pool.submit(solve, frames[half:])
+        return solve(frames[:half]) + second.result()
+
+
+def _grow(uv, ok, K, pair, frames, ransac_px, min_points, passes, threads=1):
+    """Triangulate the pair, PnP the given frames (on ``threads``, see :func:`_pnp_frames`),
+    triangulate the rest; (T_c_w, X)."""
     m, nj = ok.shape
     X = np.full((nj, 3), np.nan)
     j = np.flatnonzero(pair.inliers)
@@ -199,9 +218,8 @@ def _grow(uv, ok, K, pair, frames, ransac_px, min_points, passes):
     T = np.full((m, 4, 4), np.nan)
     for _ in range(passes):  # later passes: more joints known after multi-view triangulation
         known = np.all(np.isfinite(X), axis=1)
-        for i in frames:
-            sel = known & ok[i]
-            pose = pnp(K, X[sel], uv[i, sel], ransac_px, min_points)
+        for i, pose in zip(frames, _pnp_frames(K, X, uv, ok & known, frames, ransac_px,
+                                                min_points, threads), strict=True):
             if pose is not None:
                 T[i] = pose
         T[pair.a] = np.eye(4)
@@ -243,6 +261,7 @@ def initialise(
     n_check_frames: int = 15,
     depth_score: Callable[[np.ndarray, np.ndarray, np.ndarray], float] | None = None,
     agreement_slack: float = 0.05,
+    threads: int = 1,
 ) -> tuple[Initialisation | None, float]:
     """Two-view start, triangulation, PnP for every frame, then the remaining joints.
 
@@ -253,7 +272,8 @@ def initialise(
     reversed (Necker) twin almost as well as the truth; with ``depth_score(frames (k,),
     T_c_w (k, 4, 4), points_w (21, 3)) -> float`` (higher is better, e.g. the share of depth
     readings that one scale explains) the winner is the hypothesis of best depth score among
-    those within ``agreement_slack`` of the best pixel agreement.
+    those within ``agreement_slack`` of the best pixel agreement. With ``threads`` 2 the
+    frames' PnP runs on two threads (the same result).
     Returns (initialisation or None, the largest parallax found in degrees).
     """
     hyps = pair_hypotheses(uv, ok, K, n_candidates, ransac_px)
@@ -265,7 +285,7 @@ def initialise(
     check = check_frames(m, n_check_frames)
     scored = []
     for h in hyps:
-        T, X = _grow(uv, ok, K, h, check, ransac_px, min_points, passes=1)
+        T, X = _grow(uv, ok, K, h, check, ransac_px, min_points, passes=1, threads=threads)
         agree = _agreement(uv[check], ok[check], K, T[check], X, ransac_px)
         scored.append((agree, h, T[check], X))
     pair = max(scored, key=lambda s: s[0])[1]
@@ -273,5 +293,5 @@ def initialise(
         best = max(s[0] for s in scored)
         close = [s for s in scored if s[0] >= best - agreement_slack]
         pair = max(close, key=lambda s: depth_score(check, s[2], s[3]))[1]
-    T, X = _grow(uv, ok, K, pair, range(m), ransac_px, min_points, passes=2)
+    T, X = _grow(uv, ok, K, pair, range(m), ransac_px, min_points, passes=2, threads=threads)
     return Initialisation(T, X, pair), best_parallax
