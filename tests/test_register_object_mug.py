@@ -63,3 +63,18 @@ def _about_z(angle: float) -> np.ndarray:
     T = np.eye(4)
     T[:2, :2] = [[c, -s], [s, c]]
     return T
+
+
+def test_depth_agreement_on_every_second_pixel_keeps_the_verdict(mug_stage1):
+    """register_object scores on every 2nd pixel and row: within 0.02 of the full score, the
+    handle turned into empty space still clearly worse; stride 1 is the full score."""
+    depth, K, T_ct, V, F, T_true = mug_stage1
+    for T in (T_true, T_true @ _about_z(np.pi)):
+        full = depth_agreement(depth, K, (V, F), T, 0.006)
+        assert depth_agreement(depth, K, (V, F), T, 0.006, stride_px=1) == full
+        half = depth_agreement(depth, K, (V, F), T, 0.006, stride_px=2)
+        assert abs(half[0] - full[0]) <= 0.02, (half, full)
+        assert 0.2 * full[2] <= half[2] <= 0.3 * full[2], (half, full)  # a quarter of the pixels
+    a_true = depth_agreement(depth, K, (V, F), T_true, 0.006, stride_px=2)[0]
+    a_turned = depth_agreement(depth, K, (V, F), T_true @ _about_z(np.pi), 0.006, stride_px=2)[0]
+    assert a_turned < a_true - 0.03, (a_true, a_turned)

@@ -237,3 +237,18 @@ def test_register_scan_mustard(shared_data):
     errors = [pose_error(r.T_turntable_o_scan, T) for T in (T_to, flipped)]
     assert min(e[0] for e in errors) <= ROT_DEG and min(e[1] for e in errors) <= TRANS_M
     assert r.ambiguous and inv_T(r.T_turntable_o_scan).shape == (4, 4)
+
+
+def test_prepared_models_are_kept_per_mesh_and_settings(shared_data):
+    """A session's registration stages prepare the same mesh: the second call is the first
+    model; another mesh or other sampling settings prepare a new one."""
+    V, F = load_mesh(shared_data, "bunny")
+    cfg = RegistrationConfig(model_points=3000)
+    a = prepare_model(V, F, cfg)
+    assert prepare_model(V.copy(), F.copy(), cfg) is a
+    assert prepare_model(V, F, RegistrationConfig(model_points=3000, n_restarts=2)) is a
+    b = prepare_model(V, F, RegistrationConfig(model_points=3000, coarse_model_points=1000))
+    assert b is not a and len(b.coarse.points) <= 1000 and len(a.coarse.points) == 3000
+    c = prepare_model(V * 1.01, F, cfg)
+    assert c is not a
+    np.testing.assert_allclose(c.centroid, 1.01 * a.centroid, atol=2e-3)
