@@ -1,12 +1,19 @@
 """Stage 2 benchmark: per-stage time for 120 frames, accuracy over synthetic sessions.
 
 Run: OMP_NUM_THREADS=1 .venv/bin/python bench/bench_sfm.py [n_sessions]
+
+or, on session directories (e.g. ``graspcap synth /tmp/s --sessions 6 --seed 9400 --frames 120
+--difficulty realistic``), reconstruct_hand alone after its upstream stages, with its wall
+time, process CPU and this thread's CPU (the critical path when the second threads overlap):
+
+    OMP_NUM_THREADS=1 .venv/bin/python bench/bench_sfm.py --sessions-dir /tmp/s [repeats]
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -79,5 +86,37 @@ def main(n_sessions: int = 10) -> None:
     print(f"steady onset within 3 frames: {np.mean(e <= 3):.0%} (errors {onset_err})")
 
 
+def on_sessions(root: Path, repeats: int = 1) -> None:
+    """reconstruct_hand on every session under ``root``: times and accuracy per session."""
+    from graspcap.synth.evaluate import evaluate
+    from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
+
+    cfgs, rows = configs_for(), []
+    for d in sorted(p for p in root.iterdir() if p.is_dir()):
+        up: dict = {}
+        for name in ("load_session", "detect_keypoints", "select_steady"):
+            up[name] = run_stage(STAGES[name], d, cfgs[name], up)
+        for _ in range(repeats):
+            w, c, t = time.perf_counter(), time.process_time(), time.thread_time()
+            rec = run_stage(STAGES["reconstruct_hand"], d, cfgs["reconstruct_hand"], up)
+            w, c, t = time.perf_counter() - w, time.process_time() - c, time.thread_time() - t
+            m = evaluate(d, {"steady_from": up["select_steady"].steady_from,
+                             "joints_w": rec.joints_w, "T_w_c": rec.T_w_c})
+            rows.append((w, c, t, m["joints_mpjpe_mm"], m["camera_rot_deg"],
+                         m["camera_trans_mm"]))
+            print(f"{d.name}: wall {w:.2f} s, CPU {c:.2f} s (this thread {t:.2f}); MPJPE "
+                  f"{rows[-1][3]:.2f} mm, cameras {rows[-1][4]:.2f} deg {rows[-1][5]:.1f} mm"
+                  + (f"; restarted: {rec.diagnostics.restarted_after}"
+                     if rec.diagnostics.restarted_after else ""), flush=True)
+    r = np.array(rows)
+    for k, name in enumerate(("wall s", "CPU s", "thread CPU s", "MPJPE mm", "cam deg",
+                              "cam mm")):
+        print(f"{name}: median {np.median(r[:, k]):.3f}, p90 {np.percentile(r[:, k], 90):.3f}, "
+              f"max {r[:, k].max():.3f}")
+
+
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 10)
+    if len(sys.argv) > 2 and sys.argv[1] == "--sessions-dir":
+        on_sessions(Path(sys.argv[2]), int(sys.argv[3]) if len(sys.argv) > 3 else 1)
+    else:
+        main(int(sys.argv[1]) if len(sys.argv) > 1 else 10)
