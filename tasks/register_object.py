@@ -38,7 +38,7 @@ from graspcap.tasks.registration import (
 )
 from graspcap.tasks.symmetry import distinct_from, probe_symmetry
 
-STAGE_VERSION = "register_object/4"
+STAGE_VERSION = "register_object/5"
 STAGE = "register_object"
 
 
@@ -85,9 +85,12 @@ class RegisterObjectConfig(StageConfig):
     depth_fitness_margin: float = 0.2
     """Only candidates whose fitness is within this of the best are rendered (the rest rank
     after them, by fitness and RMSE)."""
-    registration: RegistrationConfig = RegistrationConfig(coarse_model_points=5000)
-    """Global registration and ICP settings (the first ICP level against a quarter of the
-    model's points: a probe's first level 4x cheaper)."""
+    registration: RegistrationConfig = RegistrationConfig(
+        coarse_model_points=5000, ransac_max_iterations=5000
+    )
+    """Global registration and ICP settings: a probe's first ICP level against a quarter of the
+    model's points (4x cheaper); 5000 RANSAC iterations per restart instead of 20000 (3x
+    cheaper; on 8 realistic sessions every first restart refined to the same pose)."""
 
 
 PRESETS: dict[str, RegisterObjectConfig] = {
@@ -95,7 +98,9 @@ PRESETS: dict[str, RegisterObjectConfig] = {
     "fast": RegisterObjectConfig(
         probe_grid="O",
         probe_rounds=1,
-        registration=RegistrationConfig(n_restarts=2, coarse_model_points=5000),
+        registration=RegistrationConfig(
+            n_restarts=2, coarse_model_points=5000, ransac_max_iterations=5000
+        ),
     ),
     "thorough": RegisterObjectConfig(
         registration=RegistrationConfig(
