@@ -63,7 +63,7 @@ class SelectSteadyConfig(StageConfig):
     """Evenly spaced frames of the first window among which the two-view start is chosen."""
     pair_hypotheses: int = 3
     """Two-view hypotheses (largest parallax first) grown and compared by agreement."""
-    check_frames: int = 15
+    check_frames: int = 10
     """Evenly spaced frames of the window each hypothesis is grown on to compare them."""
     min_confidence: float = 0.2
     """Detections with a lower confidence are treated as missing."""
