@@ -61,9 +61,9 @@ class SelectSteadyConfig(StageConfig):
     """Evenly spaced frames of a window that the hand model is reconstructed from."""
     pair_candidates: int = 10
     """Evenly spaced frames of the first window among which the two-view start is chosen."""
-    pair_hypotheses: int = 3
+    pair_hypotheses: int = 6
     """Two-view hypotheses (largest parallax first) grown and compared by agreement."""
-    check_frames: int = 10
+    check_frames: int = 15
     """Evenly spaced frames of the window each hypothesis is grown on to compare them."""
     min_confidence: float = 0.2
     """Detections with a lower confidence are treated as missing."""
@@ -225,9 +225,9 @@ def _same_gauge(X_new, X_old):
 
 def _pose_frames(K, X, uv, ok, cfg, start=None):
     """Every frame posed against X: T_c_w (n, 4, 4) (NaN where unknown) and residual vectors
-    (n, 21, 2) px (NaN where unknown or gross). ``start`` warm-starts the refinement; frames
-    without a start pose, and those the warm start leaves mostly unexplained (the hand
-    changed too much for it), get a RANSAC one."""
+    (n, 21, 2) px (NaN where unknown or gross). ``start`` warm-starts the refinement (4 steps,
+    not 8); frames without a start pose, and those the warm start leaves mostly unexplained
+    (the hand changed too much for it), get a RANSAC one."""
     known = np.all(np.isfinite(X), axis=1)
     use = ok & known[None]
     scored = use.sum(1) >= cfg.min_points
@@ -236,7 +236,8 @@ def _pose_frames(K, X, uv, ok, cfg, start=None):
     for attempt in range(2):
         if cold.any():
             T[cold] = ransac_poses(K, X, uv[cold], use[cold], cfg.ransac_px, cfg.min_points)[0]
-        T = refine_poses(K, X, uv, use, T, huber_px=cfg.huber_px, outlier_px=cfg.outlier_px)
+        T = refine_poses(K, X, uv, use, T, huber_px=cfg.huber_px, outlier_px=cfg.outlier_px,
+                         iterations=8 if start is None else 4)  # fmt: skip
         res, Xc = residual_vectors(K, np.nan_to_num(T), np.nan_to_num(X), uv)
         near = use & (np.linalg.norm(res, axis=2) < cfg.outlier_px)
         lost = scored & ~cold & (near.sum(1) < 0.5 * use.sum(1))
