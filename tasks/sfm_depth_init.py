@@ -59,6 +59,19 @@ def backprojected_joints(
     return out
 
 
+def _rigid_batch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares rotations (k, 3, 3) and translations (k, 3) with ``dst ~ R @ src + t``
+    of k point sets (k, p, 3) at once (``geometry.umeyama`` without scale, batched)."""
+    mu_s, mu_d = src.mean(1), dst.mean(1)
+    xs, xd = src - mu_s[:, None], dst - mu_d[:, None]
+    cov = xd.transpose(0, 2, 1) @ xs / src.shape[1]
+    U, _, Vt = np.linalg.svd(cov)
+    S = np.tile(np.eye(3), (len(src), 1, 1))
+    S[np.linalg.det(U) * np.linalg.det(Vt) < 0, 2, 2] = -1.0
+    R = U @ S @ Vt
+    return R, mu_d - np.einsum("kab,kb->ka", R, mu_s)
+
+
 def robust_rigid(
     src: np.ndarray, dst: np.ndarray, inlier_m: float, rng: np.random.Generator, trials: int = 60
 ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -70,16 +83,18 @@ def robust_rigid(
     n = len(src)
     if n < 4:
         return None
+    # the triples drawn one by one (the same draws as ever), the fits and scores in one batch
+    picks = np.array([rng.choice(n, 3, replace=False) for _ in range(trials)])
+    a, b, c = (src[picks[:, k]] for k in range(3))
+    fine = np.linalg.norm(np.cross(b - a, c - a), axis=1) >= 1e-6  # else no rotation
     best = np.zeros(n, bool)
-    for _ in range(trials):
-        pick = rng.choice(n, 3, replace=False)
-        a, b, c = src[pick]
-        if np.linalg.norm(np.cross(b - a, c - a)) < 1e-6:
-            continue  # (nearly) collinear: no rotation
-        T, _ = umeyama(src[pick], dst[pick], with_scale=False)
-        inl = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1) < inlier_m
-        if inl.sum() > best.sum():
-            best = inl
+    if fine.any():
+        R, t = _rigid_batch(src[picks[fine]], dst[picks[fine]])
+        inl = np.linalg.norm(src @ R.transpose(0, 2, 1) + t[:, None] - dst, axis=2) < inlier_m
+        count = inl.sum(1)
+        k = int(np.argmax(count))  # the first of the most, as the sequential search kept
+        if count[k] > 0:
+            best = inl[k]
     if best.sum() < 4:
         return None
     for _ in range(2):  # least squares on the inliers, then re-gate once
