@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from graspcap.synth import generate
+from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import evaluate, load_truth
 from graspcap.tasks.detect_keypoints import PRESETS as DETECT_PRESETS
 from graspcap.tasks.detect_keypoints import detect_keypoints
@@ -31,11 +31,19 @@ from graspcap.tasks.select_steady import select_steady
 
 
 def session_dirs(out: Path, n: int, seed: int) -> list[Path]:
-    """The n sessions of ``seed`` under ``out``, generated when missing."""
+    """The sessions of seeds ``[seed, 0..n-1]`` under ``out``, generated when missing; a seed
+    the rig cannot stage is skipped and said (as bench/accuracy.py does)."""
     found = sorted(out.glob(f"synth-s{seed}-*"))
     if len(found) >= n and all((d / "ground_truth" / "truth.json").exists() for d in found[:n]):
         return found[:n]
-    return generate(out, sessions=n, seed=seed, difficulty="realistic", frames=120)
+    cfg = config_for("realistic", 120)
+    dirs = []
+    for i in range(n):
+        try:
+            dirs.append(generate_session(out, [seed, i], cfg, None))
+        except StageError as e:
+            print(f"seed [{seed}, {i}] skipped: {e}")
+    return dirs
 
 
 def run(d: Path) -> dict[str, float]:
