@@ -54,7 +54,7 @@ from graspcap.tasks.sfm_solve import (
 __all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",
            "STAGE_VERSION", "reconstruct_hand"]  # the result types live in sfm_result
 
-STAGE_VERSION = "reconstruct_hand/10"
+STAGE_VERSION = "reconstruct_hand/11"
 
 
 class ReconstructConfig(StageConfig):
@@ -118,6 +118,12 @@ class ReconstructConfig(StageConfig):
     range_gate_sigmas: float = 3.0
     """After the first RGB-D solve, readings within this many ``depth_sigma_m`` of it get a
     range factor (re-gated from all readings each round)."""
+    frame_gate_share: float = 0.5
+    """A frame that keeps fewer than this share of its range readings at the gates while at
+    least this share (and ``min_points_per_frame``) agree with each other around one offset
+    is gated around that offset instead (``sfm_solve.gate_readings``): pixels alone can
+    leave a frame's pose 10-20 mm off in depth, and without range factors it would stay
+    there. 0 = the plain gates only."""
     range_rounds: int = 3
     """At most this many RGB-D solves (stops early when the gated readings settle)."""
     bone_range_m: tuple[float, float] = (0.008, 0.13)

@@ -152,6 +152,42 @@ def ranges(T_c_w, X):
     )
 
 
+def gate_readings(
+    residual_m: np.ndarray, gate_m: float, frame_share: float, min_readings: int
+) -> np.ndarray:
+    """Range readings that get a factor: (m, 21) bool from the residuals (m, 21) (reading
+    minus solve, NaN where none).
+
+    A reading within ``gate_m`` of the solve is kept. A frame that keeps fewer than
+    ``frame_share`` of its readings this way, while at least that share (and at least
+    ``min_readings``) agree with each other within ``gate_m`` around one common offset, keeps
+    those instead: its pose is off in depth, which the pixels of a small hand barely fix
+    (a synthetic frame solved 18 mm too far got no range factor at all and stayed there; as
+    the first steady frame it shifted the whole hand by 18 mm). With ``frame_share`` 0 only
+    the plain gate applies.
+    """
+    r = np.asarray(residual_m, dtype=float)
+    with np.errstate(invalid="ignore"):
+        keep = np.abs(r) <= gate_m
+        if frame_share <= 0:
+            return keep
+        n = np.isfinite(r).sum(1)
+        need = np.maximum(frame_share * n, min_readings)
+        lost = np.flatnonzero((keep.sum(1) < frame_share * n) & (n >= min_readings))
+        if not len(lost):
+            return keep
+        rl = r[lost]
+        near = np.abs(rl[:, :, None] - rl[:, None, :]) <= gate_m  # (k, 21, 21)
+        support = near.sum(2)  # readings within the gate of each reading
+        best = np.nanargmax(np.where(np.isfinite(rl), support, -1), axis=1)
+        members = near[np.arange(len(lost)), best]
+        centre = np.array([np.median(rl[i, members[i]]) for i in range(len(lost))])
+        shifted = np.abs(rl - centre[:, None]) <= gate_m
+        ok = shifted.sum(1) >= need[lost]
+    keep[lost[ok]] = shifted[ok]
+    return keep
+
+
 def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, link_fn=None):
     """Reprojection + range factors, metric. Each round gates every reading afresh against
     the current solution: ``depth_gate_m`` against the scaled visual solve, then
@@ -170,8 +206,9 @@ def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, l
     links: list = []
     link_rounds = cfg.depth_links.rounds if link_fn is not None else 0
     for rounds in range(1, max(cfg.range_rounds, 1 + link_rounds) + 1):  # noqa: B007
-        with np.errstate(invalid="ignore"):
-            keep = np.abs(measured - ranges(T_c_w, X)) <= gate
+        keep = gate_readings(
+            measured - ranges(T_c_w, X), gate, cfg.frame_gate_share, cfg.min_points_per_frame
+        )
         link_round = 2 <= rounds <= 1 + link_rounds
         if rounds > 1 and np.array_equal(keep, used) and not link_round:
             break

@@ -26,6 +26,7 @@ from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import pose_error
 from graspcap.tasks.reconstruct_hand import PRESETS, reconstruct_hand
 from graspcap.tasks.select_steady import SteadyMethod, select_steady
+from graspcap.tasks.sfm_solve import gate_readings
 
 
 def _pose_errors(rec, video):
@@ -194,6 +195,38 @@ def test_paper_preset_is_reprojection_only(scene):
     np.testing.assert_allclose(rec.joints_w, rec.diagnostics.joints_w_visual, atol=1e-12)
     np.testing.assert_allclose(rec.T_w_c, rec.diagnostics.T_w_c_visual, atol=1e-12)
     assert rec.reproj_rmse_px < 4.5  # it explains the pixels (its 3D accuracy is in the report)
+
+
+def test_range_gate_follows_a_frame_off_in_depth():
+    rng = np.random.default_rng(4)
+    r = rng.normal(0.0, 0.0015, size=(4, 21))
+    r[:, 18:] -= 0.05  # three readings on the object in front
+    r[1] += 0.018  # the solve put frame 1 18 mm off: all its readings agree on that
+    r[2, :12] = rng.uniform(-0.1, 0.1, 12)  # frame 2: most readings scattered
+    r[2, 12:] += 0.018
+    r[3, 15:] = np.nan  # frame 3: a correct frame with fewer readings
+    keep = gate_readings(r, 0.008, 0.5, 6)
+    np.testing.assert_array_equal(keep[[0, 3]], np.abs(r[[0, 3]]) <= 0.008)  # plain gate
+    np.testing.assert_array_equal(keep[1], np.arange(21) < 18)  # around its own offset
+    assert not keep[2, 12:].any()  # 9 of 21 agree: not enough to move the frame
+    np.testing.assert_array_equal(gate_readings(r, 0.008, 0.0, 6), np.abs(r) <= 0.008)
+
+
+def test_first_steady_frame_off_in_depth_is_pulled_to_its_depth():
+    """Seed 0: the reprojection-only solve puts the first steady frame (the output frame)
+    18 mm too far; under the plain gate it got no range factor and shifted the whole hand."""
+    video = make_hand_video(n_frames=120, steady_from=30, seed=0)
+    rec = reconstruct_hand(
+        video.keypoints, video.K, video.steady_from, video.depth_at, video.surface_offset_m
+    )
+    assert np.linalg.norm(rec.joints_w - video.joints_w, axis=1).mean() < 0.003
+    assert (rec.diagnostics.range_factor.sum(1) >= 10).all()  # every frame held by its depth
+    plain = reconstruct_hand(
+        video.keypoints, video.K, video.steady_from, video.depth_at, video.surface_offset_m,
+        PRESETS["default"].model_copy(update={"frame_gate_share": 0.0}),
+    )
+    assert plain.diagnostics.range_factor[0].sum() <= 1  # the defect this guards against
+    assert np.linalg.norm(plain.joints_w - video.joints_w, axis=1).mean() > 0.01
 
 
 @pytest.mark.slow
