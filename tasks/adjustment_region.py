@@ -53,12 +53,12 @@ def near_hand(
     # clusters on the voxel grid of the points in the hand's box grown by twice the reach (no
     # farther point can be kept; the box test is cheap, voxelising every frame's points is
     # not); full-resolution points only inside the kept clusters' box (KD queries of a whole
-    # frame's points cost seconds)
+    # frame's points cost seconds; the KD queries stop searching beyond twice their radius)
     grow = 2 * reach + cfg.cluster_voxel_m
     around = np.all((points >= hand.min(0) - grow) & (points <= hand.max(0) + grow), axis=1)
     points = points[around]
     grid = np.asarray(to_pcd(points).voxel_down_sample(cfg.cluster_voxel_m).points)
-    pts = grid[tree.query(grid, k=1)[0] <= 2 * reach]
+    pts = grid[tree.query(grid, k=1, distance_upper_bound=4 * reach)[0] <= 2 * reach]
     if len(pts) == 0:
         return points[:0]
     labels = np.asarray(to_pcd(pts).cluster_dbscan(cfg.cluster_eps_m, 4))
@@ -78,7 +78,7 @@ def near_hand(
     tol = cfg.cluster_voxel_m * 1.5
     box = np.all((points >= kept.min(0) - tol) & (points <= kept.max(0) + tol), axis=1)
     cand = points[box]
-    return cand[cKDTree(kept).query(cand, k=1)[0] <= tol]
+    return cand[cKDTree(kept).query(cand, k=1, distance_upper_bound=2 * tol)[0] <= tol]
 
 
 def grow_mask(mask: np.ndarray, dilate_px: int) -> np.ndarray:
