@@ -5,7 +5,8 @@ Run: OMP_NUM_THREADS=1 .venv/bin/python bench/steady_bench.py [n_sessions] [seed
 Sessions come from ``graspcap.synth.generate(out_dir, sessions=n, seed=seed,
 difficulty="realistic", frames=120)`` (written once, reused when ``out_dir`` already holds
 them). Times are process CPU seconds (the machine is shared; wall time is noisier).
-reconstruct_hand runs from the detected onset, as the pipeline does. ``coarse_err`` is
+Each stage runs as in the pipeline (``pipeline.run_stage``, default presets: reconstruct_hand
+from the detected onset, with the session's depth frames). ``coarse_err`` is
 select_steady's coarse (energy CUSUM) onset before the matched-filter refinement.
 """
 
@@ -20,14 +21,10 @@ import numpy as np
 
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import evaluate, load_truth
-from graspcap.tasks.detect_keypoints import PRESETS as DETECT_PRESETS
-from graspcap.tasks.detect_keypoints import detect_keypoints
 from graspcap.tasks.errors import StageError
-from graspcap.tasks.hand_model import SURFACE_OFFSET_M
-from graspcap.tasks.load_session import load_session
-from graspcap.tasks.pipeline import depth_lookup
-from graspcap.tasks.reconstruct_hand import reconstruct_hand
-from graspcap.tasks.select_steady import select_steady
+from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
+
+CONFIGS = configs_for()
 
 
 def session_dirs(out: Path, n: int, seed: int) -> list[Path]:
@@ -47,22 +44,22 @@ def session_dirs(out: Path, n: int, seed: int) -> list[Path]:
 
 
 def run(d: Path) -> dict[str, float]:
-    session = load_session(d)
-    kp = detect_keypoints(session, DETECT_PRESETS["default"]).keypoints
-    K = np.asarray(session.manifest.color_camera.K, dtype=float)
+    up: dict = {}
+    for name in ("load_session", "detect_keypoints"):
+        up[name] = run_stage(STAGES[name], d, CONFIGS[name], up)
     truth = load_truth(d)
     row = {"steady_true": float(truth["steady_from"])}
     t0 = time.process_time()
-    try:
-        sel = select_steady(kp, K, None)
+    try:  # detected: synthetic manifests leave steady_from out
+        sel = up["select_steady"] = run_stage(
+            STAGES["select_steady"], d, CONFIGS["select_steady"], up
+        )
     except StageError as e:
         print(f"  {d.name}: select_steady failed: {e.reason}")
         return row | {"steady_err": np.nan, "steady_s": time.process_time() - t0}
     t1 = time.process_time()
     try:
-        rec = reconstruct_hand(
-            kp, K, sel.steady_from, depth_lookup(session), np.asarray(SURFACE_OFFSET_M)
-        )
+        rec = run_stage(STAGES["reconstruct_hand"], d, CONFIGS["reconstruct_hand"], up)
     except StageError as e:
         print(f"  {d.name}: reconstruct_hand raised: {e.reason}")
         return row | {"steady_found": float(sel.steady_from),
