@@ -41,7 +41,7 @@ from graspcap.tasks.sfm_depth_sweep import DepthSweep, FrameDepth, frame_depth
 from graspcap.tasks.sfm_init import Initialisation, check_frames, initialise
 from graspcap.tasks.sfm_restart import solve_with_restarts
 from graspcap.tasks.sfm_result import HandReconstruction, SfmDiagnostics, assemble
-from graspcap.tasks.sfm_sanity import check_result
+from graspcap.tasks.sfm_sanity import check_frames_in_depth, check_result
 from graspcap.tasks.sfm_solve import (
     STAGE,
     DepthUse,
@@ -124,6 +124,13 @@ class ReconstructConfig(StageConfig):
     is gated around that offset instead (``sfm_solve.gate_readings``): pixels alone can
     leave a frame's pose 10-20 mm off in depth, and without range factors it would stay
     there. 0 = the plain gates only."""
+    frame_gate_max_m: float = 0.03
+    """...when that offset is at most this (synthetic frames solved 10-18 mm off): readings
+    agreeing further off are more likely the object in front of the hand."""
+    max_off_frame_share: float = 0.05
+    """The stage raises when the final solve leaves the first steady frame (the output frame)
+    or more than this share of the frames with their readings agreeing with each other but
+    not with it (as above): the pixels and the depth then disagree on the cameras."""
     range_rounds: int = 3
     """At most this many RGB-D solves (stops early when the gated readings settle)."""
     bone_range_m: tuple[float, float] = (0.008, 0.13)
@@ -378,10 +385,11 @@ def _reconstruct(
         if rgbd_from_start:  # metric: start from it, the pixels alone may prefer a
             T_start = np.where(np.isfinite(init.T_c_w), init.T_c_w, T_vis)  # wrong hand
             X_start = np.where(np.isfinite(init.points_w), init.points_w, X_vis)
-        T_c_w, X, res, inlier, n, range_used, links = solve_rgbd(
+        T_c_w, X, res, inlier, n, range_used, links, off = solve_rgbd(
             cfg, K, uv, ok, inlier, sigma, T_start, X_start, depth, offset, pair.a, link_fn
         )
         rounds += n
+        check_frames_in_depth(off, cfg.max_off_frame_share)
     else:
         T_c_w, X = T_vis, X_vis
 

@@ -114,3 +114,17 @@ def check_result(
             f"{little}",
         )
 
+
+
+def check_frames_in_depth(off: np.ndarray, max_share: float, stage: str = "reconstruct_hand"):
+    """Raise a ``StageError`` when the first steady frame (the output frame: a camera off in
+    depth there shifts the whole hand) or more than ``max_share`` of the frames are off in
+    depth (``off`` : (m,) bool, ``sfm_solve.frames_off_in_depth`` of the final solve)."""
+    if off[0] or off.mean() > max_share:
+        raise StageError(
+            stage,
+            f"the depth readings of {int(off.sum())} of {len(off)} frames"
+            + (" (the first steady frame among them)" if off[0] else "")
+            + " agree with each other but not with the solve: the keypoints and the depth "
+            "disagree on where those cameras are (check the depth alignment and the keypoints)",
+        )

@@ -153,39 +153,58 @@ def ranges(T_c_w, X):
 
 
 def gate_readings(
-    residual_m: np.ndarray, gate_m: float, frame_share: float, min_readings: int
+    residual_m: np.ndarray, gate_m: float, frame_share: float, min_readings: int,
+    max_shift_m: float = np.inf,
 ) -> np.ndarray:
     """Range readings that get a factor: (m, 21) bool from the residuals (m, 21) (reading
     minus solve, NaN where none).
 
     A reading within ``gate_m`` of the solve is kept. A frame that keeps fewer than
     ``frame_share`` of its readings this way, while at least that share (and at least
-    ``min_readings``) agree with each other within ``gate_m`` around one common offset, keeps
-    those instead: its pose is off in depth, which the pixels of a small hand barely fix
-    (a synthetic frame solved 18 mm too far got no range factor at all and stayed there; as
-    the first steady frame it shifted the whole hand by 18 mm). With ``frame_share`` 0 only
-    the plain gate applies.
+    ``min_readings``) agree with each other within ``gate_m`` around one common offset of at
+    most ``max_shift_m``, keeps those instead: its pose is off in depth, which the pixels of
+    a small hand barely fix (a synthetic frame solved 18 mm too far got no range factor at
+    all and stayed there; as the first steady frame it shifted the whole hand by 18 mm).
+    With ``frame_share`` 0 only the plain gate applies.
     """
+    keep, lost, shifted = _frame_gate(residual_m, gate_m, frame_share, min_readings, max_shift_m)
+    keep[lost] = shifted
+    return keep
+
+
+def frames_off_in_depth(
+    residual_m: np.ndarray, gate_m: float, frame_share: float, min_readings: int,
+    max_shift_m: float = np.inf,
+) -> np.ndarray:
+    """(m,) bool: frames whose readings ``gate_readings`` would keep around an offset of their
+    own (they agree with each other, not with the solve); none when ``frame_share`` is 0."""
+    off = np.zeros(len(residual_m), bool)
+    off[_frame_gate(residual_m, gate_m, frame_share, min_readings, max_shift_m)[1]] = True
+    return off
+
+
+def _frame_gate(residual_m, gate_m, frame_share, min_readings, max_shift_m):
+    """The plain gate (m, 21), the frames kept around an offset of their own (k,) and their
+    readings kept (k, 21)."""
     r = np.asarray(residual_m, dtype=float)
+    none = np.zeros(0, int), np.zeros((0, r.shape[1]), bool)
     with np.errstate(invalid="ignore"):
         keep = np.abs(r) <= gate_m
         if frame_share <= 0:
-            return keep
+            return (keep, *none)
         n = np.isfinite(r).sum(1)
         need = np.maximum(frame_share * n, min_readings)
         lost = np.flatnonzero((keep.sum(1) < frame_share * n) & (n >= min_readings))
         if not len(lost):
-            return keep
+            return (keep, *none)
         rl = r[lost]
         near = np.abs(rl[:, :, None] - rl[:, None, :]) <= gate_m  # (k, 21, 21)
-        support = near.sum(2)  # readings within the gate of each reading
-        best = np.nanargmax(np.where(np.isfinite(rl), support, -1), axis=1)
-        members = near[np.arange(len(lost)), best]
+        support = np.where(np.isfinite(rl), near.sum(2), -1)  # readings near each reading
+        members = near[np.arange(len(lost)), support.argmax(1)]
         centre = np.array([np.median(rl[i, members[i]]) for i in range(len(lost))])
         shifted = np.abs(rl - centre[:, None]) <= gate_m
-        ok = shifted.sum(1) >= need[lost]
-    keep[lost[ok]] = shifted[ok]
-    return keep
+        ok = (shifted.sum(1) >= need[lost]) & (np.abs(centre) <= max_shift_m)
+    return keep, lost[ok], shifted[ok]
 
 
 def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, link_fn=None):
@@ -193,7 +212,9 @@ def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, l
     the current solution: ``depth_gate_m`` against the scaled visual solve, then
     ``range_gate_sigmas`` sigmas against the previous RGB-D solve. With ``link_fn``
     (``(T_c_w) -> links``) rounds 2 .. 1 + ``depth_links.rounds`` also get dense depth
-    links measured from the previous round's solution (later rounds keep the last)."""
+    links measured from the previous round's solution (later rounds keep the last).
+    Also returns the frames (m,) bool whose readings still agree with each other but not
+    with the final solve (``frames_off_in_depth``)."""
     m = len(uv)
     rays = np.concatenate(
         [normalise(K, uv.reshape(-1, 2)).reshape(m, 21, 2), np.ones((m, 21, 1))], 2
@@ -207,8 +228,9 @@ def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, l
     link_rounds = cfg.depth_links.rounds if link_fn is not None else 0
     for rounds in range(1, max(cfg.range_rounds, 1 + link_rounds) + 1):  # noqa: B007
         keep = gate_readings(
-            measured - ranges(T_c_w, X), gate, cfg.frame_gate_share, cfg.min_points_per_frame
-        )
+            measured - ranges(T_c_w, X), gate, cfg.frame_gate_share, cfg.min_points_per_frame,
+            cfg.frame_gate_max_m,
+        )  # fmt: skip
         link_round = 2 <= rounds <= 1 + link_rounds
         if rounds > 1 and np.array_equal(keep, used) and not link_round:
             break
@@ -234,4 +256,8 @@ def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, l
         T_c_w, X = ba.T_c_w, ba.points_w
         gate = cfg.range_gate_sigmas * cfg.depth_sigma_m
     res = reprojection_residuals(K, T_c_w, X, uv)
-    return T_c_w, X, res, ok & (res < cfg.outlier_px), rounds, used, links
+    off = frames_off_in_depth(  # also with frame_gate_share 0: what it would have moved
+        measured - ranges(T_c_w, X), gate, cfg.frame_gate_share or 0.5,
+        cfg.min_points_per_frame, cfg.frame_gate_max_m,
+    )  # fmt: skip
+    return T_c_w, X, res, ok & (res < cfg.outlier_px), rounds, used, links, off

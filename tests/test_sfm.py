@@ -26,7 +26,7 @@ from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import pose_error
 from graspcap.tasks.reconstruct_hand import PRESETS, reconstruct_hand
 from graspcap.tasks.select_steady import SteadyMethod, select_steady
-from graspcap.tasks.sfm_solve import gate_readings
+from graspcap.tasks.sfm_solve import frames_off_in_depth, gate_readings
 
 
 def _pose_errors(rec, video):
@@ -210,23 +210,27 @@ def test_range_gate_follows_a_frame_off_in_depth():
     np.testing.assert_array_equal(keep[1], np.arange(21) < 18)  # around its own offset
     assert not keep[2, 12:].any()  # 9 of 21 agree: not enough to move the frame
     np.testing.assert_array_equal(gate_readings(r, 0.008, 0.0, 6), np.abs(r) <= 0.008)
+    capped = gate_readings(r, 0.008, 0.5, 6, max_shift_m=0.015)  # 18 mm: too far to follow
+    np.testing.assert_array_equal(capped[1], np.abs(r[1]) <= 0.008)
+    np.testing.assert_array_equal(frames_off_in_depth(r, 0.008, 0.5, 6), [0, 1, 0, 0])
 
 
 def test_first_steady_frame_off_in_depth_is_pulled_to_its_depth():
     """Seed 0: the reprojection-only solve puts the first steady frame (the output frame)
-    18 mm too far; under the plain gate it got no range factor and shifted the whole hand."""
+    18 mm too far; under the plain gate it got no range factor and shifted the whole hand by
+    18 mm (reconstruct_hand/10), which the stage now rejects."""
     video = make_hand_video(n_frames=120, steady_from=30, seed=0)
     rec = reconstruct_hand(
         video.keypoints, video.K, video.steady_from, video.depth_at, video.surface_offset_m
     )
     assert np.linalg.norm(rec.joints_w - video.joints_w, axis=1).mean() < 0.003
     assert (rec.diagnostics.range_factor.sum(1) >= 10).all()  # every frame held by its depth
-    plain = reconstruct_hand(
-        video.keypoints, video.K, video.steady_from, video.depth_at, video.surface_offset_m,
-        PRESETS["default"].model_copy(update={"frame_gate_share": 0.0}),
-    )
-    assert plain.diagnostics.range_factor[0].sum() <= 1  # the defect this guards against
-    assert np.linalg.norm(plain.joints_w - video.joints_w, axis=1).mean() > 0.01
+    plain = PRESETS["default"].model_copy(update={"frame_gate_share": 0.0})
+    with pytest.raises(StageError, match="first steady frame among them"):  # not 18 mm off
+        reconstruct_hand(
+            video.keypoints, video.K, video.steady_from, video.depth_at,
+            video.surface_offset_m, plain,
+        )  # fmt: skip
 
 
 @pytest.mark.slow
