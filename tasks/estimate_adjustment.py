@@ -137,7 +137,7 @@ class EstimateAdjustmentConfig(StageConfig):
     """Further rounds of symmetry probes from the best pose while its fitness times depth
     agreement is below ``reprobe_below`` (realistic carton s9400 #5: its 180 deg twin at
     0.99 x 0.91 was kept; probed from it, the truth at 1.0)."""
-    reprobe_below: float = 0.995
+    reprobe_below: float = 0.99
     """See ``probe_rounds``; the rounds stop at the first probe that reaches it."""
     tie_tol: float = 0.005
     """Among poses whose fitness times depth agreement is within this of the best, the one
