@@ -84,6 +84,7 @@ def run(difficulty: str, sessions: int, frames: int, root: Path, seed: int = SEE
     failures: Counter[str] = Counter()
     steady_within_3 = []
     steady_errors = []
+    per_session = []
     verdicts: Counter[str] = Counter()
     for d in dirs:
         t: dict[str, float] = {}
@@ -101,6 +102,14 @@ def run(difficulty: str, sessions: int, frames: int, root: Path, seed: int = SEE
         )
         for k, v in t.items():
             timings[k].append(v)
+        m = {k: v[-1] for k, v in metrics.items()}
+        per_session.append(
+            f"| {d.name} | {steady_errors[-1]} | {m.get('joints_mpjpe_mm', np.nan):.2f} "
+            f"| {m.get('camera_rot_deg', np.nan):.2f} / {m.get('camera_trans_mm', np.nan):.1f} "
+            f"| {m.get('frame_object_rot_deg', np.nan):.2f} "
+            f"/ {m.get('frame_object_trans_mm', np.nan):.1f} "
+            f"| {sum(t[n] for n in POSE_STAGES):.2f} | {results['qa_metrics'].verdict} |"
+        )
 
     ok = len(dirs) - sum(failures.values())
     print(
@@ -142,10 +151,14 @@ def run(difficulty: str, sessions: int, frames: int, root: Path, seed: int = SEE
     if pose:
         print(f"| pose stages (issue 3) per session, median | {float(np.median(pose)):.2f} |")
     print(f"| all but load_session | {total:.2f} |")
-    if pose:
-        print(f"\npose stages per session (s): {[round(x, 2) for x in pose]}")
     for reason, n in failures.items():
         print(f"\nfailed x{n}: {reason}")
+    print(
+        "\n| session | steady error | MPJPE mm | cameras deg / mm | T_c_o deg / mm "
+        "| pose stages s | QA |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    print("\n".join(per_session))
 
 
 def main() -> None:
