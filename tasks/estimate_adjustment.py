@@ -47,7 +47,7 @@ from graspcap.tasks.registration import (
 )
 from graspcap.tasks.symmetry import as_good_as, probe_symmetry
 
-STAGE_VERSION = "estimate_adjustment/12"
+STAGE_VERSION = "estimate_adjustment/13"
 STAGE = "estimate_adjustment"
 
 HAND_BONES = (
@@ -424,20 +424,34 @@ def _from_hypothesis(
         kept = [scores[id(c)] for c in cands if id(c) in scores]
         return sorted(kept, key=lambda c: (tls_cost(c, cfg.eval_distance_m), c.origin))
 
+    def lead_of(scored: list[Candidate]) -> Candidate:
+        return next(c for c in candidates if scores.get(id(c)) is scored[0])
+
+    centre = candidates[0]  # the pose the symmetry probes turn
     if config.check_ambiguity:
         candidates = probe_symmetry(scene, model, candidates, cfg)
     scored = combined(candidates)
     for _ in range(config.probe_rounds if config.check_ambiguity else 0):
         if scored[0].fitness >= config.reprobe_below:
             break
-        lead = next(c for c in candidates if scores.get(id(c)) is scored[0])
-        rest = [c for c in candidates if c is not lead]
+        centre = lead_of(scored)
+        rest = [c for c in candidates if c is not centre]
         candidates = probe_symmetry(
-            scene, model, [lead, *rest], cfg, None, lambda c: score(c) >= config.reprobe_below
+            scene, model, [centre, *rest], cfg, None, lambda c: score(c) >= config.reprobe_below
         )
         before, scored = scored[0], combined(candidates)
         if scored[0] is before:
             break
+    if config.check_ambiguity and lead_of(scored) is not centre:
+        # A probe beat the pose the probes turned (a poorly converged RANSAC start refined
+        # into its better-fitting twin): only probes turning the new best find its own
+        # symmetric twins, among them the truth (realistic carton [9000, 0]: RANSAC's starts
+        # all 180 deg off at fitness 0.87, a probe refined one to 1.0 x agreement 0.999 and
+        # its twin, the truth at 1.0 x 1.0, was never a candidate).
+        centre = lead_of(scored)
+        rest = [c for c in candidates if c is not centre]
+        candidates = probe_symmetry(scene, model, [centre, *rest], cfg)
+        scored = combined(candidates)
     candidates = scored
     best = candidates[0]
     equal = [c for c in candidates if as_good_as(c, best, cfg)]
