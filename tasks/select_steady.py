@@ -42,7 +42,7 @@ from graspcap.tasks.sfm_init import initialise
 from graspcap.tasks.steady_stats import cusum, matched_filter, standardise, window_scores
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/4"
+STAGE_VERSION = "select_steady/5"
 
 
 class SteadyMethod(StrEnum):
@@ -380,6 +380,10 @@ def select_steady(
         onset = coarse
     else:
         pattern, z, cusum, onset = matched
+    # the first steady frame anchors the hand's cameras: a frame without the hand detected
+    # (dropped detection) has no pose of its own, so the onset moves to the next detected one
+    detected = np.flatnonzero(ok.sum(1) >= cfg.min_points)
+    onset = int(detected[np.searchsorted(detected, onset)]) if onset <= detected[-1] else n
     if onset >= n - 2:
         raise StageError(
             STAGE,

@@ -72,6 +72,18 @@ def test_steady_frames_stay_steady():
     assert np.nanmedian(np.abs(sel.z[ONSET + 3 :])) < 1.5
 
 
+def test_onset_moves_past_a_frame_without_the_hand():
+    """A dropped detection (confidence 0 everywhere) at the detected onset moves the onset to
+    the next detected frame: the first steady frame anchors the cameras and needs a pose of
+    its own (the demo's bottle s7 #2: onset on such a frame, cameras 3.85 deg off)."""
+    kp, K = _slowing_hand(0)
+    onset = select_steady(kp, K, None).steady_from
+    kp[onset : onset + 2, :, 2] = 0.0
+    sel = select_steady(kp, K, None)
+    assert sel.steady_from == onset + 2, (onset, sel.steady_from)
+    assert int(np.argmax(sel.cusum)) in (onset, onset + 1)
+
+
 def _late_still_camera(seed: int, steady: int = 20, turn: int = 60, n: int = 120):
     """Keypoints (n, 21, 3) and K of ``make_hand_video``'s hand, steady from ``steady``,
     whose virtual camera turns as usual until frame ``turn`` and then only 3 deg about the
