@@ -456,8 +456,13 @@ def _from_hypothesis(
     best = candidates[0]
     equal = [c for c in candidates if as_good_as(c, best, cfg)]
     tied = [c for c in equal if c.fitness >= best.fitness - config.tie_tol]
-    chosen: Candidate = min(
+    nearest: Candidate = min(
         tied, key=lambda c: rotation_error_deg(inv_T(c.T_o_s)[:3, :3], T_w_o1[:3, :3])
+    )
+    # poses closer than ambiguity_min_deg are one solution: its best-scoring one (a probe
+    # can slide along a flat face, same rotation, 30 mm off, scoring a little lower)
+    chosen = next(
+        c for c in tied if rotation_error_deg(c.T_o_s, nearest.T_o_s) < cfg.ambiguity_min_deg
     )
     ambiguous = any(
         rotation_error_deg(c.T_o_s, chosen.T_o_s) >= cfg.ambiguity_min_deg for c in equal
