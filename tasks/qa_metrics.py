@@ -35,7 +35,7 @@ from graspcap.tasks.qa_measures import (
     window_outlier_share,
 )
 
-STAGE_VERSION = "qa_metrics/4"
+STAGE_VERSION = "qa_metrics/5"
 STAGE = "qa_metrics"
 
 
@@ -325,6 +325,10 @@ def stage_warnings(results: Mapping[str, Any]) -> list[str]:
         reasons.append("register_scan: symmetric object, scan registration ambiguous")
     if _attr(results, "build_contactmap", "all_ambient"):
         reasons.append("build_contactmap: no contact anywhere (the thermal scan is all ambient)")
+    valid = _attr(results, "reconstruct_hand", "pose_valid")
+    if valid is not None and len(valid) and not valid[0]:
+        reasons.append("reconstruct_hand: the first steady frame, whose camera is the world "
+                       "frame, has no pose of its own (a neighbour's was copied onto it)")
     n_behind = _attr(results, "propagate_poses", "n_behind")
     if n_behind:
         reasons.append(f"propagate_poses: {int(n_behind)} joint(s) at or behind a virtual "

@@ -250,6 +250,7 @@ def test_stage_warnings_flag_the_session(scene):
         ("build_contactmap", "all_ambient", True): "build_contactmap: no contact anywhere",
         ("build_contactmap", "n_degenerate_faces", 3): "object mesh has 3 zero-area face(s)",
         ("propagate_poses", "n_behind", 2): "propagate_poses: 2 joint(s) at or behind",
+        ("reconstruct_hand", "pose_valid", (False,) + (True,) * 19): "first steady frame, whose",
     }
     for (stage, attr, value), reason in cases.items():
         results = good_results(V, contact)
