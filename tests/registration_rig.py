@@ -137,3 +137,27 @@ def lifted_in_hand(
     depth = noisy_depth(hits.depth_m, hits.cos_incidence, rng)
     mask = hits.mesh_index >= len(background()) + 1
     return depth, mask, T_w_o
+
+
+def rig_session_stage1(out: Path, seed: list[int], kind: str):
+    """Stage-1 inputs of the synthetic rig session ``seed`` (realistic preset) whose object
+    is a ``kind``, and its true pose: (depth_m, K, T_color_turntable, V, F, T_w_o_stage1).
+    The stage-1 scene is drawn before the video, so 8 frames give the same stage 1 as 60."""
+    from graspcap.synth import config_for, generate_session
+    from graspcap.synth.evaluate import load_truth
+    from graspcap.tasks import pipeline
+
+    d = generate_session(out, seed, config_for("realistic", 8))
+    assert d.name.endswith(kind)
+    s = pipeline.run_stage(
+        pipeline.STAGES["load_session"], d, pipeline.configs_for()["load_session"], {}
+    )
+    V, F = pipeline.read_mesh(s)
+    return (
+        s.read_depth_m(s.manifest.stage1.depth),
+        np.asarray(s.manifest.color_camera.K, float),
+        np.asarray(s.manifest.turntable.T_color_turntable, float),
+        V,
+        F,
+        np.asarray(load_truth(d)["T_w_o_stage1"], float),
+    )

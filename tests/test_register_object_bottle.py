@@ -9,30 +9,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from graspcap.synth import config_for, generate_session
-from graspcap.synth.evaluate import load_truth
-from graspcap.tasks import pipeline
 from graspcap.tasks.geometry import pose_error, rotation_error_deg
 from graspcap.tasks.register_object import PRESETS, register_object
+from tests.registration_rig import rig_session_stage1
 
 ROT_DEG, TRANS_M = 1.0, 0.003
 
 
 @pytest.fixture(scope="module")
 def bottle_stage1(tmp_path_factory):
-    """Stage-1 inputs and the true pose (the stage-1 scene is drawn before the video, so 8
-    frames give the same stage 1 as the demo's 60)."""
-    out = tmp_path_factory.mktemp("bottle")
-    d = generate_session(out, [7, 2], config_for("realistic", 8))
-    assert d.name.endswith("bottle")
-    s = pipeline.run_stage(
-        pipeline.STAGES["load_session"], d, pipeline.configs_for()["load_session"], {}
-    )
-    depth = s.read_depth_m(s.manifest.stage1.depth)
-    V, F = pipeline.read_mesh(s)
-    K = np.asarray(s.manifest.color_camera.K, float)
-    T_ct = np.asarray(s.manifest.turntable.T_color_turntable, float)
-    return depth, K, T_ct, V, F, np.asarray(load_truth(d)["T_w_o_stage1"], float)
+    return rig_session_stage1(tmp_path_factory.mktemp("bottle"), [7, 2], "bottle")
 
 
 def test_bottle_is_refitted_to_the_truth_and_reported_ambiguous(bottle_stage1):

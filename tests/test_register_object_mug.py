@@ -7,31 +7,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from graspcap.synth import config_for, generate_session
-from graspcap.synth.evaluate import load_truth
-from graspcap.tasks import pipeline
 from graspcap.tasks.depth_agreement import depth_agreement
 from graspcap.tasks.geometry import pose_error
 from graspcap.tasks.register_object import register_object
+from tests.registration_rig import rig_session_stage1
 
 ROT_DEG, TRANS_M = 1.0, 0.003
 
 
 @pytest.fixture(scope="module")
 def mug_stage1(tmp_path_factory):
-    """Stage-1 inputs and the true pose of one realistic rig session whose object is a mug
-    (the stage-1 scene is drawn before the video, so 8 frames give the same stage 1 as 60)."""
-    out = tmp_path_factory.mktemp("mug")
-    d = generate_session(out, [9000, 5], config_for("realistic", 8))
-    assert d.name.endswith("mug")
-    s = pipeline.run_stage(
-        pipeline.STAGES["load_session"], d, pipeline.configs_for()["load_session"], {}
-    )
-    depth = s.read_depth_m(s.manifest.stage1.depth)
-    V, F = pipeline.read_mesh(s)
-    K = np.asarray(s.manifest.color_camera.K, float)
-    T_ct = np.asarray(s.manifest.turntable.T_color_turntable, float)
-    return depth, K, T_ct, V, F, load_truth(d)["T_w_o_stage1"]
+    return rig_session_stage1(tmp_path_factory.mktemp("mug"), [9000, 5], "mug")
 
 
 def test_mug_is_not_registered_flipped(mug_stage1):
