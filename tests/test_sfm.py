@@ -25,6 +25,7 @@ from graspcap.tasks.depth_scale import depth_lookup_from_frames, estimate_scale
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import pose_error
 from graspcap.tasks.reconstruct_hand import PRESETS, reconstruct_hand
+from graspcap.tasks.select_steady import PRESETS as SELECT_PRESETS
 from graspcap.tasks.select_steady import SteadyMethod, select_steady
 from graspcap.tasks.sfm_solve import frames_off_in_depth, gate_readings
 
@@ -262,9 +263,13 @@ def _rig_onset_errors(tmp_path, sessions, seed, frames):
         sel = select_steady(kp, K, None)
         truth = int(load_truth(d)["steady_from"])
         assert sel.method is SteadyMethod.DETECTED
-        # Frames without a detection are not scored; the onset is the CUSUM's argmax.
+        # Frames without a detection are not scored; the onset is the CUSUM's argmax, or the
+        # first frame after it with the hand detected (select_steady/5)
         assert np.isnan(sel.scores_px[kp[:, :, 2].max(1) == 0]).all()
-        assert sel.steady_from == int(np.argmax(sel.cusum))
+        peak, cfg = int(np.argmax(sel.cusum)), SELECT_PRESETS["default"]
+        confident = (kp[:, :, 2] >= cfg.min_confidence).sum(1)
+        assert sel.steady_from >= peak and (confident[sel.steady_from] >= cfg.min_points)
+        assert (confident[peak : sel.steady_from] < cfg.min_points).all()
         assert sel.model_frames.min() >= sel.coarse_from
         errors.append(sel.steady_from - truth)
     return np.array(errors)
