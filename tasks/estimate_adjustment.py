@@ -408,24 +408,24 @@ def _from_hypothesis(
     # points, the truth 100 %, yet the depth agrees with the twin's rendering on 0.91 only.
     # Near-equal candidates are compared on fitness times depth agreement, and while the best
     # of those agrees poorly the probes run again from it.
-    scores: dict[int, Candidate] = {}
+    scores: dict[Candidate, Candidate] = {}
 
     def score(c: Candidate) -> float:
-        if id(c) not in scores:
+        if c not in scores:
             agree = _agreement(views, K, mesh, inv_T(c.T_o_s), config)[0]
-            scores[id(c)] = replace(c, fitness=c.fitness * agree)
-        return scores[id(c)].fitness
+            scores[c] = replace(c, fitness=c.fitness * agree)
+        return scores[c].fitness
 
     def combined(cands: list[Candidate]) -> list[Candidate]:
         top = cands[0].fitness - 2 * cfg.ambiguity_fitness_tol
         for c in cands:
             if c.fitness >= top:
                 score(c)
-        kept = [scores[id(c)] for c in cands if id(c) in scores]
+        kept = [scores[c] for c in cands if c in scores]
         return sorted(kept, key=lambda c: (tls_cost(c, cfg.eval_distance_m), c.origin))
 
     def lead_of(scored: list[Candidate]) -> Candidate:
-        return next(c for c in candidates if scores.get(id(c)) is scored[0])
+        return next(c for c in candidates if scores.get(c) is scored[0])
 
     centre = candidates[0]  # the pose the symmetry probes turn
     if config.check_ambiguity:

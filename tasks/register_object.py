@@ -210,18 +210,15 @@ def register_object(
             "does not explain the depth over the platter (wrong object or mesh units?)",
         )
     mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
-    agreement: dict[int, float] = {}
-
-    scored: list[Candidate] = []  # alive while their id() keys ``agreement``
+    agreement: dict[Candidate, float] = {}
 
     def agree(c: Candidate) -> float:
-        if id(c) not in agreement:
-            scored.append(c)
-            agreement[id(c)] = depth_agreement(
+        if c not in agreement:
+            agreement[c] = depth_agreement(
                 depth_m, K, mesh, inv_T(c.T_o_s), config.agree_tol_m,
                 stride_px=config.agree_stride_px,
             )[0]  # fmt: skip
-        return agreement[id(c)]
+        return agreement[c]
 
     def ranked(cands: list[Candidate]) -> list[Candidate]:
         if not config.check_depth:
@@ -233,7 +230,7 @@ def register_object(
         return sorted(
             cands,
             key=lambda c: (
-                -c.fitness * agreement.get(id(c), 0.0),
+                -c.fitness * agreement.get(c, 0.0),
                 tls_cost(c, cfg.eval_distance_m),
                 c.origin,
             ),
@@ -245,7 +242,7 @@ def register_object(
         if not config.check_depth:
             return True
         b = candidates[0]
-        bar = b.fitness * agreement.get(id(b), 1.0) - config.probe_gate_margin
+        bar = b.fitness * agreement.get(b, 1.0) - config.probe_gate_margin
         return c.fitness * agree(c) >= bar
 
     if config.check_ambiguity:
@@ -256,9 +253,9 @@ def register_object(
         candidates = ranked(probe_symmetry(scene, model, candidates, cfg, gate=gate))
         for _ in range(config.probe_rounds if grid is not None else 0):
             before = candidates[0]
-            if before.fitness * agreement.get(id(before), 1.0) >= config.grid_until:
+            if before.fitness * agreement.get(before, 1.0) >= config.grid_until:
                 break
-            bar = max(config.grid_until, before.fitness * agreement.get(id(before), 1.0))
+            bar = max(config.grid_until, before.fitness * agreement.get(before, 1.0))
 
             def found(c: Candidate, bar: float = bar) -> bool:
                 return c.fitness * (agree(c) if config.check_depth else 1.0) > bar
@@ -288,32 +285,30 @@ def register_object(
         fitness=best.fitness,
         inlier_rmse_m=best.inlier_rmse_m,
         n_points=len(points),
-        depth_agreement=agreement.get(id(best), 1.0),
+        depth_agreement=agreement.get(best, 1.0),
         ambiguous=amb.ambiguous,
         ambiguity_deg=amb.ambiguity_deg,
         T_w_o_runner_up=None if runner is None else inv_T(runner.T_o_s),
         runner_up_fitness=0.0 if runner is None else runner.fitness,
         runner_up_rmse_m=0.0 if runner is None else runner.inlier_rmse_m,
-        runner_up_depth_agreement=0.0 if runner is None else agreement.get(id(runner), 0.0),
+        runner_up_depth_agreement=0.0 if runner is None else agreement.get(runner, 0.0),
     )
 
 
 def _ambiguity(
-    candidates: list[Candidate], agreement: dict[int, float], config: RegisterObjectConfig
+    candidates: list[Candidate], agreement: dict[Candidate, float], config: RegisterObjectConfig
 ) -> tuple[Ambiguity, Candidate | None]:
     """The symmetry verdict on ranked ``candidates`` and the runner-up candidate itself."""
     cfg = config.registration
     best = candidates[0]
     if config.check_depth:  # ambiguity judged on the combined score
         combined = {
-            id(c): Candidate(
-                c.T_o_s, c.fitness * agreement.get(id(c), 0.0), c.inlier_rmse_m, c.origin
-            )
+            c: Candidate(c.T_o_s, c.fitness * agreement.get(c, 0.0), c.inlier_rmse_m, c.origin)
             for c in candidates
         }
-        amb = distinct_from(combined[id(best)], [combined[id(c)] for c in candidates[1:]], cfg)
-        by_origin = {id(combined[id(c)]): c for c in candidates}
-        runner = None if amb.runner_up is None else by_origin[id(amb.runner_up)]
+        amb = distinct_from(combined[best], [combined[c] for c in candidates[1:]], cfg)
+        by_combined = {combined[c]: c for c in candidates}
+        runner = None if amb.runner_up is None else by_combined[amb.runner_up]
     else:
         amb = distinct_from(best, candidates[1:], cfg)
         runner = amb.runner_up

@@ -201,8 +201,8 @@ def register_scan(
     if config.check_free_space and runner is not None:
         combined = [_combined(c, violation) for c in candidates]
         amb = distinct_from(combined[0], combined[1:], cfg)
-        by_id = {id(m): c for m, c in zip(combined, candidates, strict=True)}
-        runner = None if amb.runner_up is None else by_id[id(amb.runner_up)]
+        by_combined = dict(zip(combined, candidates, strict=True))
+        runner = None if amb.runner_up is None else by_combined[amb.runner_up]
         ambiguous = amb.ambiguous and (
             violation(runner) <= violation(best) + config.ambiguous_violation
         )
@@ -242,13 +242,13 @@ def _violation_of(views, K, T_t_c, model, config: RegisterScanConfig):
         [(d, rot_z(-a) @ T_t_c) for d, a in views], K, config.free_space_window_px, corners
     )
     pts_o = np.asarray(strided(model.dense, config.free_space_points).points)
-    memo: dict[int, tuple[Candidate, float]] = {}
+    memo: dict[Candidate, float] = {}
 
     def violation(c: Candidate) -> float:
-        if id(c) not in memo:  # the candidate is kept too, so its id is not reused
+        if c not in memo:
             pts_t0 = transform_points(inv_T(c.T_o_s), pts_o)
-            memo[id(c)] = (c, free_space_violation(fs, pts_t0, config.free_space_tol_m))
-        return memo[id(c)][1]
+            memo[c] = free_space_violation(fs, pts_t0, config.free_space_tol_m)
+        return memo[c]
 
     return violation
 

@@ -107,9 +107,10 @@ class RegistrationConfig(StageConfig):
         return self
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Candidate:
-    """One registration hypothesis.
+    """One registration hypothesis; equal and hashed by identity (the stages key scores by
+    the candidate).
 
     Attributes
     ----------
