@@ -48,6 +48,7 @@ def estimate_from_results(
         est |= {
             "joints_w": rec.joints_w,
             "T_w_c": rec.T_w_c,
+            "camera_solved": rec.pose_valid,
             "qa_reproj_rmse_px": rec.reproj_rmse_px,
         }
     if get("crosscheck_sfm") is not None:
@@ -126,15 +127,18 @@ def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
     steady_est = int(est["steady_from"])
     out["steady_from_err_frames"] = float(abs(steady_est - int(truth["steady_from"])))
     if "joints_w" in est:
-        out["joints_mpjpe_mm"] = _mpjpe_mm(est["joints_w"], est["T_w_c"], steady_est, truth)
-        cams = _camera_errors(est["T_w_c"], steady_est, truth)
+        solved = est.get("camera_solved")
+        at = _anchor(steady_est, int(truth["steady_from"]), len(est["T_w_c"]),
+                     None if solved is None else np.asarray(solved, dtype=bool))
+        out["joints_mpjpe_mm"] = _mpjpe_mm(est["joints_w"], est["T_w_c"], steady_est, truth, at)
+        cams = _camera_errors(est["T_w_c"], steady_est, truth, at)
         out["camera_rot_deg"] = float(np.median(cams[:, 0]))
         out["camera_trans_mm"] = 1e3 * float(np.median(cams[:, 1]))
     if "joints_fit_w" in est:
-        out["fit_joints_mm"] = _mpjpe_mm(est["joints_fit_w"], est["T_w_c"], steady_est, truth)
+        out["fit_joints_mm"] = _mpjpe_mm(est["joints_fit_w"], est["T_w_c"], steady_est, truth, at)
     if "joints_refined_w" in est:
         out["refined_joints_mm"] = _mpjpe_mm(est["joints_refined_w"], est["T_w_c"], steady_est,
-                                             truth)
+                                             truth, at)
     for key, name in (
         ("qa_reproj_rmse_px", "reproj_rmse_px"),
         ("qa_crosscheck_mm", "crosscheck_max_mm"),
@@ -203,31 +207,43 @@ def _T_adj_at(truth: Mapping[str, Any], steady_est: int) -> np.ndarray:
     return T_c_o @ inv_T(truth["T_w_o_stage1"])
 
 
-def _mpjpe_mm(
-    joints_w: np.ndarray, T_w_c: np.ndarray, steady_est: int, truth: Mapping[str, Any]
-) -> float:
-    """Mean joint error in mm, no alignment, compared in the camera of the later of the two
-    first steady frames (each world frame is its own first steady camera)."""
-    steady_true = int(truth["steady_from"])
+def _anchor(steady_est: int, steady_true: int, n_est: int, solved: np.ndarray | None) -> int:
+    """Video frame both reconstructions are compared in: the first frame from both first
+    steady frames on whose camera the estimate solved from the frame's own keypoints. Each
+    world frame is its own first steady camera; when the detected steady frame differs from the
+    truth the estimate is re-anchored, and never on a camera stage 2 only interpolated (a frame
+    without detections): that camera is a fill, and every camera measured against it would
+    carry its error."""
     first = max(steady_est, steady_true)
-    est = transform_points(inv_T(T_w_c[first - steady_est]), joints_w)
-    tru = transform_points(inv_T(truth["T_w_c"][first - steady_true]), truth["joints_w"])
+    if solved is not None:
+        later = np.flatnonzero(solved[first - steady_est :])
+        if len(later):
+            first += int(later[0])
+    return min(first, steady_est + n_est - 1)
+
+
+def _mpjpe_mm(
+    joints_w: np.ndarray, T_w_c: np.ndarray, steady_est: int, truth: Mapping[str, Any],
+    at: int,
+) -> float:
+    """Mean joint error in mm, no alignment, compared in the camera of video frame ``at``
+    (:func:`_anchor`)."""
+    steady_true = int(truth["steady_from"])
+    est = transform_points(inv_T(T_w_c[at - steady_est]), joints_w)
+    tru = transform_points(inv_T(truth["T_w_c"][at - steady_true]), truth["joints_w"])
     return 1e3 * float(np.linalg.norm(est - tru, axis=1).mean())
 
 
-def _camera_errors(T_w_c: np.ndarray, steady_est: int, truth: Mapping[str, Any]) -> np.ndarray:
-    """(k, 2) rotation deg / translation m of the virtual cameras on frames both cover.
-
-    Both reconstructions put the world at their own first steady frame; when the detected
-    steady frame differs from the truth the estimate is re-anchored at the truth's frame.
-    """
+def _camera_errors(
+    T_w_c: np.ndarray, steady_est: int, truth: Mapping[str, Any], at: int
+) -> np.ndarray:
+    """(k, 2) rotation deg / translation m of the virtual cameras of the frames both cover
+    from video frame ``at`` (:func:`_anchor`) on, each reconstruction expressed relative to its
+    camera at ``at``. Interpolated cameras after it count (they are in the output)."""
     steady_true = int(truth["steady_from"])
-    T_true = truth["T_w_c"]
-    first = max(steady_est, steady_true)
-    est = T_w_c[first - steady_est :]
-    tru = T_true[first - steady_true :]
+    est = T_w_c[at - steady_est :]
+    tru = truth["T_w_c"][at - steady_true :]
     n = min(len(est), len(tru))
-    # express both relative to the first shared frame
     est_rel = np.einsum("ij,njk->nik", inv_T(est[0]), est[:n])
     tru_rel = np.einsum("ij,njk->nik", inv_T(tru[0]), tru[:n])
     return np.array([pose_error(a, b) for a, b in zip(est_rel, tru_rel, strict=True)])
