@@ -61,6 +61,7 @@ def make_build(ids: list[str], frames: int, seed: int, build_id: str) -> gc.Buil
         "session_id": np.repeat(ids, frames).tolist(),
         "frame": np.tile(np.arange(frames), len(ids)),
         **{c: rng.normal(size=(n_f, 16)) for c in ("T_w_c", "T_c_o", "T_c_p")},
+        "camera_solved": np.ones(n_f, dtype=bool),
         "joints_2d_px": rng.normal(size=(n_f, 42)), "keypoint_conf": rng.uniform(size=(n_f, 21)),
         "joints_c": rng.normal(size=(n_f, 63)), "reproj_err_px": rng.uniform(size=(n_f, 21)),
         "build_id": [build_id] * n_f,

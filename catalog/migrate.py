@@ -3,13 +3,14 @@
 What the formats changed (docs/data_changelog.md): format 2 gave every Delta table
 ``DELTA_TABLE_PROPERTIES`` (expired-log cleanup off, so Delta never deletes the log entries old
 catalog versions are pinned to) and added ``sessions.keypoint_backend`` and
-``keypoint_frames_detected``; format 3 added four ``qa_*`` columns to ``sessions``. Every added
-column is nullable. One upgrade serves every older format, in one go: it sets the properties
-where they differ, adds the columns the current schemas have and the Delta tables lack, and
-brings the columns' field metadata (docs, units; format 3 reworded ``qa_contact_agreement``'s)
-up to date, so later commits validate; rows written before read them as null
-(``graspcap.catalog.delta.read_files``). Setting a property or adding a column is a Delta
-commit, and a catalog version pins Delta versions, so the migration of a catalog that has
+``keypoint_frames_detected``; format 3 added four ``qa_*`` columns to ``sessions``; format 4
+added ``frames.camera_solved`` (whether stage 2 solved the frame's camera or interpolated it).
+Every added column is nullable. One upgrade serves every older format, in one go: it sets the
+properties where they differ, adds the columns the current schemas have and the Delta tables
+lack, and brings the columns' field metadata (docs, units; format 3 reworded
+``qa_contact_agreement``'s) up to date, so later commits validate; rows written before read
+them as null (``graspcap.catalog.delta.read_files``). Setting a property or adding a column
+is a Delta commit, and a catalog version pins Delta versions, so the migration of a catalog that has
 versions appends one more catalog version (``build_id`` ``migrate-<from>-to-<to>``, same rows)
 pinning the new Delta versions; every earlier version and tag still reads what it read before.
 An empty catalog's tables are simply created again. ``catalog.json`` is restamped last, under

@@ -103,6 +103,8 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         frames.append({
             "session_id": m.session_id, "frame": int(f),
             "T_w_c": _flat(sfm.T_w_c[i]) if i is not None else [float("nan")] * 16,
+            # False: stage 2 interpolated this camera (too few detections), or has none
+            "camera_solved": bool(sfm.pose_valid[i]) if i is not None else False,
             "T_c_o": _flat(prop.T_c_o[j]), "T_c_p": _flat(prop.T_c_p[j]),
             "joints_2d_px": _flat(kp[f, :, :2]), "keypoint_conf": _flat(kp[f, :, 2]),
             "joints_c": _flat(prop.joints_c[j]), "reproj_err_px": _flat(prop.reproj_err_px[j]),

@@ -26,7 +26,7 @@ from enum import StrEnum
 import numpy as np
 import pyarrow as pa
 
-CATALOG_FORMAT_VERSION = 3
+CATALOG_FORMAT_VERSION = 4
 """Bumped on any change of the tables' columns, their encodings, their Delta table properties or
 the Zarr layout (``docs/data_changelog.md``)."""
 
@@ -142,6 +142,10 @@ FRAMES_SCHEMA = pa.schema([
     _f("session_id", _STR, "Capture session id."),
     _f("frame", pa.int64(), "Video frame index, from steady_from on."),
     _pose("T_w_c", "Virtual camera of the frame in the world frame."),
+    _f("camera_solved", pa.bool_(), "True where stage 2 solved the frame's virtual camera from "
+       "the frame's own keypoints; False where it interpolated it from its neighbours (too few "
+       "detections), so T_w_c, T_c_o, T_c_p and joints_c of that row are interpolated too. "
+       "Format 4; null on rows written before.", nullable=True),
     _pose("T_c_o", "Object in the frame's camera."),
     _pose("T_c_p", "Palm in the frame's camera."),
     _f("joints_2d_px", pa.list_(_F64, 42), "Observed 2D keypoints.", unit="px", shape="21x2"),

@@ -59,6 +59,7 @@ def frame_rows(session_id: str, rng: np.random.Generator, count: int, *,
     return {
         "session_id": [session_id] * count, "frame": np.arange(count, dtype=np.int64) + 5,
         "T_w_c": np.stack([_pose(rng) for _ in range(count)]),
+        "camera_solved": np.arange(count) % 4 != 1,  # no draw: the rng's stream stays as it was
         "T_c_o": np.stack([_pose(rng) for _ in range(count)]),
         "T_c_p": np.stack([_pose(rng) for _ in range(count)]),
         "joints_2d_px": rng.uniform(0, 640, (count, 21, 2)),

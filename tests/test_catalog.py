@@ -302,6 +302,7 @@ CONTRACT = {
     "frames": {
         "session_id": pa.string(), "frame": pa.int64(),
         **dict.fromkeys(["T_w_c", "T_c_o", "T_c_p"], pa.list_(pa.float64(), 16)),
+        "camera_solved": pa.bool_(),
         "joints_2d_px": pa.list_(pa.float64(), 42), "keypoint_conf": pa.list_(pa.float64(), 21),
         "joints_c": pa.list_(pa.float64(), 63), "reproj_err_px": pa.list_(pa.float64(), 21),
     },

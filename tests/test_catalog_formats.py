@@ -1,5 +1,5 @@
-"""Catalog formats: the golden catalogs of formats 1 and 2 fail to open naming `migrate`, and
-migrate (old rows read the newer columns as null)."""
+"""Catalog formats: the golden catalogs of formats 1, 2 and 3 fail to open naming `migrate`,
+and migrate (old rows read the newer columns as null, new commits fill them)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pytest
 from deltalake import DeltaTable
 
@@ -64,7 +65,7 @@ def _check_golden_content(cat: gc.Catalog, version) -> None:
 def test_current_format_tables_keep_their_delta_logs(tmp_path):
     gc.open(tmp_path / "cat", create=True)
     stamp = json.loads((tmp_path / "cat" / "catalog.json").read_text())
-    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 3
+    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 4
     for name, config in _properties(tmp_path / "cat").items():
         assert config == DELTA_TABLE_PROPERTIES, name
 
@@ -79,15 +80,15 @@ def test_golden_v1_fails_naming_migrate_then_migrated_copy_reads(tmp_path):
     before = _listing(src)
 
     report = migrate_catalog(src, tmp_path / "v2")
-    assert (report.from_format, report.to_format, report.new_version) == (1, 3, 2)
+    assert (report.from_format, report.to_format, report.new_version) == (1, 4, 2)
     assert _listing(src) == before  # source untouched (the copy is taken under its lock)
     with pytest.raises(gc.CatalogFormatError, match="migrate"):
         gc.open(src)
 
     cat = gc.open(tmp_path / "v2")
     assert cat.versions()["version"].to_pylist() == [1, 2]
-    assert cat.versions()["format_version"].to_pylist() == [1, 3]
-    assert cat.versions()["build_id"].to_pylist() == ["golden-1", "migrate-1-to-3"]
+    assert cat.versions()["format_version"].to_pylist() == [1, 4]
+    assert cat.versions()["build_id"].to_pylist() == ["golden-1", "migrate-1-to-4"]
     assert cat.resolve("golden") == 1
     for version in ("golden", 2, None):
         _check_golden_content(cat, version)
@@ -106,7 +107,7 @@ def test_migrate_in_place_is_idempotent_and_refuses_what_it_cannot(tmp_path):
     src = unpack(ARCHIVE, tmp_path / "v1")
     assert migrate_catalog(src).new_version == 2
     again = migrate_catalog(src)
-    assert (again.from_format, again.new_version) == (3, None)
+    assert (again.from_format, again.new_version) == (4, None)
     _check_golden_content(gc.open(src), 2)
     with pytest.raises(gc.CatalogError, match="exists"):
         migrate_catalog(src, tmp_path / "v1")
@@ -135,45 +136,63 @@ def _delta_columns(root, name="sessions") -> list[str]:
 def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_path, fmt):
     src = unpack(archive(fmt), tmp_path / f"v{fmt}")
     assert json.loads((src / "catalog.json").read_text())["format_version"] == fmt
-    new_cols = list(added_after(fmt)["sessions"])
-    assert not set(new_cols) & set(_delta_columns(src))  # the golden really lacks them
-    assert set(COLUMNS_ADDED.get(fmt, {}).get("sessions", ())) <= set(_delta_columns(src))
+    added = added_after(fmt)  # {table: columns the formats after fmt added}
+    assert "camera_solved" in added["frames"]  # every golden format predates format 4
+    for name, cols in added.items():
+        assert not set(cols) & set(_delta_columns(src, name)), name  # the golden lacks them
+    for name, cols in COLUMNS_ADDED.get(fmt, {}).items():
+        assert set(cols) <= set(_delta_columns(src, name)), name
     with pytest.raises(gc.CatalogFormatError, match=rf"format {fmt}.*graspcap catalog migrate"):
         gc.open(src)
     report = migrate_catalog(src)
-    assert (report.from_format, report.to_format, report.new_version) == (fmt, 3, 2)
-    assert _delta_columns(src)[-len(new_cols):] == new_cols
-    assert sorted(_delta_columns(src)) == sorted(SESSIONS_SCHEMA.names)
+    assert (report.from_format, report.to_format, report.new_version) == (fmt, 4, 2)
+    for name, cols in added.items():
+        assert _delta_columns(src, name)[-len(cols):] == list(cols), name
+    for name in TABLE_SCHEMAS:
+        assert sorted(_delta_columns(src, name)) == sorted(TABLE_SCHEMAS[name].names), name
     cat = gc.open(src)
-    assert cat.versions()["build_id"].to_pylist() == ["golden-1", f"migrate-{fmt}-to-3"]
+    assert cat.versions()["build_id"].to_pylist() == ["golden-1", f"migrate-{fmt}-to-4"]
     for version in (1, "golden", 2):  # pinned before, and made by, the migration
+        for name, cols in added.items():
+            old = cat.table(name, version)
+            assert old.schema == TABLE_SCHEMAS[name]  # conformed on read (field docs included)
+            for col in cols:
+                assert old[col].null_count == old.num_rows > 0, (name, col)
         old = cat.table("sessions", version)
-        assert old.schema == SESSIONS_SCHEMA  # conformed on read (field docs included)
-        for col in new_cols:
-            assert old[col].to_pylist() == [None], col
         assert old["session_id"].to_pylist() == [SESSION]
         assert old["qa_contact_coverage"].to_pylist() == [0.5]  # the old QA values stay
         if fmt >= 2:
             assert old["keypoint_backend"].to_pylist() == ["openpose_json"]
+        if fmt >= 3:
+            assert old["qa_window_outlier_share"].to_pylist() == [0.5]
     assert cat.diff(1, 2) == {"added": [], "removed": [], "changed": {}}
 
-    # the next build validates against the migrated table; its version mixes files written
-    # before the migration (the golden row) and after (the new rows), in either read order
+    # the next build validates against the migrated tables; its version mixes files written
+    # before the migration (the golden rows) and after (the new rows), in either read order
     build = make_build(["p05-mug-use-00", "p06-bowl-use-00"], seed=5, build_id="after")
     assert cat.commit(build) == 3
     rows = {r["session_id"]: r for r in cat.table("sessions", 3).to_pylist()}
-    for col in new_cols:
+    for col in added.get("sessions", ()):
         assert rows[SESSION][col] is None, col
         for r in build.sessions:
             assert rows[r["session_id"]][col] == r[col] is not None, col
-    files = cat.files("sessions", 3)
-    assert len(files) == 2
-    for order in (files, files[::-1]):
-        some = gc.Catalog(cat.layout)
-        some._files[("sessions", 3)] = order  # the read must not depend on the file order
-        got = some.table("sessions", 3, columns=["session_id", *new_cols])
-        assert all(got[c].null_count == 1 for c in new_cols)
-    assert cat.table("sessions", 1)[new_cols[-1]].to_pylist() == [None]
+    frames = cat.table("frames", 3).sort_by([("session_id", "ascending"), ("frame", "ascending")])
+    golden = frames.filter(pc.equal(frames["session_id"], SESSION))
+    new = frames.filter(pc.not_equal(frames["session_id"], SESSION))
+    assert golden["camera_solved"].to_pylist() == [None, None]
+    want = np.asarray(build.frames["camera_solved"])  # sessions sorted, as the build's
+    assert new["camera_solved"].to_pylist() == want.tolist()
+    assert want.any() and not want.all()  # both True and False written
+    for name, cols in added.items():
+        files = cat.files(name, 3)
+        assert len(files) == 2, name
+        for order in (files, files[::-1]):
+            some = gc.Catalog(cat.layout)
+            some._files[(name, 3)] = order  # the read must not depend on the file order
+            got = some.table(name, 3, columns=["session_id", *cols])
+            n_old = sum(s == SESSION for s in got["session_id"].to_pylist())
+            assert all(got[c].null_count == n_old > 0 for c in cols), (name, order)
+    assert cat.table("frames", 1)["camera_solved"].to_pylist() == [None, None]
     _check_golden_content(cat, 1)
 
 
@@ -184,9 +203,8 @@ def test_golden_script_still_writes_that_formats_columns(tmp_path, fmt):
     for name in TABLE_SCHEMAS:
         assert _delta_columns(tmp_path / "fresh", name) == _delta_columns(golden, name), name
     assert _properties(tmp_path / "fresh") == _properties(golden)
-    for cols in added_after(fmt).values():
-        assert set(cols) <= set(SESSIONS_SCHEMA.names)
-        assert set(cols) <= set(TABLE_SCHEMAS["sessions"].names)  # the swap was undone
+    for name, cols in added_after(fmt).items():
+        assert set(cols) <= set(TABLE_SCHEMAS[name].names), name  # the swap was undone
 
 
 def test_only_nullable_columns_can_be_added_to_existing_rows(tmp_path):

@@ -97,6 +97,10 @@ def estimate_from_catalog(session: Mapping[str, Any], frames: Any) -> dict[str, 
     est["frame"] = frames["frame"].to_numpy()
     est["T_w_c"] = np.stack([mat(v, (4, 4)) for v in frames["T_w_c"]])
     est["T_c_o"] = np.stack([mat(v, (4, 4)) for v in frames["T_c_o"]])
+    # null in a catalog written before format 4: unknown which cameras stage 2 solved
+    solved = frames["camera_solved"] if "camera_solved" in frames else None
+    if solved is not None and not solved.isna().any():
+        est["camera_solved"] = solved.to_numpy(dtype=bool)
     return {k: v for k, v in est.items() if v is not None}
 
 

@@ -1,6 +1,6 @@
 """Regenerate the golden catalogs under tests/golden/ (checked in with this script).
 
-    .venv/bin/python tests/golden/make_golden.py [--formats 1 2]
+    .venv/bin/python tests/golden/make_golden.py [--formats 1 2 3]
 
 - ``catalog_v0/``: the stamp of a catalog of format 0 (never released, no migration leads from
   it), for the "rebuild it" error. A few hundred bytes.
@@ -9,8 +9,9 @@
   commit code with format ``k``'s differences (``COLUMNS_ADDED`` after ``k`` left out of the
   schemas; Delta tables without ``DELTA_TABLE_PROPERTIES`` for format 1; stamp and versions row
   saying ``k``; docs/data_changelog.md). ``catalog_v2.tar.gz`` was first written by the code of
-  format 2 itself (before format 3's columns existed); ``test_golden_script_still_writes_...``
-  checks that this script still writes the same columns. Unpacked one is ~86 KB in 33 files
+  format 2 itself (before format 3's columns existed), ``catalog_v3.tar.gz`` by the code of
+  format 3 (before ``frames.camera_solved``); ``test_golden_script_still_writes_...`` checks
+  that this script still writes the same columns. Unpacked one is ~86 KB in 33 files
   (Delta logs, and Parquet footers repeating the schema's docs), packed ~15-20 KB. Tests unpack
   them into a temporary folder: opening fails naming ``graspcap catalog migrate``, migrating
   makes them readable.
@@ -48,11 +49,12 @@ COLUMNS_ADDED: dict[int, dict[str, tuple[str, ...]]] = {
     2: {"sessions": ("keypoint_backend", "keypoint_frames_detected")},
     3: {"sessions": ("qa_window_outlier_share", "qa_crosscheck_camera_deg",
                      "qa_rgbd_discrepancy_mm", "qa_fit_contact_agreement")},
+    4: {"frames": ("camera_solved",)},
 }
 """``{format: {table: columns that format added}}`` (docs/data_changelog.md): a catalog of an
 older format lacks them."""
 FORMAT_2_COLUMNS = COLUMNS_ADDED[2]
-GOLDEN_FORMATS = (1, 2)
+GOLDEN_FORMATS = (1, 2, 3)
 """Older formats with a golden catalog (every one ``graspcap catalog migrate`` leads from)."""
 
 
@@ -104,6 +106,7 @@ def build() -> gc.BuildCommit:
     session = {k: v for k, v in session.items() if k in TABLE_SCHEMAS["sessions"].names}
     frames = {
         "session_id": [SESSION] * 2, "frame": np.array([3, 4]), "T_w_c": np.stack([e["T"]] * 2),
+        "camera_solved": [True, False],
         "T_c_o": np.stack([e["T"]] * 2), "T_c_p": np.stack([e["T"]] * 2),
         "joints_2d_px": np.full((2, 21, 2), 320.0), "keypoint_conf": np.ones((2, 21)),
         "joints_c": np.stack([e["joints"]] * 2), "reproj_err_px": np.zeros((2, 21)),
@@ -140,14 +143,16 @@ def write_golden(root: Path, fmt: int) -> None:
     layout = CatalogLayout(root.resolve())
     layout.root.mkdir(parents=True)
     commit = build()
-    dropped = added_after(fmt).get("sessions", ())
-    rows = [{k: v for k, v in r.items() if k not in dropped} for r in commit.sessions]
+    dropped = added_after(fmt)
+    rows = [{k: v for k, v in r.items() if k not in dropped.get("sessions", ())}
+            for r in commit.sessions]
+    frames = {k: v for k, v in commit.frames.items() if k not in dropped.get("frames", ())}
     with schemas_of(fmt):
         # format 1: Delta's default table properties
         create_tables(layout, properties=None if fmt == 1 else DELTA_TABLE_PROPERTIES)
         write_format_file(layout, fmt)
-        commit_build(layout, dataclasses.replace(commit, sessions=rows), lock_timeout_s=10.0,
-                     format_version=fmt)
+        commit_build(layout, dataclasses.replace(commit, sessions=rows, frames=frames),
+                     lock_timeout_s=10.0, format_version=fmt)
         gc.Catalog(layout).tag(1, "golden")  # Catalog() skips the format check open() makes
 
 
