@@ -1,0 +1,93 @@
+# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
+"""``frames.camera_solved`` (format 4): a real build writes True where stage 2 solved the frame's
+camera from its own keypoints and False where it interpolated it (a frame whose detection was
+removed); ``estimate_from_catalog`` carries the column."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import shutil
+
+import numpy as np
+import pandas as pd
+
+import graspcap.catalog as gc
+from graspcap.flows.build import build_dataset
+from graspcap.synth.evaluate import estimate_from_catalog
+from graspcap.synth.sensors import openpose_json
+from tests.flow_fixtures import (  # noqa: F401
+    PRESET,
+    copy_catalog,
+    prefect_harness,
+    require_pipeline_passes,
+    synth_root,
+    warm,
+)
+
+DROP_AFTER = 6
+"""The dropped detection is this many frames after the first steady frame (not the first
+one, whose camera is the world frame and which QA flags on its own)."""
+
+
+def _pose_valid(catalog) -> dict[tuple[int, ...], dict[int, bool]]:
+    """Cached ``reconstruct_hand`` results: {frames tuple: {frame: pose_valid}}."""
+    out = {}
+    for p in (catalog / "work" / "results" / "reconstruct_hand").glob("*.pkl"):
+        rec = pickle.loads(p.read_bytes())
+        frames = tuple(int(f) for f in rec.frames)
+        out[frames] = {f: bool(v) for f, v in zip(frames, rec.pose_valid, strict=True)}
+    return out
+
+
+def _session_frames(frames: pd.DataFrame, sid: str) -> pd.DataFrame:
+    return frames[frames.session_id == sid].sort_values("frame")
+
+
+def test_a_frame_without_detections_is_written_as_interpolated(warm, synth_root, tmp_path):
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    src = sorted(p for p in synth_root.iterdir() if (p / "session.json").exists())[0]
+    root = tmp_path / "sessions"
+    session = shutil.copytree(src, root / src.name)
+    manifest = json.loads((session / "session.json").read_text())
+    sid, steady = manifest["session_id"], int(manifest["grasp"]["steady_from"])
+    dropped = steady + DROP_AFTER
+    pattern = manifest["grasp"]["keypoints"]
+    (session / pattern.format(index=dropped)).write_text(json.dumps(openpose_json(None)))
+
+    warm_frames = gc.open(catalog).table("frames").to_pandas()
+    assert warm_frames.camera_solved.notna().all()
+    before = _session_frames(warm_frames, sid)
+    assert before.camera_solved.astype(bool).all()  # an easy session: every camera solved
+
+    report = build_dataset([root], catalog, PRESET, build_id="drop")
+    require_pipeline_passes(report)
+    assert sid in report.changed
+    frames = _session_frames(gc.open(catalog).table("frames").to_pandas(), sid)
+    assert frames.camera_solved.notna().all() and frames.camera_solved.dtype == bool
+    solved = dict(zip(frames.frame.tolist(), frames.camera_solved.tolist(), strict=True))
+    assert solved[dropped] is False
+    detected = {int(f): int((np.asarray(c) > 0).sum()) for f, c in
+                zip(frames.frame, frames.keypoint_conf, strict=True)}
+    assert detected[dropped] == 0
+    assert all(solved[f] for f, n in detected.items() if n >= 6), (solved, detected)
+    # the column is reconstruct_hand's pose_valid, frame by frame
+    valid = next(v for k, v in _pose_valid(catalog).items() if dropped in k and not v[dropped])
+    assert solved == {f: valid[f] for f in solved}
+
+    est = estimate_from_catalog({"steady_from": steady}, frames)
+    assert est["camera_solved"].dtype == bool
+    np.testing.assert_array_equal(est["frame"][~est["camera_solved"]], [dropped])
+
+
+def test_estimate_from_catalog_leaves_out_a_null_camera_solved():
+    T = np.eye(4).reshape(-1).tolist()
+    frames = pd.DataFrame({"frame": [5, 3, 4], "T_w_c": [T] * 3, "T_c_o": [T] * 3,
+                           "camera_solved": [True, False, True]})
+    est = estimate_from_catalog({"steady_from": 3}, frames)
+    np.testing.assert_array_equal(est["frame"], [3, 4, 5])
+    np.testing.assert_array_equal(est["camera_solved"], [False, True, True])  # sorted by frame
+    old = frames.assign(camera_solved=[None, None, None])  # a row written before format 4
+    assert "camera_solved" not in estimate_from_catalog({"steady_from": 3}, old)
+    assert "camera_solved" not in estimate_from_catalog({"steady_from": 3},
+                                                        frames.drop(columns="camera_solved"))
