@@ -54,7 +54,7 @@ from graspcap.tasks.sfm_solve import (
 __all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",
            "STAGE_VERSION", "reconstruct_hand"]  # the result types live in sfm_result
 
-STAGE_VERSION = "reconstruct_hand/11"
+STAGE_VERSION = "reconstruct_hand/12"
 
 
 class ReconstructConfig(StageConfig):

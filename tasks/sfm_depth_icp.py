@@ -46,7 +46,8 @@ class DepthLinkConfig(StageConfig):
     the final solve (needs the depth frames)."""
     reference: int = 5
     """Solve frame (counted from the steady frame) every other frame is registered onto: a
-    few frames in, so that it is steady even when the onset was detected a little early."""
+    few frames in, so that it is steady even when the onset was detected a little early (the
+    first frame after it with a pose and a surface when it has none)."""
     rounds: int = 2
     """Registrations from the first RGB-D solve, then again from the solve they improved."""
     radius_m: float = 0.15
@@ -378,11 +379,15 @@ def depth_links(
     m = len(T_c_w)
     posed = np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)
     have = np.array([i for i in range(m) if posed[i] and surfaces[i] is not None], dtype=int)
-    reference = min(cfg.reference, m - 1)
-    if reference not in have or len(have) < 2:
+    if len(have) < 2:
         return []
+    # the first frame with a pose and a surface from the configured one on (a frame without
+    # detections there would otherwise leave the whole solve without links)
+    later = have[have >= min(cfg.reference, m - 1)]
+    reference = int(later[0] if len(later) else have[-1])
     pairs = {(reference, int(i)) for i in have if i != reference}
-    pairs |= {(int(a), int(b)) for a, b in zip(have[:-1], have[1:], strict=True)}
+    pairs |= {(int(a), int(b)) for a, b in zip(have[:-1], have[1:], strict=True)
+              if (b, a) not in pairs}  # the reference's predecessor is linked once
     ab = np.array(sorted(pairs))
     node = np.full(m, -1)
     node[have] = np.arange(len(have))

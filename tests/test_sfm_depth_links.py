@@ -148,6 +148,18 @@ def test_depth_links_gate_a_wrong_basin(frames):
     assert all(3 not in (k.a, k.b) for k in links)
 
 
+
+def test_depth_links_reference_moves_past_an_unposed_frame(frames):
+    """The reference frame without a pose (no detections there): the next posed frame
+    becomes the reference instead of leaving the solve without any link (held-out bottle
+    [9900, 10]: its solve frame 5 had none; cameras 1.45 deg off without links, 0.48 with)."""
+    _, _, T_c_o, _ = frames
+    clouds = _clouds(frames)
+    T_c_w = np.stack([T @ inv_T(T_c_o[0]) for T in T_c_o])
+    T_c_w[1] = np.nan
+    links = depth_links(clouds, T_c_w, K, DepthLinkConfig(reference=1, iterations=20))
+    assert sorted((k.a, k.b) for k in links) == [(2, 0), (2, 3)]  # each pair once
+
 def test_hand_centre_behind_the_median_reading():
     uv = np.array([[300.0, 200.0], [340.0, 260.0], [320.0, 240.0], [0.0, 0.0]])
     depth = np.array([0.5, 0.52, 0.51, 0.0])
