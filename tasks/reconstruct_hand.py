@@ -50,6 +50,7 @@ from graspcap.tasks.sfm_solve import (
     solve_rgbd,
     solve_visual,
 )
+from graspcap.tasks.threads import thread_budget
 
 __all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",
            "STAGE_VERSION", "reconstruct_hand"]  # the result types live in sfm_result
@@ -156,7 +157,8 @@ class ReconstructConfig(StageConfig):
     surface) ahead on a second thread from the start of the stage, while the solves run;
     OpenCV decodes the depth PNGs without the GIL. Identical results (each frame is computed
     by one pure function, on whichever thread asks first); saves wall time when a core is
-    free. Only with whole depth frames (``depth_frame``)."""
+    free. Only with whole depth frames (``depth_frame``), and not when
+    ``GRASPCAP_WORKER_THREADS`` is 1 (``graspcap.tasks.threads``, as every thread count here)."""
     depth_init_score: bool = True
     """Choose the initial pair among near-equally good ones by how many depth readings one
     scale explains: pixels of a small, distant hand barely tell the hand from its
@@ -253,7 +255,7 @@ def reconstruct_hand(
     swept = np.flatnonzero(confident.any(1))
     first = np.intersect1d(check_frames(len(kp)), swept)
     order = np.concatenate([first, np.setdiff1d(swept, first)])
-    background = cfg.prefetch_depth and depth_frame is not None
+    background = cfg.prefetch_depth and depth_frame is not None and thread_budget(2) > 1
     with DepthSweep(compute, order, background=background) as sweep:
         solve = partial(
             _reconstruct, keypoints, K, steady_from, sweep.get, surface_offset_m, cfg,
@@ -322,7 +324,7 @@ def _reconstruct(
         ransac_px=cfg.ransac_px,
         min_points=cfg.min_points_per_frame,
         min_parallax_deg=cfg.min_parallax_deg,
-        threads=cfg.pnp_threads,
+        threads=thread_budget(cfg.pnp_threads),
         depth_score=(
             depth_scorer(cfg, conf, ok, frame_at, offset)
             if cfg.depth_init_score

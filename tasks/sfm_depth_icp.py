@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.geometry import backproject, inv_T
+from graspcap.tasks.threads import thread_budget
 
 DepthFrame = Callable[[int], np.ndarray]
 """``depth_frame(frame) -> depth_m (h, w)``: aligned depth of a video frame in metres, 0 where
@@ -402,7 +403,7 @@ def depth_links(
         )  # fmt: skip
 
     halves = np.array_split(np.arange(len(ab)), 2)
-    if cfg.threads > 1 and len(halves[1]):
+    if thread_budget(cfg.threads) > 1 and len(halves[1]):
         with ThreadPoolExecutor(max_workers=1) as pool:
             second = pool.submit(register, halves[1])
             first = register(halves[0])

@@ -195,3 +195,26 @@ def test_depth_links_the_same_on_one_or_two_threads_and_as_one_batch(frames):
     for n, link in enumerate(runs[0]):
         np.testing.assert_allclose(link.T_a_b, T[n], atol=1e-9)
         np.testing.assert_allclose(link.information, info[n], rtol=1e-7)
+
+
+def test_depth_links_start_no_thread_under_the_worker_cap(frames, monkeypatch):
+    """``GRASPCAP_WORKER_THREADS=1`` (a Dask worker per core): the links' second half runs on
+    the calling thread, and the links are the same."""
+    import graspcap.tasks.sfm_depth_icp as sfm_depth_icp
+    from graspcap.tasks.threads import THREADS_ENV
+
+    _, _, T_c_o, _ = frames
+    clouds = _clouds(frames)
+    T_c_w = np.stack([T @ inv_T(T_c_o[0]) for T in T_c_o])
+    cfg = DepthLinkConfig(reference=0, threads=2)
+    free = depth_links(clouds, T_c_w, K, cfg)
+
+    class NoPool:
+        def __init__(self, *args, **kwargs):
+            raise AssertionError("a thread pool was started under a cap of 1")
+
+    monkeypatch.setenv(THREADS_ENV, "1")
+    monkeypatch.setattr(sfm_depth_icp, "ThreadPoolExecutor", NoPool)
+    capped = depth_links(clouds, T_c_w, K, cfg)
+    assert [(k.a, k.b) for k in capped] == [(k.a, k.b) for k in free] and len(free) == 5
+    assert all(np.array_equal(a.T_a_b, b.T_a_b) for a, b in zip(capped, free, strict=True))

@@ -25,3 +25,19 @@ def test_initialisation_is_the_same_on_one_or_two_threads():
     assert posed.sum() >= 30  # most frames posed, so both threads had work
     assert np.array_equal(a.T_c_w, b.T_c_w, equal_nan=True)
     assert np.array_equal(a.points_w, b.points_w, equal_nan=True)
+
+
+def test_worker_thread_cap(monkeypatch):
+    """``GRASPCAP_WORKER_THREADS`` caps a stage's threads (a Dask worker per core must not
+    fan out over the other workers' cores); unset or 0, the config's count stands."""
+    from graspcap.tasks.threads import THREADS_ENV, thread_budget
+
+    monkeypatch.delenv(THREADS_ENV, raising=False)
+    assert thread_budget(2) == 2 and thread_budget(0) == 1
+    monkeypatch.setenv(THREADS_ENV, "0")
+    assert thread_budget(2) == 2
+    monkeypatch.setenv(THREADS_ENV, "1")
+    assert thread_budget(2) == 1
+    monkeypatch.setenv(THREADS_ENV, "4")
+    assert thread_budget(2) == 2
+
