@@ -12,7 +12,10 @@ hand's pixels masked out. Two paths, tried in order:
    the depth equally well (a symmetric object) the one closest in rotation to stage 1 wins.
 
 One frame shows one side of the object, partly hidden by the hand: a mug's visible half
-fits its own flipped twin as well as the truth (rig seed 11 #0: 163 deg off, fitness 0.98).
+fits its own flipped twin as well as the truth (rig seed 11 #0: 163 deg off, fitness 0.98),
+and with its handle hidden any turn about its body's axis. The global path's candidates
+include half turns about the model's own near-symmetry axes and the best pose turned about
+the rotation the depth leaves free, to the rotation nearest stage 1 (:mod:`free_rotation`).
 Other steady frames (``other_views``) show it turned: when the first frame alone fits below
 ``views_below_fitness``, their points, carried into the first frame by stage 2's virtual
 cameras, are registered together with it, every pose is scored against all their depth
@@ -24,14 +27,16 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from enum import StrEnum
+from functools import partial
 
-import cv2
 import numpy as np
 
 from graspcap.tasks.adjustment_region import grow_mask, near_hand
+from graspcap.tasks.adjustment_region import hand_mask_from_keypoints as hand_mask_from_keypoints
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.depth_agreement import views_agreement
 from graspcap.tasks.errors import StageError
+from graspcap.tasks.free_rotation import free_axis, free_starts
 from graspcap.tasks.geometry import inv_T, rotation_error_deg
 from graspcap.tasks.open3d_threads import single_threaded
 from graspcap.tasks.point_clouds import cloud_from_depth, to_pcd, valid_depth
@@ -41,22 +46,15 @@ from graspcap.tasks.registration import (
     RegistrationConfig,
     prepare_model,
     prepare_scene,
+    rank,
     refine,
     register,
     tls_cost,
 )
-from graspcap.tasks.symmetry import as_good_as, probe_symmetry
+from graspcap.tasks.symmetry import as_good_as, probe_symmetry, self_flip_axes
 
-STAGE_VERSION = "estimate_adjustment/13"
+STAGE_VERSION = "estimate_adjustment/14"
 STAGE = "estimate_adjustment"
-
-HAND_BONES = (
-    (0, 1), (1, 2), (2, 3), (3, 4), (0, 5), (5, 6), (6, 7), (7, 8), (0, 9), (9, 10), (10, 11),
-    (11, 12), (0, 13), (13, 14), (14, 15), (15, 16), (0, 17), (17, 18), (18, 19), (19, 20),
-    (5, 9), (9, 13), (13, 17),
-)  # fmt: skip
-"""Connected keypoint pairs of the 21-point layout (fingers, palm rim)."""
-PALM = (0, 1, 5, 9, 13, 17)
 
 
 class AdjustmentPath(StrEnum):
@@ -144,6 +142,13 @@ class EstimateAdjustmentConfig(StageConfig):
     closest in rotation to stage 1 is kept; poses within ``ambiguity_fitness_tol`` (0.02)
     make the result ``ambiguous`` (a lifted carton's 180 deg twin at 0.988 against the
     truth's 1.0 was kept for being nearer stage 1)."""
+    flip_probes: bool = True
+    """The symmetry probes also turn the best pose half a turn about the model's two best
+    self-matching axes (:func:`symmetry.self_flip_axes`), not only its principal axes."""
+    free_turns: bool = True
+    """With ``check_ambiguity``: the best pose turned about the rotation the depth leaves
+    least constrained, to the rotation nearest stage 1, upright and flipped, are candidates
+    too (:mod:`free_rotation`; a mug's body with its handle hidden)."""
     registration: RegistrationConfig = RegistrationConfig(coarse_model_points=5000)
     """Global registration and ICP settings (a probe's first ICP level against a quarter of
     the model's points). RANSAC keeps 20000 iterations per restart: with 5000 the realistic
@@ -194,41 +199,6 @@ class Adjustment:
     stage1_hypothesis: Stage1Hypothesis = Stage1Hypothesis.BEST
     views: int = 1
     """Frames the pose was registered in and scored against (``fitness`` is over all)."""
-
-
-def hand_mask_from_keypoints(
-    keypoints_2d: np.ndarray,
-    conf: np.ndarray,
-    shape: tuple[int, int],
-    radius_px: float,
-    min_conf: float = 0.1,
-) -> np.ndarray:
-    """Pixels (h, w) bool covered by the hand: bones between confident connected keypoints
-    drawn ``radius_px`` thick, plus the palm polygon when three or more palm points are
-    confident.
-
-    Parameters
-    ----------
-    keypoints_2d : (21, 2) float
-        Pixel coordinates (x, y), 21-point layout.
-    conf : (21,) float
-        Detection confidence; points below ``min_conf`` are ignored.
-    """
-    kp = np.asarray(keypoints_2d, dtype=float)
-    ok = np.asarray(conf, dtype=float) >= min_conf
-    ok &= np.all(np.isfinite(kp), axis=1)
-    mask = np.zeros(shape, np.uint8)
-    r = max(int(round(radius_px)), 1)
-    pts = np.round(np.where(ok[:, None], kp, 0.0)).astype(np.int32)
-    for a, b in HAND_BONES:
-        if ok[a] and ok[b]:
-            cv2.line(mask, tuple(pts[a]), tuple(pts[b]), 1, thickness=2 * r + 1)
-    for i in np.flatnonzero(ok):
-        cv2.circle(mask, tuple(pts[i]), r, 1, thickness=-1)
-    palm = [i for i in PALM if ok[i]]
-    if len(palm) >= 3:
-        cv2.fillPoly(mask, [cv2.convexHull(pts[palm])], 1)
-    return mask.astype(bool)
 
 
 @single_threaded()
@@ -403,11 +373,8 @@ def _from_hypothesis(
         )
     scene, down, feats = prepare_scene(region, None, np.zeros(3), cfg)
     candidates = register(scene, down, feats, model, cfg, [("stage1", inv_T(T_w_o1))])
-    # Fitness (scene points near the mesh) cannot see mesh surface where the depth shows
-    # empty space or nearer surface: a carton's 180 deg twin explains 99 % of the region's
-    # points, the truth 100 %, yet the depth agrees with the twin's rendering on 0.91 only.
-    # Near-equal candidates are compared on fitness times depth agreement, and while the best
-    # of those agrees poorly the probes run again from it.
+    # near-equal candidates are compared on fitness times depth agreement (a carton's twin:
+    # 0.99 x 0.91, the truth 1.0 x 1.0); while the best agrees poorly, probes run from it
     scores: dict[Candidate, Candidate] = {}
 
     def score(c: Candidate) -> float:
@@ -428,30 +395,37 @@ def _from_hypothesis(
         return next(c for c in candidates if scores.get(c) is scored[0])
 
     centre = candidates[0]  # the pose the symmetry probes turn
+    # the model's own near-symmetries are probed too: a mug's principal axes are arbitrary
+    # (held-out mug [9900, 7]: its handle-axis twin at agreement 0.71, the truth at 1.0)
+    flips = config.check_ambiguity and config.flip_probes
+    probe = partial(probe_symmetry, flip_axes=self_flip_axes(model) if flips else None)
     if config.check_ambiguity:
-        candidates = probe_symmetry(scene, model, candidates, cfg)
+        candidates = probe(scene, model, candidates, cfg)
     scored = combined(candidates)
     for _ in range(config.probe_rounds if config.check_ambiguity else 0):
         if scored[0].fitness >= config.reprobe_below:
             break
         centre = lead_of(scored)
         rest = [c for c in candidates if c is not centre]
-        candidates = probe_symmetry(
+        candidates = probe(
             scene, model, [centre, *rest], cfg, None, lambda c: score(c) >= config.reprobe_below
         )
         before, scored = scored[0], combined(candidates)
         if scored[0] is before:
             break
     if config.check_ambiguity and lead_of(scored) is not centre:
-        # A probe beat the pose the probes turned (a poorly converged RANSAC start refined
-        # into its better-fitting twin): only probes turning the new best find its own
-        # symmetric twins, among them the truth (realistic carton [9000, 0]: RANSAC's starts
-        # all 180 deg off at fitness 0.87, a probe refined one to 1.0 x agreement 0.999 and
-        # its twin, the truth at 1.0 x 1.0, was never a candidate).
+        # a probe beat the pose the probes turned: only probes turning the new best find
+        # its own twins (realistic carton [9000, 0]: the truth was never a candidate)
         centre = lead_of(scored)
         rest = [c for c in candidates if c is not centre]
-        candidates = probe_symmetry(scene, model, [centre, *rest], cfg)
+        candidates = probe(scene, model, [centre, *rest], cfg)
         scored = combined(candidates)
+    if config.check_ambiguity and config.free_turns:
+        # held-out mug [9900, 4], handle hidden: the truth never a candidate, its twin kept
+        free = free_axis(np.asarray(down.points), np.asarray(down.normals))
+        starts = free_starts(inv_T(lead_of(scored).T_o_s), free, T_w_o1[:3, :3], region.mean(0))
+        turns = [refine(scene, model, inv_T(T), cfg, origin) for origin, T in starts]
+        scored = combined(rank([*candidates, *turns], cfg.eval_distance_m))
     candidates = scored
     best = candidates[0]
     equal = [c for c in candidates if as_good_as(c, best, cfg)]
