@@ -28,14 +28,7 @@ from graspcap.tasks.depth_scale import (
     estimate_scale,
 )
 from graspcap.tasks.errors import StageError
-from graspcap.tasks.sfm_depth_icp import (
-    DepthFrame,
-    DepthLink,
-    DepthLinkConfig,
-    depth_links,
-    hand_centre,
-    surface_cloud,
-)
+from graspcap.tasks.sfm_depth_icp import DepthLink, DepthLinkConfig, depth_links
 from graspcap.tasks.sfm_depth_init import depth_initialisation
 from graspcap.tasks.sfm_depth_sweep import DepthSweep, FrameDepth, frame_depth
 from graspcap.tasks.sfm_init import Initialisation, check_frames, initialise
@@ -50,6 +43,7 @@ from graspcap.tasks.sfm_solve import (
     solve_rgbd,
     solve_visual,
 )
+from graspcap.tasks.sfm_surface import DepthFrame, hand_centre, surface_cloud
 from graspcap.tasks.threads import thread_budget
 
 __all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",

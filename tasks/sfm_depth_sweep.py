@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from graspcap.tasks.depth_scale import DepthLookup
-from graspcap.tasks.sfm_depth_icp import SurfaceCloud
+from graspcap.tasks.sfm_surface import SurfaceCloud
 
 
 @dataclass(frozen=True)

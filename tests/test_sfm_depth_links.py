@@ -15,13 +15,8 @@ from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.geometry import from_rotvec, inv_T, make_T
 from graspcap.tasks.render import render
-from graspcap.tasks.sfm_depth_icp import (
-    DepthLinkConfig,
-    depth_links,
-    hand_centre,
-    icp_batch,
-    surface_cloud,
-)
+from graspcap.tasks.sfm_depth_icp import DepthLinkConfig, depth_links, icp_batch
+from graspcap.tasks.sfm_surface import hand_centre, surface_cloud
 
 K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
 W, H = 640, 480

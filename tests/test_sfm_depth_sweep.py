@@ -14,8 +14,8 @@ from graspcap.synth.hand_video import make_hand_video
 from graspcap.tasks.depth_scale import depth_lookup_from_frames
 from graspcap.tasks.geometry import project
 from graspcap.tasks.reconstruct_hand import ReconstructConfig, reconstruct_hand
-from graspcap.tasks.sfm_depth_icp import hand_centre, surface_cloud
 from graspcap.tasks.sfm_depth_sweep import DepthSweep, frame_depth
+from graspcap.tasks.sfm_surface import hand_centre, surface_cloud
 
 K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
 H, W = 480, 640
