@@ -17,9 +17,9 @@ and with its handle hidden any turn about its body's axis. The global path's can
 include half turns about the model's own near-symmetry axes and the best pose turned about
 the rotation the depth leaves free, to the rotation nearest stage 1 (:mod:`free_rotation`).
 Other steady frames (``other_views``) show it turned: when the first frame alone fits below
-``views_below_fitness``, their points, carried into the first frame by stage 2's virtual
-cameras, are registered together with it, every pose is scored against all their depth
-images and the better pose is kept (one frame alone is sharper when it is right).
+``views_below_fitness`` or is ambiguous, their points, carried into the first frame by stage
+2's virtual cameras, are registered together with it, every pose is scored against all their
+depth images and the better pose is kept (one frame alone is sharper when it is right).
 """
 
 from __future__ import annotations
@@ -127,8 +127,13 @@ class EstimateAdjustmentConfig(StageConfig):
     views_below_fitness: float = 0.97
     """The other views are used when the first frame's pose fits below this (measured on rig
     sessions: right poses 0.99-1.00; a flipped mug 0.92, a mug 7.5 deg off 0.64)..."""
+    views_if_ambiguous: bool = True
+    """The other views are used as well when the first frame's pose is ``ambiguous`` (a mug
+    with its handle hidden: any turn about its body fits; rig seed 11 #0 48.7 deg off alone,
+    0.7 deg with the views)."""
     views_margin: float = 0.02
-    """...and their pose is kept when the views agree with it by this much more."""
+    """...and their pose is kept when the views agree with it by this much more (than with the
+    first frame's; by any amount when that was ``ambiguous``)."""
     check_ambiguity: bool = True
     """Run the symmetry probes on the global path (finds the symmetric pose closest to stage 1)."""
     probe_rounds: int = 2
@@ -233,7 +238,8 @@ def estimate_adjustment(
         agrees with more (ties: ``T_w_o_stage1``); ``Adjustment.stage1_hypothesis`` says which.
         ``T_adj`` stays relative to ``T_w_o_stage1``.
     other_views : ``() -> [SteadyView, ...]``, other steady frames (same intrinsics ``K``),
-        asked for only when the first frame alone fits below ``views_below_fitness``.
+        asked for only when the first frame alone fits below ``views_below_fitness`` or is
+        ``ambiguous``.
     """
     cfg = config.registration
     depth = valid_depth(depth_m, config.max_range_m)
@@ -277,8 +283,8 @@ def estimate_adjustment(
         single: Adjustment | None = solve(views)
     except StageError as e:
         single, failed = None, e
-    if other_views is None or (single is not None and
-                               single.fitness >= config.views_below_fitness):
+    sure = single is not None and not (config.views_if_ambiguous and single.ambiguous)
+    if other_views is None or (sure and single.fitness >= config.views_below_fitness):
         if single is None:
             raise failed
         return single
@@ -297,7 +303,8 @@ def estimate_adjustment(
         if single is None:
             raise failed from None
         return single
-    if single is None or multi.fitness > config.views_margin + _agreement(
+    margin = config.views_margin if sure else 0.0  # an ambiguous frame is not sharper
+    if single is None or multi.fitness > margin + _agreement(
         views, K, mesh, single.T_w_o, config
     )[0]:
         return multi

@@ -45,8 +45,11 @@ def test_a_mug_half_hidden_by_the_hand_is_registered_with_the_other_views(tmp_pa
     default = PRESETS["default"]
     single = run_stage(STAGES["estimate_adjustment"], d,
                        default.model_copy(update={"other_views": 0}), res)  # fmt: skip
-    # one view: a wrong mug that the depth agrees with too little (the views' trigger)
-    assert single.views == 1 and single.fitness < default.views_below_fitness
+    # one view: a wrong mug that the depth agrees with too little, or (estimate_adjustment/14:
+    # the mug turned about its body's axis, handle hidden, fitness 0.999) an ambiguous one:
+    # the views' triggers
+    assert single.views == 1 and pose_error(single.T_w_o, T_true)[0] >= 10.0
+    assert single.fitness < default.views_below_fitness or single.ambiguous
     adj = run_stage(STAGES["estimate_adjustment"], d, default, res)
     rot, trans = pose_error(adj.T_w_o, T_true)
     assert adj.views == 1 + default.other_views
