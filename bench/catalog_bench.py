@@ -19,6 +19,7 @@ import tempfile
 import time
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import zarr
 from deltalake import DeltaTable
@@ -44,7 +45,9 @@ def make_build(ids: list[str], frames: int, seed: int, build_id: str) -> gc.Buil
             "steady_from": 10, "T_w_o_stage1": T, "T_adj": T, "T_w_p": T,
             "T_turntable_o_scan": T, "hand_scale": 1.0, "joint_angles_rad": rng.normal(size=20),
             "joints_w": rng.normal(size=63), "joints_fit_w": rng.normal(size=63),
-            **{q: float(rng.uniform()) for q in SESSIONS_SCHEMA.names if q.startswith("qa_")},
+            **{f.name: float(rng.uniform()) for f in SESSIONS_SCHEMA
+               if f.name.startswith("qa_") and pa.types.is_floating(f.type)},
+            "qa_flags": [], "qa_notes": [],
             "input_digest": f"{seed}-{i}", "code_version": "bench", "build_id": build_id,
             "config_digest": "c" * 64,
         })

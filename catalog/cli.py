@@ -14,6 +14,7 @@ import sys
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.compute as pc
 
 from graspcap.catalog.errors import CatalogError
@@ -46,25 +47,37 @@ def _plain(value: Any) -> Any:
     return value
 
 
+QA_TEXT_COLUMNS = ("qa_flags", "qa_notes")
+"""``sessions`` columns of QA's reasons (lists of strings, format 4), shown by ``show``."""
+
+
+def _with_any(column: pa.ChunkedArray) -> int:
+    """Rows whose list is non-empty (null and empty lists count as none)."""
+    return int(pc.sum(pc.fill_null(pc.greater(pc.list_value_length(column), 0), False)).as_py()
+               or 0)
+
+
 def summary(cat, version: int | str | None = None) -> dict:
-    """A version's summary: number, build, tags, row counts, status counts, QA medians."""
+    """A version's summary: number, build, tags, row counts, status counts, QA medians, and
+    how many sessions have QA flag reasons and notes."""
     v = cat.resolve(version)
     info = next(r for r in cat.versions().to_pylist() if r["version"] == v)
     sessions = cat.table("sessions", v)
     build = [r for r in cat.table("builds", v).to_pylist() if r["catalog_version"] == v]
     status = sessions.group_by("status").aggregate([([], "count_all")]).to_pylist()
     qa = {}
-    for name in sessions.column_names:
-        if name.startswith("qa_"):
-            values = sessions[name].drop_null().to_numpy()
+    for field in sessions.schema:
+        if field.name.startswith("qa_") and pa.types.is_floating(field.type):
+            values = sessions[field.name].drop_null().to_numpy()
             values = values[np.isfinite(values)]
-            qa[name] = float(np.median(values)) if len(values) else None
+            qa[field.name] = float(np.median(values)) if len(values) else None
     return {
         "version": v, "time_utc": info["time_utc"].isoformat(), "build_id": info["build_id"],
         "tags": info["tags"], "format_version": info["format_version"],
         "rows": {name: info[f"rows_{name}"] for name in DATA_TABLES},
         "status": {r["status"]: r["count_all"] for r in status},
         "qa_median": qa,
+        "sessions_with": {c: _with_any(sessions[c]) for c in QA_TEXT_COLUMNS},
         "build": None if not build else {
             k: build[0][k] for k in ("build_id", "code_version", "config_digest")} | {
             k: len(build[0][k]) for k in ("sessions_added", "sessions_changed",
@@ -111,6 +124,9 @@ def _cmd_show(args: argparse.Namespace) -> int:
                   f"{b['sessions_added']}, changed {b['sessions_changed']}, unchanged "
                   f"{b['sessions_unchanged']}, removed {b['sessions_removed']}, failed "
                   f"{b['sessions_failed']}")
+        w = out["sessions_with"]
+        print(f"QA:     {w['qa_flags']} session(s) with flag reasons, {w['qa_notes']} with "
+              "notes (show --session ID lists them)")
         print("QA medians:")
         for k, v in out["qa_median"].items():
             print(f"  {k:<26} {'-' if v is None else f'{v:.4g}'}")
@@ -125,8 +141,15 @@ def _cmd_show(args: argparse.Namespace) -> int:
         _print_json({"version": v, **row[0]})
         return 0
     print(f"session {args.session} in catalog version {v}")
-    for k, value in row[0].items():
-        print(f"  {k:<26} {_plain(value)}")
+    first = ("session_id", "participant", "object_id", "intent", "hand", "status", "error",
+             *QA_TEXT_COLUMNS)  # why a session is flagged, next to its status
+    for k in [*first, *(k for k in row[0] if k not in first)]:
+        value = row[0][k]
+        if k in QA_TEXT_COLUMNS:  # one reason a line; "-": none, "null": QA did not run
+            lines = ["null"] if value is None else (value or ["-"])
+            print(f"  {k:<26} " + ("\n" + " " * 29).join(lines))
+        else:
+            print(f"  {k:<26} {_plain(value)}")
     return 0
 
 

@@ -2,8 +2,9 @@
 
 Maps the results of ``tasks.pipeline.STAGES`` onto the contract columns of
 ``graspcap.schemas.tables``. The ``qa_metrics`` stage decides ``status`` (ok, flagged, or
-failed with its reasons in ``error``) and fills the ``qa_*`` columns; a metric it could not
-compute stays null. See ``docs/architecture.md``, "Orchestration".
+failed with its reasons in ``error``) and fills the ``qa_*`` columns: a metric it could not
+compute stays null; ``qa_flags`` and ``qa_notes`` hold its flag reasons and notes.
+See ``docs/architecture.md``, "Orchestration".
 """
 
 from __future__ import annotations
@@ -27,17 +28,21 @@ QA_COLUMNS = ("reproj_rmse_px", "inlier_ratio", "crosscheck_mm", "registration_r
               "contact_agreement", "contact_coverage", "window_outlier_share",
               "crosscheck_camera_deg", "rgbd_discrepancy_mm", "fit_contact_agreement")
 """``qa_<name>`` columns of ``sessions``, filled from ``QaReport.metrics[<name>]``."""
-NEWEST_COLUMNS = ("keypoint_backend", "qa_window_outlier_share", "qa_crosscheck_camera_deg",
-                  "qa_rgbd_discrepancy_mm", "qa_fit_contact_agreement")
-"""``sessions`` columns formats 2 and 3 added: :func:`predates_columns` reads them."""
+FORMAT_3_QA = ("qa_window_outlier_share", "qa_crosscheck_camera_deg", "qa_rgbd_discrepancy_mm",
+               "qa_fit_contact_agreement")
+NEWEST_COLUMNS = ("keypoint_backend", *FORMAT_3_QA, "qa_flags")
+"""``sessions`` columns formats 2, 3 and 4 added: :func:`predates_columns` reads them."""
 
 
 def predates_columns(row: Mapping[str, Any]) -> bool:
-    """Whether a ``sessions`` row with results was written before format 2's or 3's columns
-    existed (a migrated catalog's old rows): such a row has no keypoint backend, or none of
-    format 3's QA metrics (a row written since has ``qa_window_outlier_share`` whenever
-    stage 2 ran). The build rewrites it from the session's cached stage results."""
-    return row["keypoint_backend"] is None or all(row[c] is None for c in NEWEST_COLUMNS[1:])
+    """Whether a ``sessions`` row with results was written before format 2's, 3's or 4's
+    columns existed (a migrated catalog's old rows): such a row has no keypoint backend, none
+    of format 3's QA metrics (a row written since has ``qa_window_outlier_share`` whenever
+    stage 2 ran), or no ``qa_flags`` (a row with results always has a list, empty or not).
+    The build rewrites it, and its ``frames`` rows (format 4's ``camera_solved``), from the
+    session's cached stage results."""
+    return (row["keypoint_backend"] is None or all(row[c] is None for c in FORMAT_3_QA)
+            or row["qa_flags"] is None)
 
 
 @dataclass(frozen=True)
@@ -92,6 +97,7 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         "hand_scale": float(fit.scale), "joint_angles_rad": _flat(angles_rad),
         "joints_w": _flat(sfm.joints_w), "joints_fit_w": _flat(joints_hand_w),
         **{f"qa_{name}": qa.metrics.get(name) for name in QA_COLUMNS},
+        "qa_flags": list(qa.flags), "qa_notes": list(qa.notes),
         "input_digest": input_digest, "code_version": code_version, "build_id": build_id,
         "config_digest": config_digest,
     }
@@ -131,7 +137,9 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
 def failed_row(session_dir: Path, session_id: str, error: str, *, input_digest: str,
                code_version: str, build_id: str, config_digest: str) -> dict[str, Any]:
     """The ``sessions`` row of a session that failed: identity from its manifest as far as it
-    can be read, every result column null, ``error`` the reason."""
+    can be read, every result column null, ``error`` the reason. ``qa_flags`` and ``qa_notes``
+    are null too: ``qa_metrics`` needs every data stage, so it never ran on such a session (a
+    session QA failed gets :func:`session_rows`, with its flags and notes)."""
     try:
         raw = json.loads((Path(session_dir) / "session.json").read_text())
         raw = raw if isinstance(raw, dict) else {}

@@ -129,6 +129,16 @@ SESSIONS_SCHEMA = pa.schema([
     _qa("qa_fit_contact_agreement", "qa_contact_agreement of the stage-3 fit, before "
         "refine_grasp drew the hand to the contact map (low: the video's hand and the thermal "
         "scan disagree on the grasp). Format 3; null on rows written before.", "1"),
+    _f("qa_flags", pa.list_(_STR), "Why qa_metrics flagged the session (QaReport.flags): one "
+       "reason per flag limit a metric crossed or warning a stage raised, e.g. 'RGB-D result vs "
+       "pixels-only optimum 15.62 mm > 12.50 mm'; empty when none (a failed session's failures "
+       "are in error). Format 4; null where QA did not run (a stage failed) and on rows written "
+       "before.", nullable=True),
+    _f("qa_notes", pa.list_(_STR), "What QA noted that changes no verdict (QaReport.notes): an "
+       "ambiguous registration of a near-symmetric object (the depth could not decide its pose "
+       "about the symmetry axis; the pose nearest stage 1 was kept, so it can be degrees off "
+       "about that axis), or a refinement rejected in favour of the stage-3 fit. Empty when "
+       "none. Format 4; null where QA did not run and on rows written before.", nullable=True),
     _f("input_digest", _STR, "sha256 of the session's input bytes."),
     _f("code_version", _STR, "graspcap version (and git revision) that built the row."),
     _f("build_id", _STR, "Build that wrote the row (see the builds table)."),

@@ -50,6 +50,12 @@ def session_row(session_id: str, rng: np.random.Generator, *, status: str = "ok"
                  "qa_window_outlier_share", "qa_crosscheck_camera_deg", "qa_rgbd_discrepancy_mm",
                  "qa_fit_contact_agreement"):
         row[name] = None if failed else float(rng.uniform(0, 2))
+    # no draw: the rng's stream stays as it was before format 4
+    row["qa_flags"] = None if failed else (["inlier ratio 0.900 < 0.915"]
+                                           if status == "flagged" else [])
+    row["qa_notes"] = None if failed else (
+        ["estimate_adjustment: ambiguous (the pose nearest stage 1 kept)"]
+        if object_id == "mug" else [])
     return row
 
 

@@ -298,6 +298,7 @@ CONTRACT = {
                          "qa_contact_agreement", "qa_contact_coverage",
                          "qa_window_outlier_share", "qa_crosscheck_camera_deg",
                          "qa_rgbd_discrepancy_mm", "qa_fit_contact_agreement"], pa.float64()),
+        **dict.fromkeys(["qa_flags", "qa_notes"], pa.list_(pa.string())),
     },
     "frames": {
         "session_id": pa.string(), "frame": pa.int64(),
@@ -325,6 +326,21 @@ def test_contract_columns_have_the_documented_types(three_versions):
                              strict=True))
         assert by_status["failed"] is None and by_status["ok"] is not None, col
     assert set(sessions["keypoint_backend"].drop_null().to_pylist()) == {"openpose_json"}
+    # QA's reasons and notes: lists of strings (null on the failed row), pandas reads lists
+    df = sessions.to_pandas()
+    assert df.qa_flags.dtype == object and df.qa_notes.dtype == object
+    mugs = 0
+    for sid, status, flags, notes in zip(df.session_id, df.status, df.qa_flags, df.qa_notes,
+                                         strict=True):
+        if status == "failed":
+            assert flags is None and notes is None, sid
+            continue
+        assert list(flags) == [], sid
+        want = ["estimate_adjustment: ambiguous (the pose nearest stage 1 kept)"] * (
+            "-mug-" in sid)
+        assert list(notes) == want, sid
+        mugs += "-mug-" in sid
+    assert mugs and (df.status == "failed").any()
 
 
 @pytest.mark.parametrize("mutate, column, message", [

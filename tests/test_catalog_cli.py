@@ -57,9 +57,29 @@ def test_versions_and_show(catalog, capsys):
     assert s["build"]["sessions_added"] == 3 and s["build"]["sessions_failed"] == 1
     want = np.median(sessions["qa_crosscheck_mm"].drop_null().to_numpy())
     assert s["qa_median"]["qa_crosscheck_mm"] == pytest.approx(want, rel=1e-12)
+    assert "qa_flags" not in s["qa_median"] and "qa_notes" not in s["qa_median"]
+    assert s["sessions_with"] == {"qa_flags": 0, "qa_notes": 1}  # the mug's (factory) note
     code, out, _ = run(capsys, "show", "--catalog", root)  # latest, as text
     assert code == 0 and out.startswith("version 2  build b2")
     assert re.search(r"status: .*ok 3", out) and "qa_contact_coverage" in out
+    assert "QA:     0 session(s) with flag reasons, 2 with notes" in out
+
+    # a session's flag reasons and notes, one a line, next to its status
+    code, out, _ = run(capsys, "show", "--session", "p04-mug-use-00", "--catalog", root)
+    lines = out.splitlines()
+    at = {line.split()[0]: i for i, line in enumerate(lines[1:], 1)}
+    assert code == 0 and at["status"] < at["qa_flags"] < at["qa_notes"] < at["steady_from"]
+    assert lines[at["qa_flags"]].split() == ["qa_flags", "-"]
+    assert lines[at["qa_notes"]].split(None, 1) == [
+        "qa_notes", "estimate_adjustment: ambiguous (the pose nearest stage 1 kept)"]
+    code, out, _ = run(capsys, "show", "--session", "p04-mug-use-00", "--catalog", root,
+                       "--json")
+    row = json.loads(out)
+    assert row["qa_flags"] == [] and row["qa_notes"] == [
+        "estimate_adjustment: ambiguous (the pose nearest stage 1 kept)"]
+    code, out, _ = run(capsys, "show", "1", "--session", FAILED, "--catalog", root)
+    assert re.search(r"^  qa_flags\s+null$", out, re.M) and re.search(r"^  qa_notes\s+null$",
+                                                                        out, re.M), out
 
     code, out, _ = run(capsys, "show", "1", "--session", FAILED, "--catalog", root, "--json")
     row = json.loads(out)

@@ -138,6 +138,7 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
     assert json.loads((src / "catalog.json").read_text())["format_version"] == fmt
     added = added_after(fmt)  # {table: columns the formats after fmt added}
     assert "camera_solved" in added["frames"]  # every golden format predates format 4
+    assert {"qa_flags", "qa_notes"} <= set(added["sessions"])
     for name, cols in added.items():
         assert not set(cols) & set(_delta_columns(src, name)), name  # the golden lacks them
     for name, cols in COLUMNS_ADDED.get(fmt, {}).items():
@@ -176,6 +177,15 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
         assert rows[SESSION][col] is None, col
         for r in build.sessions:
             assert rows[r["session_id"]][col] == r[col] is not None, col
+    # list<string> columns: the Delta table has them as arrays of strings, the rows as lists
+    delta_types = {f.name: str(f.type) for f in DeltaTable(str(src / "tables" /
+                                                               "sessions")).schema().fields}
+    for col in ("qa_flags", "qa_notes"):
+        assert "string" in delta_types[col] and "array" in delta_types[col].lower(), delta_types
+        assert cat.table("sessions", 3).schema.field(col).type == pa.list_(pa.string())
+    assert rows["p05-mug-use-00"]["qa_notes"] == [
+        "estimate_adjustment: ambiguous (the pose nearest stage 1 kept)"]
+    assert rows["p06-bowl-use-00"]["qa_notes"] == [] == rows["p06-bowl-use-00"]["qa_flags"]
     frames = cat.table("frames", 3).sort_by([("session_id", "ascending"), ("frame", "ascending")])
     golden = frames.filter(pc.equal(frames["session_id"], SESSION))
     new = frames.filter(pc.not_equal(frames["session_id"], SESSION))

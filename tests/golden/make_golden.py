@@ -49,7 +49,7 @@ COLUMNS_ADDED: dict[int, dict[str, tuple[str, ...]]] = {
     2: {"sessions": ("keypoint_backend", "keypoint_frames_detected")},
     3: {"sessions": ("qa_window_outlier_share", "qa_crosscheck_camera_deg",
                      "qa_rgbd_discrepancy_mm", "qa_fit_contact_agreement")},
-    4: {"frames": ("camera_solved",)},
+    4: {"frames": ("camera_solved",), "sessions": ("qa_flags", "qa_notes")},
 }
 """``{format: {table: columns that format added}}`` (docs/data_changelog.md): a catalog of an
 older format lacks them."""
@@ -102,6 +102,8 @@ def build() -> gc.BuildCommit:
                          "qa_penetration_max_mm", "qa_penetration_mean_mm",
                          "qa_contact_agreement", "qa_contact_coverage",
                          *COLUMNS_ADDED[3]["sessions"]], 0.5),
+        "qa_flags": [], "qa_notes": ["register_object: symmetric object, registration "
+                                     "ambiguous (resolved by estimate_adjustment)"],
     }
     session = {k: v for k, v in session.items() if k in TABLE_SCHEMAS["sessions"].names}
     frames = {
