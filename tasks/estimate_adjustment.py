@@ -14,12 +14,13 @@ hand's pixels masked out. Two paths, tried in order:
 One frame shows one side of the object, partly hidden by the hand: a mug's visible half
 fits its own flipped twin as well as the truth (rig seed 11 #0: 163 deg off, fitness 0.98),
 and with its handle hidden any turn about its body's axis. The global path's candidates
-include half turns about the model's own near-symmetry axes and the best pose turned about
-the rotation the depth leaves free, to the rotation nearest stage 1 (:mod:`free_rotation`).
-Other steady frames (``other_views``) show it turned: when the first frame alone fits below
-``views_below_fitness`` or is ambiguous, their points, carried into the first frame by stage
-2's virtual cameras, are registered together with it, every pose is scored against all their
-depth images and the better pose is kept (one frame alone is sharper when it is right).
+include, when the model's principal axes are ill-defined, half turns about its own
+near-symmetry axes and the best pose turned about the rotation the depth leaves free, to the
+rotation nearest stage 1 (:mod:`free_rotation`). Other steady frames (``other_views``) show
+it turned: when the first frame alone fits below ``views_below_fitness`` or is ambiguous (axes
+ill-defined), their points, carried into the first frame by stage 2's virtual cameras, are
+registered together with it, every pose is scored against all their depth images and the
+better pose is kept (one frame alone is sharper when it is right).
 """
 
 from __future__ import annotations
@@ -51,9 +52,9 @@ from graspcap.tasks.registration import (
     register,
     tls_cost,
 )
-from graspcap.tasks.symmetry import as_good_as, probe_symmetry, self_flip_axes
+from graspcap.tasks.symmetry import as_good_as, axes_ill_defined, probe_symmetry, self_flip_axes
 
-STAGE_VERSION = "estimate_adjustment/14"
+STAGE_VERSION = "estimate_adjustment/15"
 STAGE = "estimate_adjustment"
 
 
@@ -128,9 +129,10 @@ class EstimateAdjustmentConfig(StageConfig):
     """The other views are used when the first frame's pose fits below this (measured on rig
     sessions: right poses 0.99-1.00; a flipped mug 0.92, a mug 7.5 deg off 0.64)..."""
     views_if_ambiguous: bool = True
-    """The other views are used as well when the first frame's pose is ``ambiguous`` (a mug
-    with its handle hidden: any turn about its body fits; rig seed 11 #0 48.7 deg off alone,
-    0.7 deg with the views)."""
+    """The other views are used as well when the first frame's pose is ``ambiguous`` and the
+    model's axes are ill-defined (``ill_defined_ratio``; a mug, handle hidden: rig seed 11 #0
+    48.7 deg off alone, 0.7 with the views). Other ties are the object's own symmetry, alike in
+    every view (carton [9000, 0] 0.06 deg alone, 0.12 with them; ~4.5 s CPU)."""
     views_margin: float = 0.02
     """...and their pose is kept when the views agree with it by this much more (than with the
     first frame's; by any amount when that was ``ambiguous``)."""
@@ -149,11 +151,18 @@ class EstimateAdjustmentConfig(StageConfig):
     truth's 1.0 was kept for being nearer stage 1)."""
     flip_probes: bool = True
     """The symmetry probes also turn the best pose half a turn about the model's two best
-    self-matching axes (:func:`symmetry.self_flip_axes`), not only its principal axes."""
+    self-matching axes (:func:`symmetry.self_flip_axes`, 0.15-0.4 s CPU per mesh), not only
+    its principal axes, when those are ill-defined (``ill_defined_ratio``)."""
+    ill_defined_ratio: float = 0.9
+    """The model's principal axes are ill-defined when two of its principal spreads are within
+    this ratio (:func:`symmetry.axes_ill_defined`; mug and bottle 0.968, carton 0.78, spray
+    bottle 0.71, drill 0.65)."""
     free_turns: bool = True
     """With ``check_ambiguity``: the best pose turned about the rotation the depth leaves
     least constrained, to the rotation nearest stage 1, upright and flipped, are candidates
-    too (:mod:`free_rotation`; a mug's body with its handle hidden)."""
+    too (:mod:`free_rotation`; a mug's body with its handle hidden), when the model's axes
+    are ill-defined (``ill_defined_ratio``; not by ``FreeAxis.weakness``: [9900, 4] from onset
+    26 needs them with its views at 0.07, 50.5 deg off without; other mugs 0.07-0.18)."""
     registration: RegistrationConfig = RegistrationConfig(coarse_model_points=5000)
     """Global registration and ICP settings (a probe's first ICP level against a quarter of
     the model's points). RANSAC keeps 20000 iterations per restart: with 5000 the realistic
@@ -283,7 +292,8 @@ def estimate_adjustment(
         single: Adjustment | None = solve(views)
     except StageError as e:
         single, failed = None, e
-    sure = single is not None and not (config.views_if_ambiguous and single.ambiguous)
+    ask = config.views_if_ambiguous and axes_ill_defined(model, config.ill_defined_ratio)
+    sure = single is not None and not (ask and single.ambiguous)
     if other_views is None or (sure and single.fitness >= config.views_below_fitness):
         if single is None:
             raise failed
@@ -404,7 +414,8 @@ def _from_hypothesis(
     centre = candidates[0]  # the pose the symmetry probes turn
     # the model's own near-symmetries are probed too: a mug's principal axes are arbitrary
     # (held-out mug [9900, 7]: its handle-axis twin at agreement 0.71, the truth at 1.0)
-    flips = config.check_ambiguity and config.flip_probes
+    mixed = config.check_ambiguity and axes_ill_defined(model, config.ill_defined_ratio)
+    flips = mixed and config.flip_probes
     probe = partial(probe_symmetry, flip_axes=self_flip_axes(model) if flips else None)
     if config.check_ambiguity:
         candidates = probe(scene, model, candidates, cfg)
@@ -427,7 +438,7 @@ def _from_hypothesis(
         rest = [c for c in candidates if c is not centre]
         candidates = probe(scene, model, [centre, *rest], cfg)
         scored = combined(candidates)
-    if config.check_ambiguity and config.free_turns:
+    if mixed and config.free_turns:
         # held-out mug [9900, 4], handle hidden: the truth never a candidate, its twin kept
         free = free_axis(np.asarray(down.points), np.asarray(down.normals))
         starts = free_starts(inv_T(lead_of(scored).T_o_s), free, T_w_o1[:3, :3], region.mean(0))

@@ -43,6 +43,16 @@ def _hemisphere(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
+def axes_ill_defined(model: Model, ratio: float) -> bool:
+    """Two of the model's principal spreads (RMS extents along its principal axes) are within
+    ``ratio`` of each other, so those axes are mixed arbitrarily within their plane (the mug
+    0.968: 54 deg off its handle's axis; a bottle 0.968; carton 0.78, spray bottle 0.71,
+    drill 0.65) and half turns about them may miss the object's own near-symmetries."""
+    pts = np.asarray(model.dense.points)
+    s = np.linalg.svd(pts - model.centroid, compute_uv=False)  # largest first
+    return bool(np.any(s[1:] >= ratio * s[:-1]))
+
+
 _FLIPS: dict[int, tuple[Model, np.ndarray]] = {}
 """Recent :func:`self_flip_axes` results by model (the model kept alive beside them)."""
 

@@ -33,12 +33,18 @@ def test_lifted_carton_is_not_its_twin(seed, angle_deg, ambiguous):
     depth, mask, T_true = lifted_in_hand(
         mesh, T_w_o1, T_c_t, np.random.default_rng(100 + seed), angle_deg=angle_deg
     )
-    r = estimate_adjustment(depth, K, *mesh, T_w_o1, mask)
+    asked: list[int] = []
+    r = estimate_adjustment(
+        depth, K, *mesh, T_w_o1, mask, other_views=lambda: asked.append(1) or []
+    )
     assert r.path is AdjustmentPath.NEAR_HAND_GLOBAL
     rot, trans = pose_error(r.T_w_o, T_true)
     assert rot <= ROT_DEG and trans <= TRANS_M, (rot, trans)
     assert r.fitness >= 0.99
     assert r.ambiguous is ambiguous
+    # a carton's tie is its own symmetry, alike in every view: no other views asked for
+    # (estimate_adjustment/14 asked when ambiguous: ~4.5 s on [9000, 0], 0.06 -> 0.12 deg)
+    assert not asked
 
 
 @pytest.mark.slow
