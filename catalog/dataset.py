@@ -2,9 +2,11 @@
 
 ``GraspDataset`` items are dicts of numpy arrays: a frame row (``unit="frames"``) or a session row
 (``unit="sessions"``) joined with its session's arrays (contact map, refined hand mesh and
-joints) and its object mesh. The dataset pickles as its catalog root, pinned version and item
-keys; tables and arrays are opened lazily in whichever process indexes it, so it works with a
-torch ``DataLoader`` with workers.
+joints) and its object mesh. QA's flag reasons and notes (``qa_flags``, ``qa_notes``: lists of
+strings of any length, which a batch collate cannot stack) are not in the items:
+``session_qa(session_id)`` gives them. The dataset pickles as its catalog root, pinned version
+and item keys; tables and arrays are opened lazily in whichever process indexes it, so it works
+with a torch ``DataLoader`` with workers.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -39,6 +42,7 @@ class SplitKey(StrEnum):
 _SESSION_FIELDS = ["session_id", "participant", "object_id", "intent", "hand", "status",
                    "steady_from", "T_w_o_stage1", "T_adj", "T_w_p", "T_turntable_o_scan",
                    "hand_scale", "joint_angles_rad", "joints_w", "joints_fit_w"]
+_QA_FIELDS = ["status", "qa_flags", "qa_notes"]
 _CACHE_SESSIONS = 64
 
 
@@ -91,7 +95,7 @@ class GraspDataset:
                 sessions = sessions.filter(pc.is_in(sessions[col],
                                                     pa.array(list(allowed), pa.string())))
         self._session_meta = {r["session_id"]: r for r in sessions.select(
-            ["session_id", "participant", "object_id", "intent"]).to_pylist()}
+            ["session_id", "participant", "object_id", "intent", *_QA_FIELDS]).to_pylist()}
         self.session_ids = sorted(self._session_meta)
         self._keys = self._item_keys()
         self._state: dict | None = None
@@ -165,6 +169,14 @@ class GraspDataset:
             item.update({name: col[index] for name, col in state["frames"].items()})
         item.update(self._session_arrays(session_id))
         return item
+
+    def session_qa(self, session_id: str) -> dict[str, Any]:
+        """``status``, ``qa_flags`` and ``qa_notes`` of a session of the dataset: why QA flagged
+        it, and what it noted without a verdict (e.g. an ambiguous registration of a
+        near-symmetric object, whose pose about its axis may be off). The lists are None on a
+        row written before format 4."""
+        meta = self._session_meta[session_id]
+        return {k: meta[k] for k in _QA_FIELDS}
 
     def _subset(self, session_ids: list[str]) -> GraspDataset:
         keep = set(session_ids)

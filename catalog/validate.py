@@ -105,6 +105,11 @@ def to_table(name: str, batch: Batch) -> pa.Table:
             arrays.append(values)
         elif pa.types.is_fixed_size_list(field.type):
             arrays.append(_fixed_list(field, values, n, fail))
+        elif pa.types.is_list(field.type):  # qa_flags: ["reason", ...], never "reason"
+            for i, v in enumerate(values):
+                if isinstance(v, str | bytes):
+                    fail(i, f"expected a list of {field.type.value_type}, got the string {v!r}")
+            arrays.append(_plain(field, values, fail))
         else:
             arrays.append(_plain(field, values, fail))
     return validate_table(name, pa.Table.from_arrays(arrays, names=schema.names))
