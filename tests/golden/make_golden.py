@@ -10,8 +10,9 @@
   schemas; Delta tables without ``DELTA_TABLE_PROPERTIES`` for format 1; stamp and versions row
   saying ``k``; docs/data_changelog.md). ``catalog_v2.tar.gz`` was first written by the code of
   format 2 itself (before format 3's columns existed), ``catalog_v3.tar.gz`` by the code of
-  format 3 (before ``frames.camera_solved``); ``test_golden_script_still_writes_...`` checks
-  that this script still writes the same columns. Unpacked one is ~86 KB in 33 files
+  format 3 (before ``frames.camera_solved``, ``sessions.qa_flags`` and ``qa_notes``);
+  ``test_golden_script_still_writes_...`` checks that this script still writes the same
+  columns. Unpacked one is ~86 KB in 33 files
   (Delta logs, and Parquet footers repeating the schema's docs), packed ~15-20 KB. Tests unpack
   them into a temporary folder: opening fails naming ``graspcap catalog migrate``, migrating
   makes them readable.
