@@ -129,10 +129,9 @@ class EstimateAdjustmentConfig(StageConfig):
     """The other views are used when the first frame's pose fits below this (measured on rig
     sessions: right poses 0.99-1.00; a flipped mug 0.92, a mug 7.5 deg off 0.64)..."""
     views_if_ambiguous: bool = True
-    """The other views are used as well when the first frame's pose is ``ambiguous`` and the
-    model's axes are ill-defined (``ill_defined_ratio``; a mug, handle hidden: rig seed 11 #0
-    48.7 deg off alone, 0.7 with the views). Other ties are the object's own symmetry, alike in
-    every view (carton [9000, 0] 0.06 deg alone, 0.12 with them; ~4.5 s CPU)."""
+    """...and when it is ``ambiguous`` with ill-defined axes (a mug, handle hidden: rig seed 11
+    #0 48.7 deg off alone, 0.7 with the views); other ties are the object's own symmetry, alike
+    in every view (carton [9000, 0] 0.06 deg alone, 0.12 with them, +4.5 s CPU)."""
     views_margin: float = 0.02
     """...and their pose is kept when the views agree with it by this much more (than with the
     first frame's; by any amount when that was ``ambiguous``)."""
@@ -150,19 +149,18 @@ class EstimateAdjustmentConfig(StageConfig):
     make the result ``ambiguous`` (a lifted carton's 180 deg twin at 0.988 against the
     truth's 1.0 was kept for being nearer stage 1)."""
     flip_probes: bool = True
-    """The symmetry probes also turn the best pose half a turn about the model's two best
-    self-matching axes (:func:`symmetry.self_flip_axes`, 0.15-0.4 s CPU per mesh), not only
-    its principal axes, when those are ill-defined (``ill_defined_ratio``)."""
+    """With ill-defined principal axes (``ill_defined_ratio``) the symmetry probes also turn
+    the best pose half a turn about the model's two best self-matching axes
+    (:func:`symmetry.self_flip_axes`, 0.15-0.4 s CPU per mesh)."""
     ill_defined_ratio: float = 0.9
-    """The model's principal axes are ill-defined when two of its principal spreads are within
-    this ratio (:func:`symmetry.axes_ill_defined`; mug and bottle 0.968, carton 0.78, spray
-    bottle 0.71, drill 0.65)."""
+    """Principal axes are ill-defined when two principal spreads are within this ratio
+    (:func:`symmetry.axes_ill_defined`; mug, bottle 0.968; carton 0.78, spray 0.71, drill 0.65)."""
     free_turns: bool = True
-    """With ``check_ambiguity``: the best pose turned about the rotation the depth leaves
-    least constrained, to the rotation nearest stage 1, upright and flipped, are candidates
-    too (:mod:`free_rotation`; a mug's body with its handle hidden), when the model's axes
-    are ill-defined (``ill_defined_ratio``; not by ``FreeAxis.weakness``: [9900, 4] from onset
-    26 needs them with its views at 0.07, 50.5 deg off without; other mugs 0.07-0.18)."""
+    """With ``check_ambiguity`` and ill-defined axes: the best pose turned about the rotation
+    the depth leaves least constrained to the rotation nearest stage 1, upright and flipped,
+    are candidates too (:mod:`free_rotation`; a mug, handle hidden). Not gated by
+    ``FreeAxis.weakness``: [9900, 4] from onset 26 needs them with its views at 0.07 (50.5 deg
+    off without; other mugs 0.07-0.18)."""
     registration: RegistrationConfig = RegistrationConfig(coarse_model_points=5000)
     """Global registration and ICP settings (a probe's first ICP level against a quarter of
     the model's points). RANSAC keeps 20000 iterations per restart: with 5000 the realistic
