@@ -35,7 +35,7 @@ from graspcap.tasks.qa_measures import (
     window_outlier_share,
 )
 
-STAGE_VERSION = "qa_metrics/5"
+STAGE_VERSION = "qa_metrics/6"
 STAGE = "qa_metrics"
 
 
@@ -308,8 +308,9 @@ def stage_notes(results: Mapping[str, Any]) -> list[str]:
         notes.append(f"refine_grasp: refinement rejected, the stage-3 fit kept "
                      f"({_attr(results, 'refine_grasp', 'reason')})")
     if _attr(results, "register_object", "ambiguous"):
-        notes.append("register_object: symmetric object, registration ambiguous (resolved by "
-                     "estimate_adjustment)")
+        notes.append("register_object: near-symmetric object, T_w_o_stage1 ambiguous (a twin or "
+                     "a turn about an axis fits the turntable depth as well; estimate_adjustment "
+                     "registers the object again in the grasp)")
     if _attr(results, "estimate_adjustment", "ambiguous"):
         notes.append("estimate_adjustment: ambiguous (the pose nearest stage 1 kept)")
     return notes

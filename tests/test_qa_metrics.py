@@ -268,7 +268,7 @@ def test_stage_warnings_flag_the_session(scene):
     results["refine_grasp"] = SimpleNamespace(accepted=False, reason="penetrates deeper")
     report = run(results, scene)  # a note: the stage-3 fit is judged by its own agreement
     assert report.verdict == Verdict.OK and "refinement rejected" in report.notes[0]
-    for stage, note in (("register_object", "register_object: symmetric object"),
+    for stage, note in (("register_object", "register_object: near-symmetric object"),
                         ("estimate_adjustment", "estimate_adjustment: ambiguous")):
         results = good_results(V, contact)  # resolved by the pipeline: a note, not a flag
         results[stage].ambiguous = True
