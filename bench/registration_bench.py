@@ -25,6 +25,7 @@ from graspcap.synth.evaluate import load_truth
 from graspcap.synth.rig import interpolate_pose, smoothstep
 from graspcap.tasks import estimate_adjustment as ea
 from graspcap.tasks import pipeline
+from graspcap.tasks.adjustment_region import hand_mask_from_keypoints
 from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T, pose_error
 
@@ -56,7 +57,7 @@ def _adjustment(session, cfg, res) -> tuple[object, bool]:
     s = res["select_steady"].steady_from
     depth = session.read_depth_m(session.grasp_path("depth", s))
     kp = res["detect_keypoints"].keypoints[s]
-    mask = ea.hand_mask_from_keypoints(kp[:, :2], kp[:, 2], depth.shape, 6.0)
+    mask = hand_mask_from_keypoints(kp[:, :2], kp[:, 2], depth.shape, 6.0)
     V, F = pipeline.read_mesh(session)
     K = pipeline._K(session)
     return ea.estimate_adjustment(depth, K, V, F, res["register_object"].T_w_o, mask, cfg), True

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from graspcap.tasks.hand_model import RIGID_PALM_POINTS, SKELETON
 from graspcap.tasks.point_clouds import to_pcd
 
 
@@ -90,13 +91,9 @@ def grow_mask(mask: np.ndarray, dilate_px: int) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
 
 
-HAND_BONES = (
-    (0, 1), (1, 2), (2, 3), (3, 4), (0, 5), (5, 6), (6, 7), (7, 8), (0, 9), (9, 10), (10, 11),
-    (11, 12), (0, 13), (13, 14), (14, 15), (15, 16), (0, 17), (17, 18), (18, 19), (19, 20),
-    (5, 9), (9, 13), (13, 17),
-)  # fmt: skip
+HAND_BONES = (*SKELETON, (5, 9), (9, 13), (13, 17))
 """Connected keypoint pairs of the 21-point layout (fingers, palm rim)."""
-PALM = (0, 1, 5, 9, 13, 17)
+PALM = RIGID_PALM_POINTS
 
 
 def hand_mask_from_keypoints(

@@ -33,7 +33,6 @@ from functools import partial
 import numpy as np
 
 from graspcap.tasks.adjustment_region import grow_mask, near_hand
-from graspcap.tasks.adjustment_region import hand_mask_from_keypoints as hand_mask_from_keypoints
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.depth_agreement import views_agreement
 from graspcap.tasks.errors import StageError
@@ -238,7 +237,8 @@ def estimate_adjustment(
     T_w_o_stage1 : (4, 4) float
         Object pose from stage 1.
     hand_mask : (h, w) bool
-        Pixels of the hand (from the fitted hand or :func:`hand_mask_from_keypoints`).
+        Pixels of the hand (from the fitted hand or
+        :func:`adjustment_region.hand_mask_from_keypoints`).
     T_w_o_stage1_alt : (4, 4) float, optional
         A second stage-1 hypothesis (``ObjectRegistration.T_w_o_runner_up`` when stage 1 was
         ``ambiguous``): the stage runs from both and keeps the pose whose rendering the depth

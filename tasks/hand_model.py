@@ -52,6 +52,10 @@ RIGID_PALM_POINTS = (0, 1, 5, 9, 13, 17)
 FINGERTIPS = (4, 8, 12, 16, 20)
 KEYPOINT_PARENTS = (-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19)
 """Parent keypoint of each keypoint (-1 for the wrist)."""
+SKELETON: tuple[tuple[int, int], ...] = tuple(
+    (parent, k) for k, parent in enumerate(KEYPOINT_PARENTS) if parent >= 0
+)
+"""The 20 (parent, child) keypoint pairs of the skeleton, wrist to fingertips."""
 
 # --- anatomy at scale 1 (right hand, palm frame, metres) ----------------------------------
 
@@ -371,6 +375,6 @@ def _mesh_template() -> HandMesh:
 
 __all__ = [
     "ANGLE_NAMES", "FINGERS", "FINGERTIPS", "KEYPOINT_NAMES", "KEYPOINT_PARENTS", "MODEL_VERSION",
-    "PART_BONES", "RIGID_PALM_POINTS", "SURFACE_OFFSET_M", "Capsules", "HandMesh", "HandModel",
-    "HandSide",
+    "PART_BONES", "RIGID_PALM_POINTS", "SKELETON", "SURFACE_OFFSET_M", "Capsules", "HandMesh",
+    "HandModel", "HandSide",
 ]  # fmt: skip

@@ -37,14 +37,13 @@ from graspcap.tasks.drawing import (
     label,
 )
 from graspcap.tasks.geometry import make_T
+from graspcap.tasks.hand_model import SKELETON
 from graspcap.tasks.render import cast_rays, pixel_rays
 
 STAGE_VERSION = "pictures/1"
 STAGE = "pictures"
 
-BONES = [(0, 1), (1, 2), (2, 3), (3, 4), (0, 5), (5, 6), (6, 7), (7, 8), (0, 9), (9, 10),
-         (10, 11), (11, 12), (0, 13), (13, 14), (14, 15), (15, 16), (0, 17), (17, 18),
-         (18, 19), (19, 20)]  # fmt: skip
+BONES = list(SKELETON)
 """The hand skeleton in the 21-keypoint layout."""
 
 class Background(StrEnum):

@@ -37,6 +37,7 @@ from graspcap.tasks import (
     register_scan,
     select_steady,
 )
+from graspcap.tasks.adjustment_region import hand_mask_from_keypoints
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.depth_scale import window_median
 from graspcap.tasks.errors import StageError
@@ -169,7 +170,7 @@ def _estimate_adjustment(
         h, w = depth.shape
         rendered = render([(hand.vertices, hand.faces)], [inv_T(T_w_c[k])], _K(session), w, h)
         kp = detect_keypoints.keypoints[s + k]
-        bones = estimate_adjustment.hand_mask_from_keypoints(kp[:, :2], kp[:, 2], (h, w), 6.0)
+        bones = hand_mask_from_keypoints(kp[:, :2], kp[:, 2], (h, w), 6.0)
         return depth, (rendered.mesh_index >= 0) | bones
 
     def attempt(k: int):

@@ -10,12 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from graspcap.tasks.adjustment_region import hand_mask_from_keypoints
 from graspcap.tasks.errors import StageError
-from graspcap.tasks.estimate_adjustment import (
-    AdjustmentPath,
-    estimate_adjustment,
-    hand_mask_from_keypoints,
-)
+from graspcap.tasks.estimate_adjustment import AdjustmentPath, estimate_adjustment
 from graspcap.tasks.geometry import inv_T, pose_error, rotation_error_deg
 from graspcap.tasks.register_object import PRESETS as OBJECT_PRESETS
 from graspcap.tasks.register_object import register_object
