@@ -139,6 +139,22 @@ def lifted_in_hand(
     return depth, mask, T_w_o
 
 
+def lifted_procedural(kind: str, seed: int, angle_deg: float):
+    """A procedural ``kind`` on the platter (pose from ``seed``), then lifted and turned
+    ``angle_deg`` in the hand (``lifted_in_hand``, rng ``100 + seed``): (mesh (V, F),
+    T_w_o_stage1, depth, hand mask, true T_w_o)."""
+    from graspcap.synth.objects import procedural_object
+
+    obj = procedural_object(kind)
+    mesh = (obj.vertices, obj.faces)
+    T_c_t = look_at_turntable()
+    T_w_o1 = T_c_t @ random_pose_on_platter(*mesh, np.random.default_rng(seed), index=0)
+    depth, mask, T_true = lifted_in_hand(
+        mesh, T_w_o1, T_c_t, np.random.default_rng(100 + seed), angle_deg=angle_deg
+    )
+    return mesh, T_w_o1, depth, mask, T_true
+
+
 def rig_session_stage1(out: Path, seed: list[int], kind: str):
     """Stage-1 inputs of the synthetic rig session ``seed`` (realistic preset) whose object
     is a ``kind``, and its true pose: (depth_m, K, T_color_turntable, V, F, T_w_o_stage1).

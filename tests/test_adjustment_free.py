@@ -134,15 +134,9 @@ def test_lifted_mug_is_not_its_handle_flip(seed, angle_deg):
     handle's axis never probed; now the truth at 0.999."""
     from graspcap.tasks.estimate_adjustment import PRESETS, estimate_adjustment
     from graspcap.tasks.geometry import pose_error
-    from tests.registration_rig import K, lifted_in_hand, look_at_turntable, random_pose_on_platter
+    from tests.registration_rig import K, lifted_procedural
 
-    mug = procedural_object("mug")
-    mesh = (mug.vertices, mug.faces)
-    T_c_t = look_at_turntable()
-    T_w_o1 = T_c_t @ random_pose_on_platter(*mesh, np.random.default_rng(seed), index=0)
-    depth, mask, T_true = lifted_in_hand(
-        mesh, T_w_o1, T_c_t, np.random.default_rng(100 + seed), angle_deg=angle_deg
-    )
+    mesh, T_w_o1, depth, mask, T_true = lifted_procedural("mug", seed, angle_deg)
     r = estimate_adjustment(depth, K, *mesh, T_w_o1, mask)
     rot, trans = pose_error(r.T_w_o, T_true)
     assert rot <= 1.0 and trans <= 0.003, (rot, trans)

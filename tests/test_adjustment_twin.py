@@ -6,13 +6,11 @@ near-exact ties (realistic session s9400 #5 was 180 deg off, QA failed it by con
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
-from graspcap.synth.objects import procedural_object
 from graspcap.tasks.estimate_adjustment import AdjustmentPath, estimate_adjustment
 from graspcap.tasks.geometry import pose_error
-from tests.registration_rig import K, lifted_in_hand, look_at_turntable, random_pose_on_platter
+from tests.registration_rig import K, lifted_procedural
 
 ROT_DEG, TRANS_M = 1.0, 0.003
 
@@ -26,13 +24,7 @@ ROT_DEG, TRANS_M = 1.0, 0.003
     ],
 )
 def test_lifted_carton_is_not_its_twin(seed, angle_deg, ambiguous):
-    carton = procedural_object("carton")
-    mesh = (carton.vertices, carton.faces)
-    T_c_t = look_at_turntable()
-    T_w_o1 = T_c_t @ random_pose_on_platter(*mesh, np.random.default_rng(seed), index=0)
-    depth, mask, T_true = lifted_in_hand(
-        mesh, T_w_o1, T_c_t, np.random.default_rng(100 + seed), angle_deg=angle_deg
-    )
+    mesh, T_w_o1, depth, mask, T_true = lifted_procedural("carton", seed, angle_deg)
     asked: list[int] = []
     r = estimate_adjustment(
         depth, K, *mesh, T_w_o1, mask, other_views=lambda: asked.append(1) or []
