@@ -21,7 +21,7 @@ import numpy as np
 
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import estimate_from_results, evaluate, load_truth
-from graspcap.tasks.errors import StageError
+from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.pipeline import STAGES, run_session
 
 SEED = 9000

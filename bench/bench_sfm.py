@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from graspcap.synth.hand_video import make_hand_video
-from graspcap.tasks.crosscheck_sfm import crosscheck_sfm
-from graspcap.tasks.errors import StageError
-from graspcap.tasks.geometry import pose_error
-from graspcap.tasks.reconstruct_hand import reconstruct_hand
-from graspcap.tasks.select_steady import select_steady
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.geometry import pose_error
+from graspcap.tasks.hand_sfm.crosscheck_sfm import crosscheck_sfm
+from graspcap.tasks.hand_sfm.reconstruct_hand import reconstruct_hand
+from graspcap.tasks.hand_sfm.select_steady import select_steady
 
 
 def main(n_sessions: int = 10) -> None:

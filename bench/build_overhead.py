@@ -99,9 +99,9 @@ def main() -> None:
          f"{time.perf_counter() - t:.1f} s")
 
     from graspcap.flows.build import build_dataset
-    from graspcap.tasks.errors import StageError
-    from graspcap.tasks.load_session import discover_sessions
+    from graspcap.tasks.core.errors import StageError
     from graspcap.tasks.pipeline import configs_for, run_session
+    from graspcap.tasks.session.load_session import discover_sessions
 
     configs = configs_for(args.preset)
     dirs = discover_sessions([root])
@@ -155,7 +155,7 @@ def main() -> None:
             note(f"cold build, 1 thread worker: {c1:.1f} s = {c1 / b:.3f} x bare")
             stage_s = {}
             work = tmp / f"cat{i}" / "work"
-            from graspcap.catalog.workarea import WorkArea
+            from graspcap.flows.workarea import WorkArea
 
             for rec in WorkArea(work).executions():
                 stage_s[rec["stage"]] = stage_s.get(rec["stage"], 0.0) + rec["seconds"]
@@ -168,8 +168,8 @@ def main() -> None:
         note(f"bare sequential, median: {_fmt(bare)}; cold build {_fmt(cold)}; "
              f"no-op rebuild {_fmt(noop, digits=2)}")
 
-    from graspcap.catalog.workarea import WorkArea
     from graspcap.flows.session import session_flow, submit_session
+    from graspcap.flows.workarea import WorkArea
 
     work = str(tmp / "cat0" / "work")
     sdirs = [str(d) for d in dirs]

@@ -26,7 +26,7 @@ from deltalake import DeltaTable
 
 import graspcap.catalog as gc
 from graspcap.schemas.tables import SESSIONS_SCHEMA
-from graspcap.tasks.geometry import from_rotvec
+from graspcap.tasks.core.geometry import from_rotvec
 
 OBJECTS = {"mug": 2000, "drill": 3000, "bowl": 1500}
 

@@ -17,9 +17,9 @@ import time
 import numpy as np
 import trimesh
 
-from graspcap.tasks.build_contactmap import PRESETS, build_contactmap
-from graspcap.tasks.geometry import inv_T, make_T, rot_z
-from graspcap.tasks.render import render
+from graspcap.tasks.contact.build_contactmap import PRESETS, build_contactmap
+from graspcap.tasks.core.geometry import inv_T, make_T, rot_z
+from graspcap.tasks.core.render import render
 
 WIDTH, HEIGHT = 320, 256
 K_TH = np.array([[360.0, 0.0, WIDTH / 2], [0.0, 360.0, HEIGHT / 2], [0.0, 0.0, 1.0]])

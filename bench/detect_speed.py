@@ -35,13 +35,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from graspcap.tasks.detect_mediapipe import (
+from graspcap.tasks.keypoints.mediapipe_detector import (
     Detector,
     MediaPipeConfig,
     detect_frames,
     iter_detections,
 )
-from graspcap.tasks.session_files import _jpeg_problem
+from graspcap.tasks.session.files import _jpeg_problem
 
 REPO = Path(__file__).resolve().parents[1]
 PHOTO = REPO.parent / "shared/data/mediapipe_hands/images/thumbs_up.jpg"

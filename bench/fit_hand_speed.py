@@ -14,9 +14,9 @@ import time
 
 import numpy as np
 
-from graspcap.tasks.fit_hand import PRESETS, fit_hand
-from graspcap.tasks.geometry import from_rotvec
-from graspcap.tasks.hand_model import HandModel, HandSide
+from graspcap.tasks.core.geometry import from_rotvec
+from graspcap.tasks.hand.fit_hand import PRESETS, fit_hand
+from graspcap.tasks.hand.model import HandModel, HandSide
 
 
 def main() -> None:

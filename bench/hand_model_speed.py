@@ -12,8 +12,8 @@ import time
 
 import numpy as np
 
-from graspcap.tasks.geometry import from_rotvec
-from graspcap.tasks.hand_model import HandModel
+from graspcap.tasks.core.geometry import from_rotvec
+from graspcap.tasks.hand.model import HandModel
 
 
 def _median_us(fn, repeat: int) -> float:

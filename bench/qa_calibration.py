@@ -36,9 +36,9 @@ import numpy as np
 
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import estimate_from_results, evaluate
-from graspcap.tasks.errors import StageError
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.outputs.qa_metrics import METRICS, qa_metrics
 from graspcap.tasks.pipeline import STAGES, configs_for, final_hand, read_mesh, run_stage
-from graspcap.tasks.qa_metrics import METRICS, qa_metrics
 
 SEEDS = {"realistic": 9400, "hard": 9401}
 

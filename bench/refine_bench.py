@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from graspcap.synth.evaluate import estimate_from_results, evaluate
-from graspcap.tasks.errors import StageError
+from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
 
 # metric -> (target, direction of "better"): from the target table

@@ -23,11 +23,11 @@ import numpy as np
 from graspcap.synth import generate
 from graspcap.synth.evaluate import load_truth
 from graspcap.synth.rig import interpolate_pose, smoothstep
-from graspcap.tasks import estimate_adjustment as ea
 from graspcap.tasks import pipeline
-from graspcap.tasks.adjustment_region import hand_mask_from_keypoints
-from graspcap.tasks.errors import StageError
-from graspcap.tasks.geometry import inv_T, pose_error
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.geometry import inv_T, pose_error
+from graspcap.tasks.object_pose import estimate_adjustment as ea
+from graspcap.tasks.object_pose.adjustment_region import hand_mask_from_keypoints
 
 POSE_STAGES = ("register_object", "estimate_adjustment", "register_scan")
 UPSTREAM = ("load_session", "register_object", "detect_keypoints", "select_steady",

@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from graspcap.tasks.load_session import validate_session
+from graspcap.tasks.session.load_session import validate_session
 
 W, H, TW, TH = 640, 480, 320, 256
 

@@ -36,16 +36,16 @@ from prefect.futures import as_completed
 
 import graspcap
 import graspcap.catalog as gc
-from graspcap.catalog.workarea import WorkArea
 from graspcap.flows.cached import reads_digest, session_files, session_id_of
 from graspcap.flows.progress import ProgressFn, Tracker, reporting_to
 from graspcap.flows.report import BuildReport, Outcome, SessionReport
 from graspcap.flows.rows import NEWEST_COLUMNS, failed_row, predates_columns, session_rows
 from graspcap.flows.runtime import build_settings, task_runner, worker_api
 from graspcap.flows.session import InSession, Settled, failure_text, submit_session
+from graspcap.flows.workarea import WorkArea
 from graspcap.schemas.tables import Status
-from graspcap.tasks.config import StageConfig
-from graspcap.tasks.load_session import discover_sessions
+from graspcap.tasks.core.config import StageConfig
+from graspcap.tasks.session.load_session import discover_sessions
 
 BUILDS_LOG = "builds.jsonl"
 __all__ = ["ProgressFn", "build_dataset", "build_flow"]

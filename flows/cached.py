@@ -27,11 +27,11 @@ from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
 
-from graspcap.catalog.workarea import ResultRef, WorkArea
+from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.schemas.session import SessionManifest
-from graspcap.tasks.config import StageConfig
-from graspcap.tasks.errors import StageError
-from graspcap.tasks.load_session import MANIFEST, Session
+from graspcap.tasks.core.config import StageConfig
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.session.load_session import MANIFEST, Session
 
 _FILES: OrderedDict[str, dict[str, list[Path]]] = OrderedDict()
 """File lists by role, remembered per manifest identity or ``load_session`` result digest:

@@ -19,8 +19,8 @@ import numpy as np
 
 from graspcap.catalog.commit import ObjectMesh, SessionArrays
 from graspcap.schemas.tables import Status
-from graspcap.tasks.geometry import inv_T, transform_points
-from graspcap.tasks.qa_metrics import QaReport, qa_metrics
+from graspcap.tasks.core.geometry import inv_T, transform_points
+from graspcap.tasks.outputs.qa_metrics import QaReport, qa_metrics
 
 IDENTITY_COLUMNS = ("participant", "object_id", "intent", "hand")
 QA_COLUMNS = ("reproj_rmse_px", "inlier_ratio", "crosscheck_mm", "registration_rmse_mm",

@@ -27,10 +27,10 @@ from prefect import flow, task
 from prefect.cache_policies import NONE
 from prefect.futures import PrefectFuture
 
-from graspcap.catalog.workarea import ResultRef, WorkArea
 from graspcap.flows.cached import lookup_cached, run_cached, session_id_of
-from graspcap.tasks.config import StageConfig
-from graspcap.tasks.errors import StageError
+from graspcap.flows.workarea import ResultRef, WorkArea
+from graspcap.tasks.core.config import StageConfig
+from graspcap.tasks.core.errors import StageError
 
 RETRIES = 3
 RETRY_DELAYS_S = [1.0, 4.0, 16.0]

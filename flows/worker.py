@@ -9,7 +9,7 @@ The preload imports Prefect's task engine and the stage modules while the cluste
 and ~5 s of CPU a worker, measured under load), instead of in the first task, and bounds
 Open3D's thread pool (TBB, which ``OMP_NUM_THREADS`` does not reach) to
 ``GRASPCAP_WORKER_THREADS`` when set: N single-threaded workers on N cores must not each fan
-out over all of them (the stages' own threads read it too: ``graspcap.tasks.threads``).
+out over all of them (the stages' own threads read it too: ``graspcap.tasks.core.threads``).
 Open3D's pool is the only native pool that runs beside a stage body here
 (measured: OpenCV's pthreads pool and OpenBLAS took no CPU; Dask's nanny already sets
 ``OMP_NUM_THREADS``, ``OPENBLAS_NUM_THREADS`` and ``MKL_NUM_THREADS`` to 1).
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 
-from graspcap.tasks.threads import THREADS_ENV
+from graspcap.tasks.core.threads import THREADS_ENV
 
 DASK_CONFIG = {
     "distributed.worker.profile.enabled": False,

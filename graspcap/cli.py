@@ -36,7 +36,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from graspcap.tasks.load_session import discover_sessions, validate_session
+    from graspcap.tasks.session.load_session import discover_sessions, validate_session
 
     sessions = discover_sessions(args.dirs)
     if not sessions:

@@ -14,7 +14,7 @@ import graspcap.catalog as gc
 from graspcap.flows.runtime import configure
 from graspcap.synth import generate
 from graspcap.synth.evaluate import estimate_from_catalog, evaluate
-from graspcap.tasks.load_session import validate_session
+from graspcap.tasks.session.load_session import validate_session
 
 SHOWN = (
     ("object_stage1_rot_deg", "stage-1 object rot (deg)"),

@@ -14,10 +14,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:  # the stage modules load on use: `graspcap --help` stays quick
-    from graspcap.tasks.detect_keypoints import Backend, DetectKeypointsConfig
+    from graspcap.tasks.keypoints.detect_keypoints import Backend, DetectKeypointsConfig
 
 BACKENDS = ("mediapipe", "openpose_json")
-"""Values of ``graspcap.tasks.detect_keypoints.Backend`` (checked in the tests)."""
+"""Values of ``graspcap.tasks.keypoints.detect_keypoints.Backend`` (checked in the tests)."""
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 NAMES = ("wrist", "thumb_cmc", "thumb_mcp", "thumb_ip", "thumb_tip",
          "index_mcp", "index_pip", "index_dip", "index_tip",
@@ -60,7 +60,7 @@ def detect_paths(
     paths: Sequence[Path], hand: str, backend: Backend, config: DetectKeypointsConfig
 ) -> list[ImageResult]:
     """Keypoints of ``hand`` in each image (``mediapipe``) or OpenPose JSON file."""
-    from graspcap.tasks.detect_keypoints import Backend, read_openpose_frame, track_hands
+    from graspcap.tasks.keypoints.detect_keypoints import Backend, read_openpose_frame, track_hands
 
     results = []
     if backend is Backend.OPENPOSE_JSON:
@@ -69,7 +69,7 @@ def detect_paths(
             kp = track_hands([hands], config)[0]
             results.append(ImageResult(path, kp, len(hands), error="; ".join(notes)))
         return results
-    from graspcap.tasks.detect_mediapipe import Detector, pick, read_rgb
+    from graspcap.tasks.keypoints.mediapipe_detector import Detector, pick, read_rgb
 
     mp = config.mediapipe
     detector = Detector(mp, video=False, max_hands=2)
@@ -105,8 +105,8 @@ def format_text(result: ImageResult, hand: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from graspcap.tasks.detect_keypoints import Backend, DetectKeypointsConfig
-    from graspcap.tasks.detect_mediapipe import FrameMode, MediaPipeConfig
+    from graspcap.tasks.keypoints.detect_keypoints import Backend, DetectKeypointsConfig
+    from graspcap.tasks.keypoints.mediapipe_detector import FrameMode, MediaPipeConfig
 
     backend = Backend(args.backend)
     mp = MediaPipeConfig(mode=FrameMode.IMAGES, threads=args.threads,

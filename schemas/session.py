@@ -7,7 +7,7 @@ intrinsic matrix (finite, principal point inside the image), rigid ``T_*`` trans
 frame patterns that format with ``index`` alone, and ``steady_from < count``.
 
 Load a manifest with ``SessionManifest.model_validate(json.loads(text))``; the session
-loader (``graspcap.tasks.load_session``) adds the file checks and readers.
+loader (``graspcap.tasks.session.load_session``) adds the file checks and readers.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from pydantic import (
     model_validator,
 )
 
-from graspcap.tasks.geometry import rigidity_problems
+from graspcap.tasks.core.geometry import rigidity_problems
 
 FORMAT = "grasp-capture-session/1"
 """The only manifest format this module reads."""

@@ -21,30 +21,21 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from graspcap.tasks import (
-    build_contactmap,
-    crosscheck_sfm,
-    detect_keypoints,
-    estimate_adjustment,
-    fit_hand,
-    load_session,
-    pictures,
-    propagate_poses,
-    qa_metrics,
-    reconstruct_hand,
-    refine_grasp,
-    register_object,
-    register_scan,
-    select_steady,
-)
-from graspcap.tasks.adjustment_region import hand_mask_from_keypoints
-from graspcap.tasks.config import StageConfig
-from graspcap.tasks.depth_scale import window_median
-from graspcap.tasks.errors import StageError
-from graspcap.tasks.geometry import inv_T, project, transform_points
-from graspcap.tasks.hand_model import SURFACE_OFFSET_M, HandSide
-from graspcap.tasks.load_session import Session
-from graspcap.tasks.render import render
+from graspcap.tasks.contact import build_contactmap
+from graspcap.tasks.core.config import StageConfig
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.geometry import inv_T, project, transform_points
+from graspcap.tasks.core.render import render
+from graspcap.tasks.hand import fit_hand, refine_grasp
+from graspcap.tasks.hand.model import SURFACE_OFFSET_M, HandSide
+from graspcap.tasks.hand_sfm import crosscheck_sfm, reconstruct_hand, select_steady
+from graspcap.tasks.hand_sfm.metric_scale import window_median
+from graspcap.tasks.keypoints import detect_keypoints
+from graspcap.tasks.object_pose import estimate_adjustment, register_object, register_scan
+from graspcap.tasks.object_pose.adjustment_region import hand_mask_from_keypoints
+from graspcap.tasks.outputs import pictures, propagate_poses, qa_metrics
+from graspcap.tasks.session import load_session
+from graspcap.tasks.session.load_session import Session
 
 ALL_FILES = (
     "manifest", "object_mesh", "stage1", "grasp_color", "grasp_depth", "grasp_keypoints",

@@ -6,7 +6,7 @@ import numpy as np
 
 from graspcap.catalog import BuildCommit, BuildInfo, ObjectMesh, SessionArrays
 from graspcap.schemas.tables import FRAMES_SCHEMA
-from graspcap.tasks.geometry import from_rotvec
+from graspcap.tasks.core.geometry import from_rotvec
 
 OBJECT_VERTICES = {"mug": 40, "drill": 60, "bowl": 30}
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from graspcap.tasks.geometry import inv_T, make_T, rot_z
-from graspcap.tasks.render import render
+from graspcap.tasks.core.geometry import inv_T, make_T, rot_z
+from graspcap.tasks.core.render import render
 
 WIDTH, HEIGHT = 640, 480
 K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])

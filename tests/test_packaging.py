@@ -90,7 +90,7 @@ def test_regular_install_imports_catalog(wheel, tmp_path):
     assert installed - {"bin"} == {"graspcap"}  # bin/ holds the console script
     code = (
         f"import sys; sys.path.insert(0, {str(target)!r})\n"
-        "import graspcap.catalog, graspcap.tasks.geometry as g\n"
+        "import graspcap.catalog, graspcap.tasks.core.geometry as g\n"
         "print(graspcap.catalog.__file__)\n"
         "import importlib.util as u\n"
         "print([m for m in ('tasks', 'catalog', 'schemas', 'flows') if u.find_spec(m)])\n"

@@ -6,7 +6,7 @@ from enum import StrEnum
 
 from pydantic import Field
 
-from graspcap.tasks.config import StageConfig
+from graspcap.tasks.core.config import StageConfig
 
 STAGE_VERSION = "synth/2"
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from graspcap.tasks.geometry import inv_T, pose_error, transform_points
+from graspcap.tasks.core.geometry import inv_T, pose_error, transform_points
 
 
 def load_truth(session_dir: Path) -> dict[str, Any]:

@@ -15,9 +15,9 @@ import open3d as o3d
 
 from graspcap.synth.config import SynthConfig
 from graspcap.synth.objects import ObjectMesh
-from graspcap.tasks.errors import StageError
-from graspcap.tasks.geometry import make_T, transform_points
-from graspcap.tasks.hand_model import FINGERTIPS, SURFACE_OFFSET_M, HandModel
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.geometry import make_T, transform_points
+from graspcap.tasks.hand.model import FINGERTIPS, SURFACE_OFFSET_M, HandModel
 
 # Palm point (palm frame, scale 1) pressed against the object: mid palm, palmar skin.
 _PALM_CONTACT_P = np.array([-0.005, 0.05, 0.014])

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from graspcap.tasks.geometry import inv_T, make_T, project
+from graspcap.tasks.core.geometry import inv_T, make_T, project
 
 K_DEFAULT = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
 

@@ -17,8 +17,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from graspcap.synth.config import SynthConfig
-from graspcap.tasks.errors import StageError
-from graspcap.tasks.geometry import make_T
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.geometry import make_T
 
 MIN_STEADY_TURN_DEG = 30.0
 """Smallest total turn of the hand relative to the camera over the steady frames (the

@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 from skimage.measure import marching_cubes
 
-from graspcap.tasks.errors import StageError
+from graspcap.tasks.core.errors import StageError
 
 Sdf = Callable[[np.ndarray], np.ndarray]
 

@@ -1,6 +1,6 @@
 """A fixed camera over a static background, ray cast once (the synthetic rig's renderer).
 
-Casting itself is :func:`graspcap.tasks.render.cast_rays`, whose hits keep the triangle and
+Casting itself is :func:`graspcap.tasks.core.render.cast_rays`, whose hits keep the triangle and
 its barycentric coordinates (to interpolate per-vertex values such as contact).
 """
 
@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from graspcap.tasks.geometry import transform_points
-from graspcap.tasks.render import RayHits, cast_rays, pixel_rays
+from graspcap.tasks.core.geometry import transform_points
+from graspcap.tasks.core.render import RayHits, cast_rays, pixel_rays
 
 
 class StaticCamera:

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from graspcap.synth.config import SynthConfig
 from graspcap.synth.objects import ObjectMesh
-from graspcap.tasks.geometry import from_rotvec, inv_T, make_T, rot_z
+from graspcap.tasks.core.geometry import from_rotvec, inv_T, make_T, rot_z
 
 TABLE_HALF_M = 0.6
 TABLE_THICKNESS_M = 0.03

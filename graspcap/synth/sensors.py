@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from graspcap.synth.config import SynthConfig
-from graspcap.tasks.render import RayHits
+from graspcap.tasks.core.render import RayHits
 
 # Albedo (RGB, 0-1) of the scene parts, by role.
 ALBEDO = {

@@ -40,10 +40,10 @@ from graspcap.synth.sensors import (
     shaded_rgb,
     thermal_centikelvin,
 )
-from graspcap.tasks.errors import StageError
-from graspcap.tasks.geometry import backproject, inv_T, make_T, project, transform_points
-from graspcap.tasks.hand_model import RIGID_PALM_POINTS, HandModel, HandSide
-from graspcap.tasks.render import RayHits
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.geometry import backproject, inv_T, make_T, project, transform_points
+from graspcap.tasks.core.render import RayHits
+from graspcap.tasks.hand.model import RIGID_PALM_POINTS, HandModel, HandSide
 
 COLOR_PATTERN = "grasp/color/{index:06d}.jpg"
 DEPTH_PATTERN = "grasp/depth/{index:06d}.png"

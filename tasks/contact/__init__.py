@@ -1,0 +1,1 @@
+"""The build_contactmap stage: per-vertex contact from the thermal scan."""

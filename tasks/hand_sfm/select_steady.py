@@ -1,0 +1,403 @@
+"""Stage: the first steady frame, from the manifest or detected from the keypoints.
+
+Detection, a change point in how rigid the hand is:
+
+1. The end of the video is certainly steady, so a fixed 3D hand is reconstructed (up to
+   scale) from a window of final frames.
+2. Every frame is posed against that hand (RANSAC PnP, then a robust Levenberg-Marquardt of
+   all frames at once); its residual vectors (21 x 2 px) are what no rigid motion of the fixed
+   hand explains. Gross detection errors are dropped.
+3. Coarse onset: the residual vectors averaged over a short centred window, their energy
+   standardised by the median and robust spread (MAD) over the steady reference frames, and
+   the change point ``t`` maximising ``sum_{i < t} (z_i - drift)`` (a CUSUM). The hand is
+   rebuilt from the frames found steady and the frames re-scored.
+   A hand fitted to late viewpoints only can fit early steady frames so poorly that they
+   look moving (the onset 40-60 frames late). So the model then grows backwards: refitted
+   with the block of frames just before its own, the block is kept while it fits as well as
+   the model's frames did before (a moving block, pulled into the fit, still stands out).
+4. Refined onset: a hand that settles slows down, and in its last moving frames the fingers
+   are a fraction of a pixel to a few pixels from their final place, which an energy (a sum
+   over 42 noisy coordinates) cannot tell from noise. But a smooth motion arrives at its end
+   along one direction, so those frames' residual vectors share one pattern: the sum of the
+   residual vectors of the frames just before the coarse onset. Each frame's residual is
+   projected on that pattern (leaving the frame itself out of it), a matched filter whose
+   noise is one coordinate's, not 42's; standardised by the steady frames, its CUSUM from
+   the start of the pattern window gives the onset, at most ``pattern_frames / 2`` after the
+   coarse one. Pattern and onset are re-estimated until the onset settles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+
+from graspcap.tasks.core.config import StageConfig
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.geometry import umeyama
+from graspcap.tasks.hand_sfm.batch_pnp import ransac_poses, refine_poses, residual_vectors
+from graspcap.tasks.hand_sfm.graph import bundle_adjust
+from graspcap.tasks.hand_sfm.steady_stats import cusum, matched_filter, standardise, window_scores
+from graspcap.tasks.hand_sfm.two_view_init import initialise
+
+STAGE = "select_steady"
+STAGE_VERSION = "select_steady/5"
+
+
+class SteadyMethod(StrEnum):
+    """Where ``steady_from`` came from."""
+
+    MANIFEST = "manifest"
+    DETECTED = "detected"
+
+
+class SelectSteadyConfig(StageConfig):
+    window_frames: int = 60
+    """Final frames assumed steady for the first hand model (at most ``window_share``)."""
+    window_share: float = 0.7
+    """Largest share of the video the first window may take."""
+    model_frames: int = 24
+    """Evenly spaced frames of a window that the hand model is reconstructed from."""
+    pair_candidates: int = 10
+    """Evenly spaced frames of the first window among which the two-view start is chosen."""
+    pair_hypotheses: int = 6
+    """Two-view hypotheses (largest parallax first) grown and compared by agreement."""
+    check_frames: int = 15
+    """Evenly spaced frames of the window each hypothesis is grown on to compare them."""
+    min_confidence: float = 0.2
+    """Detections with a lower confidence are treated as missing."""
+    ransac_px: float = 8.0
+    """RANSAC threshold (pixels) of the initialisation and of the per-frame PnP."""
+    huber_px: float = 5.0
+    """Huber threshold (pixels) of the per-frame pose refinement (about twice the noise)."""
+    outlier_px: float = 15.0
+    """Residuals longer than this (pixels) are gross detection errors and ignored."""
+    smooth_frames: int = 3
+    """Centred window (frames) over which residual vectors are averaged (coarse onset)."""
+    drift_sigmas: float = 2.0
+    """Coarse CUSUM drift: how many noise spreads a frame must stand out by to count as
+    moving."""
+    pattern_frames: int = 8
+    """Frames before the onset whose summed residual vectors give the direction in which the
+    hand was still moving (refined onset)."""
+    pattern_drift_sigmas: float = 1.0
+    """Refined CUSUM drift, in noise spreads of the projection on that direction: half the
+    smallest shift to detect (2 spreads, what a frame 3-4 frames before a smooth stop shows
+    under 2.5 px noise)."""
+    pattern_passes: int = 3
+    """At most this many re-estimates of the direction and the refined onset."""
+    min_points: int = 6
+    """A frame needs this many detected joints to be scored."""
+    refinements: int = 2
+    """At most this many times the hand is re-adjusted over the frames found steady and the
+    frames re-scored (stops when the coarse onset settles)."""
+    grow_frames: int = 8
+    """Block of frames before the model's that the hand is refitted with, growing the model
+    backwards while the block fits like the steady frames (0: no growth)."""
+    grow_z: float = 1.0
+    """Largest mean score of a refitted block, standardised by the model's frames before the
+    refit, for it to count as steady (about 1.6 standard errors of a mean of 8 windowed
+    scores)."""
+    ba_iterations: int = 60
+    """Levenberg-Marquardt iterations of the hand model's bundle adjustment."""
+
+
+PRESETS: dict[str, SelectSteadyConfig] = {
+    "default": SelectSteadyConfig(),
+    "openpose": SelectSteadyConfig(ransac_px=12.0, huber_px=8.0, outlier_px=25.0,
+                                   drift_sigmas=2.5),
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class SteadySelection:
+    """The chosen first steady frame and how it was chosen.
+
+    steady_from : video frame index; method : manifest or detected.
+    scores_px : (n,) float, per frame the RMS length (px) of the window-averaged residual
+        vectors against the fixed hand, scaled to one frame's noise (NaN where not scored;
+        all NaN from the manifest).
+    threshold_px : the score a frame needs to count as moving in the coarse onset, median +
+        drift * spread of the reference frames (NaN from the manifest).
+    coarse_from : the coarse onset (CUSUM of ``scores_px``); -1 from the manifest.
+    pattern_px : (21, 2) float, unit direction of the last residual vectors before the onset
+        (the refined onset's matched filter; empty from the manifest).
+    z : (n,) float, each frame's residual projected on ``pattern_px``, standardised by the
+        steady reference frames (NaN where not scored).
+    cusum : (n + 1,) float, ``sum_{start <= i < t} (z_i - drift)`` for every candidate onset
+        ``t`` (-inf before ``start``, the start of the pattern window); the onset is its
+        argmax (empty from the manifest).
+    model_frames : (k,) int, video frames the final hand model was reconstructed from.
+    """
+
+    steady_from: int
+    method: SteadyMethod
+    scores_px: np.ndarray
+    threshold_px: float
+    coarse_from: int
+    pattern_px: np.ndarray
+    z: np.ndarray
+    cusum: np.ndarray
+    model_frames: np.ndarray
+
+
+def _bundle(uv, ok, K, cfg, frames, T_c_w, X, anchor, scale_ref):
+    """Bundle adjustment of the given frames; (T_c_w (k, 4, 4), joints (21, 3))."""
+    ba = bundle_adjust(
+        uv[frames],
+        ok[frames],
+        np.full(ok[frames].shape, 2.5),
+        K,
+        T_c_w,
+        X,
+        anchor=anchor,
+        scale_ref=scale_ref,
+        huber_k=2.0,
+        scale_sigma_rel=1e-3,
+        max_iterations=cfg.ba_iterations,
+    )
+    return ba.T_c_w, ba.points_w
+
+
+def _reconstruct(uv, ok, K, cfg, frames):
+    """Up-to-scale joints (21, 3) from the given frames, None without enough parallax."""
+    init, _ = initialise(
+        uv[frames],
+        ok[frames],
+        K,
+        n_candidates=cfg.pair_candidates,
+        ransac_px=cfg.ransac_px,
+        min_points=cfg.min_points,
+        min_parallax_deg=2.0,
+        n_hypotheses=cfg.pair_hypotheses,
+        n_check_frames=cfg.check_frames,
+    )
+    if init is None:
+        return None
+    a, b = init.pair.a, init.pair.b
+    return _bundle(uv, ok, K, cfg, frames, init.T_c_w, init.points_w, a, b)[1]
+
+
+def _refine(uv, ok, K, cfg, frames, T_c_w, X):
+    """The hand re-adjusted over ``frames``, warm-started from per-frame poses (n, 4, 4)
+    against ``X``; None when fewer than two of the frames are posed."""
+    T = T_c_w[frames]
+    posed = np.flatnonzero(np.all(np.isfinite(T.reshape(len(frames), -1)), axis=1))
+    if len(posed) < 2:
+        return None
+    a, b = int(posed[0]), int(posed[-1])
+    return _bundle(uv, ok, K, cfg, frames, T, X, a, b)[1]
+
+
+def _spread(first: int, n: int, k: int) -> np.ndarray:
+    """At most k evenly spaced frames of first .. n-1."""
+    return np.unique(np.linspace(first, n - 1, min(k, n - first)).round().astype(int))
+
+
+def _fixed_hand(uv, ok, K, cfg, n, max_frames):
+    """Joints from (at most ``max_frames`` of) the final window, growing it until it has
+    parallax; (X, frames)."""
+    window = min(cfg.window_frames, max(int(cfg.window_share * n), 2))
+    while True:
+        frames = _spread(n - window, n, max_frames)
+        X = _reconstruct(uv, ok, K, cfg, frames)
+        if X is not None:
+            return X, frames
+        if window >= n:
+            raise StageError(
+                STAGE,
+                "cannot detect the steady phase: no frame pair of the video has enough "
+                "parallax to reconstruct the hand; set grasp.steady_from in session.json",
+            )
+        window = min(2 * window, n)
+
+
+def _same_gauge(X_new, X_old):
+    """``X_new`` (21, 3) moved by the similarity that best maps it onto ``X_old``, so that
+    poses found against ``X_old`` stay good starts (a bundle's gauge may drift)."""
+    both = np.all(np.isfinite(X_new), axis=1) & np.all(np.isfinite(X_old), axis=1)
+    if both.sum() < 3:
+        return X_new
+    T, s = umeyama(X_new[both], X_old[both])
+    return s * X_new @ T[:3, :3].T + T[:3, 3]
+
+
+def _pose_frames(K, X, uv, ok, cfg, start=None):
+    """Every frame posed against X: T_c_w (n, 4, 4) (NaN where unknown) and residual vectors
+    (n, 21, 2) px (NaN where unknown or gross). ``start`` warm-starts the refinement (4 steps,
+    not 8); frames without a start pose, and those the warm start leaves mostly unexplained
+    (the hand changed too much for it), get a RANSAC one."""
+    known = np.all(np.isfinite(X), axis=1)
+    use = ok & known[None]
+    scored = use.sum(1) >= cfg.min_points
+    T = np.full((len(uv), 4, 4), np.nan) if start is None else np.array(start)
+    cold = scored & ~np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
+    for attempt in range(2):
+        if cold.any():
+            T[cold] = ransac_poses(K, X, uv[cold], use[cold], cfg.ransac_px, cfg.min_points)[0]
+        T = refine_poses(K, X, uv, use, T, huber_px=cfg.huber_px, outlier_px=cfg.outlier_px,
+                         iterations=8 if start is None else 4)  # fmt: skip
+        res, Xc = residual_vectors(K, np.nan_to_num(T), np.nan_to_num(X), uv)
+        near = use & (np.linalg.norm(res, axis=2) < cfg.outlier_px)
+        lost = scored & ~cold & (near.sum(1) < 0.5 * use.sum(1))
+        if attempt or start is None or not lost.any():
+            break
+        cold = lost
+    res[~use | (Xc[..., 2] <= 0) | (np.linalg.norm(res, axis=2) > cfg.outlier_px)] = np.nan
+    res[~scored] = np.nan
+    front = np.sum(use & (Xc[..., 2] > 0), axis=1) > 0.5 * np.maximum(use.sum(1), 1)
+    bad = ~np.all(np.isfinite(T.reshape(len(T), -1)), axis=1) | ~front
+    res[bad], T[bad] = np.nan, np.nan
+    return T, res
+
+
+def _coarse(res, ref, cfg):
+    """(onset, scores, threshold) of the windowed residual energy against frames ``ref``."""
+    scores = window_scores(res, cfg.smooth_frames // 2, cfg.min_points)
+    found = standardise(scores, ref)
+    if found is None:
+        raise StageError(STAGE, "cannot detect the steady phase: too few final frames posed")
+    z, med, spread = found
+    onset = int(np.argmax(cusum(z, cfg.drift_sigmas)))
+    return onset, scores, med + cfg.drift_sigmas * spread
+
+
+def _detect(uv, ok, K, cfg):
+    """(coarse onset, scores, threshold, matched result or None, model frames)."""
+    n = len(uv)
+    half = cfg.smooth_frames // 2
+    X, model = _fixed_hand(uv, ok, K, cfg, n, cfg.model_frames)
+    T, res = _pose_frames(K, X, uv, ok, cfg)
+    onset, scores, threshold = _coarse(res, np.arange(model[0], n), cfg)
+    if onset > model[0] + half + 1:
+        # The model's own frames look moving: a poor start (or a very long adjustment).
+        # Retry from every frame of the window; keep it when it is self-consistent.
+        X2, model2 = _fixed_hand(uv, ok, K, cfg, n, n)
+        if len(model2) > len(model):
+            T2, res2 = _pose_frames(K, X2, uv, ok, cfg)
+            coarse2 = _coarse(res2, np.arange(model2[0], n), cfg)
+            if coarse2[0] <= model2[0] + half + 1:
+                X, model, T, res = X2, model2, T2, res2
+                onset, scores, threshold = coarse2
+    for _ in range(cfg.refinements):
+        # More viewpoints give a better hand for the next pass; skip the smoothing margin.
+        first = min(onset + half + 1, n - 3)
+        frames = _spread(first, n, cfg.model_frames)
+        if np.array_equal(frames, model):
+            break
+        X_new = _refine(uv, ok, K, cfg, frames, T, X)
+        if X_new is None:
+            break
+        X, model = _same_gauge(X_new, X), frames
+        T, res = _pose_frames(K, X, uv, ok, cfg, start=T)
+        onset_new, scores, threshold = _coarse(res, np.arange(first, n), cfg)
+        settled = onset_new == onset
+        onset = onset_new
+        if settled:
+            break
+    # Grow backwards: a hand fitted to late viewpoints can make earlier steady frames look
+    # moving. Refit with the block of frames just before the model's; keep it while the
+    # block then fits as well as the model's own frames did before (a moving block, pulled
+    # into the fit, still stands out and worsens the fit of the others).
+    before, rejected = (X, T, res, model, onset, scores, threshold), -1
+    while cfg.grow_frames > 0 and model[0] > 0:
+        first = int(model[0])
+        lo = max(first - cfg.grow_frames, 0)
+        ref = standardise(window_scores(res, half, cfg.min_points), np.arange(first, n))
+        if ref is None:
+            break
+        _, med, spread = ref
+        frames = np.union1d(np.arange(lo, first), _spread(first, n, cfg.model_frames))
+        X_new = _refine(uv, ok, K, cfg, frames, T, X)
+        if X_new is None:
+            break
+        X_new = _same_gauge(X_new, X)
+        T_new, res_new = _pose_frames(K, X_new, uv, ok, cfg, start=T)
+        z_block = (window_scores(res_new, half, cfg.min_points)[lo:first] - med) / spread
+        if not np.nanmean(z_block) <= cfg.grow_z:
+            rejected = lo
+            break
+        X, T, res, model = X_new, T_new, res_new, frames
+    if model[0] < before[3][0]:
+        onset, scores, threshold = _coarse(res, np.arange(model[0], n), cfg)
+        if onset < rejected:
+            # The grown hand calls steady a block the growth found moving: it absorbed a
+            # slow motion, so the hand before the growth stands.
+            X, T, res, model, onset, scores, threshold = before
+    matched, guess, seen = None, onset, set()
+    latest = onset + cfg.pattern_frames // 2
+    for _ in range(cfg.pattern_passes):
+        found = matched_filter(res, guess, cfg.pattern_frames, cfg.pattern_drift_sigmas,
+                               cfg.min_points, cfg.smooth_frames, latest)  # fmt: skip
+        if found is None:
+            break
+        matched = found
+        seen.add(guess)
+        guess = found[3]
+        if guess in seen:
+            break
+    return onset, scores, threshold, matched, model
+
+
+def select_steady(
+    keypoints: np.ndarray,
+    K: np.ndarray,
+    steady_from: int | None,
+    config: SelectSteadyConfig = PRESETS["default"],
+) -> SteadySelection:
+    """The first steady frame: the manifest's ``steady_from`` when given, else detected.
+
+    Parameters
+    ----------
+    keypoints : (n, 21, 3) float, x, y pixels and confidence per video frame (a frame without
+        a detection has confidence 0 everywhere).
+    K : (3, 3) colour intrinsics.
+    steady_from : the manifest's value, or None to detect it.
+    """
+    cfg = config
+    kp = np.asarray(keypoints, dtype=float)
+    n = len(kp)
+    if steady_from is not None:
+        if not 0 <= steady_from < n:
+            raise StageError(STAGE, f"grasp.steady_from = {steady_from} is outside 0..{n - 1}")
+        nan = np.full(n, np.nan)
+        return SteadySelection(int(steady_from), SteadyMethod.MANIFEST, nan, np.nan, -1,
+                               np.empty((0, 2)), nan, np.empty(0), np.empty(0, int))  # fmt: skip
+    K = np.asarray(K, dtype=float)
+    uv = kp[..., :2]
+    ok = (kp[..., 2] >= cfg.min_confidence) & np.all(np.isfinite(kp), axis=2)
+    if (ok.sum(1) >= cfg.min_points).sum() < 5:
+        raise StageError(
+            STAGE,
+            f"cannot detect the steady phase: fewer than 5 frames have >= "
+            f"{cfg.min_points} detected joints",
+        )
+    coarse, scores, threshold, matched, model = _detect(uv, ok, K, cfg)
+    if matched is None:  # nothing moved before the coarse onset: it stands
+        pattern, z = np.empty((0, 2)), np.full(n, np.nan)
+        cusum = np.concatenate([np.full(coarse, -np.inf), np.zeros(n + 1 - coarse)])
+        onset = coarse
+    else:
+        pattern, z, cusum, onset = matched
+    # the first steady frame anchors the hand's cameras: a frame without the hand detected
+    # (dropped detection) has no pose of its own, so the onset moves to the next detected one
+    detected = np.flatnonzero(ok.sum(1) >= cfg.min_points)
+    onset = int(detected[np.searchsorted(detected, onset)]) if onset <= detected[-1] else n
+    if onset >= n - 2:
+        raise StageError(
+            STAGE,
+            "cannot detect the steady phase: the final frames are not explained by "
+            "one rigid hand; set grasp.steady_from in session.json",
+        )
+    return SteadySelection(
+        steady_from=onset,
+        method=SteadyMethod.DETECTED,
+        scores_px=scores,
+        threshold_px=threshold,
+        coarse_from=coarse,
+        pattern_px=pattern,
+        z=z,
+        cusum=cusum,
+        model_frames=model,
+    )

@@ -1,0 +1,1 @@
+"""The detect_keypoints stage and its image detector (MediaPipe Hands)."""

@@ -1,0 +1,131 @@
+"""Where the held object can be in a steady frame: the depth around the hand.
+
+Used by :mod:`estimate_adjustment`: the hand's own points (its largest Euclidean cluster),
+the clusters near it that are no wider than the object, the hand mask drawn from the
+keypoints and grown.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from graspcap.tasks.hand.model import RIGID_PALM_POINTS, SKELETON
+from graspcap.tasks.object_pose.registration.point_clouds import to_pcd
+
+
+class RegionConfig(Protocol):
+    """The settings :func:`near_hand` reads (fields of ``EstimateAdjustmentConfig``)."""
+
+    min_hand_points: int
+    region_margin_m: float
+    cluster_voxel_m: float
+    cluster_eps_m: float
+
+
+def hand_cluster(points: np.ndarray, voxel_m: float, eps_m: float) -> np.ndarray:
+    """The hand's own points (k, 3) among the masked pixels' ``points`` (n, 3): the largest
+    Euclidean cluster. The mask's rim and the gaps between fingers also hold pixels of the
+    table or platter behind the hand; counted as hand, they would make the background
+    "touch" it."""
+    down = to_pcd(points).voxel_down_sample(voxel_m)
+    labels = np.asarray(down.cluster_dbscan(eps_m, 4))
+    pts = np.asarray(down.points)
+    if not (labels >= 0).any():
+        return pts
+    return pts[labels == np.bincount(labels[labels >= 0]).argmax()]
+
+
+def near_hand(
+    points: np.ndarray, hand_pts: np.ndarray, radius_m: float, cfg: RegionConfig
+) -> np.ndarray:
+    """The points near the hand that may be the object: the Euclidean clusters no wider than
+    the object (every point within ``radius_m`` + margin of the cluster's centroid) that come
+    within ``radius_m`` + margin of the hand (the hand splits the object into pieces, so
+    several; the table and platter are wider or further), else the cluster nearest the hand.
+    Pieces of the hand the mask missed are kept too: registration treats them as outliers."""
+    if len(hand_pts) < cfg.min_hand_points:
+        return points
+    hand = hand_cluster(hand_pts, cfg.cluster_voxel_m, cfg.cluster_eps_m)
+    tree = cKDTree(hand)
+    reach = radius_m + cfg.region_margin_m
+    # clusters on the voxel grid of the points in the hand's box grown by twice the reach (no
+    # farther point can be kept; the box test is cheap, voxelising every frame's points is
+    # not); full-resolution points only inside the kept clusters' box (KD queries of a whole
+    # frame's points cost seconds; the KD queries stop searching beyond twice their radius)
+    grow = 2 * reach + cfg.cluster_voxel_m
+    around = np.all((points >= hand.min(0) - grow) & (points <= hand.max(0) + grow), axis=1)
+    points = points[around]
+    grid = np.asarray(to_pcd(points).voxel_down_sample(cfg.cluster_voxel_m).points)
+    pts = grid[tree.query(grid, k=1, distance_upper_bound=4 * reach)[0] <= 2 * reach]
+    if len(pts) == 0:
+        return points[:0]
+    labels = np.asarray(to_pcd(pts).cluster_dbscan(cfg.cluster_eps_m, 4))
+    clustered = labels >= 0
+    if not clustered.any():
+        kept = pts
+    else:
+        gap = tree.query(pts, k=1)[0]
+        object_like = []
+        for label in range(labels.max() + 1):
+            piece = labels == label
+            width = np.linalg.norm(pts[piece] - pts[piece].mean(0), axis=1).max()
+            if width <= reach and gap[piece].min() <= reach:
+                object_like.append(label)
+        touching = object_like or labels[clustered][[np.argmin(gap[clustered])]]
+        kept = pts[np.isin(labels, touching)]
+    tol = cfg.cluster_voxel_m * 1.5
+    box = np.all((points >= kept.min(0) - tol) & (points <= kept.max(0) + tol), axis=1)
+    cand = points[box]
+    return cand[cKDTree(kept).query(cand, k=1, distance_upper_bound=2 * tol)[0] <= tol]
+
+
+def grow_mask(mask: np.ndarray, dilate_px: int) -> np.ndarray:
+    """The boolean image ``mask`` (h, w) grown by ``dilate_px`` pixels."""
+    if dilate_px <= 0:
+        return mask
+    k = 2 * dilate_px + 1
+    return cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+
+
+HAND_BONES = (*SKELETON, (5, 9), (9, 13), (13, 17))
+"""Connected keypoint pairs of the 21-point layout (fingers, palm rim)."""
+PALM = RIGID_PALM_POINTS
+
+
+def hand_mask_from_keypoints(
+    keypoints_2d: np.ndarray,
+    conf: np.ndarray,
+    shape: tuple[int, int],
+    radius_px: float,
+    min_conf: float = 0.1,
+) -> np.ndarray:
+    """Pixels (h, w) bool covered by the hand: bones between confident connected keypoints
+    drawn ``radius_px`` thick, plus the palm polygon when three or more palm points are
+    confident.
+
+    Parameters
+    ----------
+    keypoints_2d : (21, 2) float
+        Pixel coordinates (x, y), 21-point layout.
+    conf : (21,) float
+        Detection confidence; points below ``min_conf`` are ignored.
+    """
+    kp = np.asarray(keypoints_2d, dtype=float)
+    ok = np.asarray(conf, dtype=float) >= min_conf
+    ok &= np.all(np.isfinite(kp), axis=1)
+    mask = np.zeros(shape, np.uint8)
+    r = max(int(round(radius_px)), 1)
+    pts = np.round(np.where(ok[:, None], kp, 0.0)).astype(np.int32)
+    for a, b in HAND_BONES:
+        if ok[a] and ok[b]:
+            cv2.line(mask, tuple(pts[a]), tuple(pts[b]), 1, thickness=2 * r + 1)
+    for i in np.flatnonzero(ok):
+        cv2.circle(mask, tuple(pts[i]), r, 1, thickness=-1)
+    palm = [i for i in PALM if ok[i]]
+    if len(palm) >= 3:
+        cv2.fillPoly(mask, [cv2.convexHull(pts[palm])], 1)
+    return mask.astype(bool)

@@ -1,0 +1,72 @@
+"""Point clouds from depth images: validity, back-projection, the platter crop, normals.
+
+Shared by the registration stages (:mod:`registration`, :mod:`register_object`,
+:mod:`estimate_adjustment`, :mod:`register_scan`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+
+from graspcap.tasks.core.config import StageConfig
+from graspcap.tasks.core.geometry import depth_to_points, inv_T, transform_points
+
+
+class PlatterCrop(StageConfig):
+    """The space over the platter where the object is looked for (turntable frame)."""
+
+    radius_m: float = 0.15
+    """Radius of the platter's top surface."""
+    margin_m: float = 0.03
+    """Kept beyond the platter's rim (objects overhanging it)."""
+    min_height_m: float = 0.004
+    """Points at most this high over the platter top are the platter itself and dropped."""
+    max_height_m: float = 0.35
+    """Points higher than this over the platter are not the object."""
+    max_range_m: float = 3.0
+    """Depth beyond this is treated as invalid."""
+
+
+def to_pcd(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
+    """Open3D cloud from ``points`` (n, 3) and optional ``normals`` (n, 3)."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
+    if normals is not None:
+        pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=float))
+    return pcd
+
+
+def valid_depth(depth_m: np.ndarray, max_range_m: float) -> np.ndarray:
+    """Depth (h, w) with non-finite, negative and beyond-range values set to 0."""
+    d = np.asarray(depth_m, dtype=float)
+    if d.ndim != 2:
+        raise ValueError(f"depth has shape {d.shape}, expected (h, w)")
+    return np.where(np.isfinite(d) & (d > 0) & (d <= max_range_m), d, 0.0)
+
+
+def cloud_from_depth(
+    depth_m: np.ndarray, K: np.ndarray, keep: np.ndarray | None = None
+) -> np.ndarray:
+    """Camera-frame points (n, 3) of the valid pixels of ``depth_m`` (h, w), optionally only
+    where the boolean image ``keep`` (h, w) is True."""
+    d = depth_m if keep is None else np.where(keep, depth_m, 0.0)
+    return depth_to_points(d, np.asarray(K, dtype=float))[0]
+
+
+def crop_platter(
+    depth_m: np.ndarray, K: np.ndarray, T_color_turntable: np.ndarray, crop: PlatterCrop
+) -> np.ndarray:
+    """Colour-frame points (n, 3) of the valid pixels of ``depth_m`` (h, w) that lie over the
+    platter (turntable frame: origin at the centre of its top, z up)."""
+    pts_c = cloud_from_depth(valid_depth(depth_m, crop.max_range_m), K)
+    pts_t = transform_points(inv_T(np.asarray(T_color_turntable, float)), pts_c)
+    r = np.linalg.norm(pts_t[:, :2], axis=1)
+    z = pts_t[:, 2]
+    keep = (r <= crop.radius_m + crop.margin_m) & (z >= crop.min_height_m)
+    return pts_c[keep & (z <= crop.max_height_m)]
+
+
+def estimate_normals(pcd: o3d.geometry.PointCloud, radius_m: float, viewpoint: np.ndarray) -> None:
+    """Normals by local PCA (in place), oriented towards ``viewpoint`` (3,)."""
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=30))
+    pcd.orient_normals_towards_camera_location(np.asarray(viewpoint, dtype=float))
