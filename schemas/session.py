@@ -32,7 +32,7 @@ from pydantic import (
     model_validator,
 )
 
-from graspcap.tasks.core.geometry import rigidity_problems
+from graspcap.schemas.transforms import rigidity_problems
 
 FORMAT = "grasp-capture-session/1"
 """The only manifest format this module reads."""

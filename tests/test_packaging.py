@@ -49,8 +49,8 @@ def test_stage_modules_do_not_pull_in_prefect_at_run_time():
         "import importlib, pkgutil, sys\n"
         "import graspcap.tasks, graspcap.schemas, graspcap.catalog\n"
         "for pkg in (graspcap.tasks, graspcap.schemas, graspcap.catalog):\n"
-        "    for m in pkgutil.iter_modules(pkg.__path__):\n"
-        "        importlib.import_module(f'{pkg.__name__}.{m.name}')\n"
+        "    for m in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + '.'):\n"
+        "        importlib.import_module(m.name)\n"
         "print(sorted(k for k in sys.modules if k.split('.')[0] == 'prefect'))\n"
     )
     out = subprocess.run(
@@ -76,6 +76,12 @@ def test_wheel_installs_one_import_root(wheel):
     assert top == {"graspcap", next(t for t in top if t.endswith(".dist-info"))}
     for sub in ("flows", "tasks", "schemas", "catalog"):
         assert f"graspcap/{sub}/__init__.py" in names
+    for package in _source_packages():  # every sub-package, with all of its modules
+        folder = package.replace(".", "/")
+        assert f"{folder}/__init__.py" in names, f"{package} is not in the wheel"
+    for name, path in _source_modules().items():
+        assert name.replace(".", "/") + (
+            "/__init__.py" if path.name == "__init__.py" else ".py") in names, name
     assert "graspcap/schemas/session.schema.json" in names
 
 
@@ -101,3 +107,141 @@ def test_regular_install_imports_catalog(wheel, tmp_path):
     catalog_file, leaked = out.stdout.strip().splitlines()
     assert catalog_file.startswith(str(target))
     assert leaked == "[]"
+
+
+# --- layering ---------------------------------------------------------------------------------
+
+ROOTS = {"graspcap": "graspcap", "graspcap.flows": "flows", "graspcap.tasks": "tasks",
+         "graspcap.schemas": "schemas", "graspcap.catalog": "catalog"}
+
+SECTIONS: dict[str, set[str]] = {
+    # sub-package of tasks/ -> the sub-packages it may import (docs/architecture.md)
+    "core": set(),
+    "session": {"core"},
+    "keypoints": {"core", "session"},
+    "hand": {"core"},
+    "hand_sfm": {"core", "hand"},
+    "object_pose.registration": {"core"},
+    "object_pose": {"core", "hand", "object_pose.registration"},
+    "contact": {"core"},
+    "outputs": {"core", "hand"},
+}
+"""``tasks/pipeline.py`` (the stage table) sits above them all and may import any; none of
+them imports it."""
+
+LAYERS: dict[str, set[str]] = {
+    # top-level package -> the graspcap packages it must never import
+    "graspcap.schemas": {"graspcap.tasks", "graspcap.flows", "graspcap.catalog", "graspcap.cli",
+                         "graspcap.synth"},
+    "graspcap.catalog": {"graspcap.tasks", "graspcap.flows", "graspcap.synth"},
+    "graspcap.tasks": {"graspcap.flows", "graspcap.catalog", "graspcap.cli", "graspcap.synth"},
+}
+
+
+def _source_modules() -> dict[str, Path]:
+    """Dotted name -> file of every module of the installed packages (from the source tree)."""
+    out = {}
+    for dotted, folder in ROOTS.items():
+        for path in sorted((REPO / folder).rglob("*.py")):
+            rel = path.relative_to(REPO / folder)
+            if "__pycache__" in rel.parts or "golden" in rel.parts:
+                continue
+            parts = rel.with_suffix("").parts
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            out[".".join((dotted, *parts))] = path
+    return out
+
+
+def _source_packages() -> list[str]:
+    return [n for n, p in _source_modules().items() if p.name == "__init__.py"]
+
+
+def _graspcap_imports(path: Path, package: str) -> list[tuple[int, str]]:
+    """(line, dotted name) of every graspcap import of a file, relative ones resolved, lazy
+    ones (inside functions) included."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - node.level + 1]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            out.append((node.lineno, module))
+            out += [(node.lineno, f"{module}.{a.name}") for a in node.names]
+    return [(n, m) for n, m in out if m == "graspcap" or m.startswith("graspcap.")]
+
+
+def _section(dotted: str) -> str | None:
+    """The tasks sub-package of a dotted name (the longest match), 'pipeline', or None."""
+    if not dotted.startswith("graspcap.tasks."):
+        return None
+    rest = dotted[len("graspcap.tasks."):]
+    for section in sorted(SECTIONS, key=len, reverse=True):
+        if rest == section or rest.startswith(section + "."):
+            return section
+    return rest.split(".")[0]
+
+
+def _layer_offenders() -> list[str]:
+    offenders = []
+    modules = _source_modules()
+    for name, path in modules.items():
+        package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+        own = _section(name)
+        seen = set()  # one offence per import statement
+        for line, target in _graspcap_imports(path, package):
+            if line in seen:
+                continue
+            before = len(offenders)
+            shown = path.relative_to(REPO) if path.is_relative_to(REPO) else path
+            where = f"{shown}:{line} imports {target}"
+            if own in SECTIONS:
+                other = _section(target)
+                if other is not None and other != own and other not in SECTIONS[own]:
+                    offenders.append(f"{where} ({own} may import {sorted(SECTIONS[own])})")
+            for layer, banned in LAYERS.items():
+                if name == layer or name.startswith(layer + "."):
+                    if any(target == b or target.startswith(b + ".") for b in banned):
+                        offenders.append(f"{where} ({layer} is below it)")
+            if len(offenders) > before:
+                seen.add(line)
+    return offenders
+
+
+def test_sub_packages_import_only_below_them():
+    assert not _layer_offenders()
+
+
+def test_the_section_table_covers_every_sub_package_and_core_imports_none():
+    found = {p[len("graspcap.tasks."):] for p in _source_packages()
+             if p.startswith("graspcap.tasks.")}
+    assert found == set(SECTIONS)
+    assert SECTIONS["core"] == set()
+    top = {p.name for p in (REPO / "tasks").glob("*.py")}
+    assert top == {"__init__.py", "pipeline.py"}, "a stage or helper belongs in a sub-package"
+
+
+def test_the_layer_check_sees_an_upward_import(tmp_path, monkeypatch):
+    bad = REPO / "tasks" / "core" / "geometry.py"
+    text = bad.read_text() + "\nfrom graspcap.tasks.hand.model import HandSide  # noqa\n"
+    fake = tmp_path / "geometry.py"
+    fake.write_text(text)
+    real = _source_modules()
+    monkeypatch.setattr(
+        sys.modules[__name__], "_source_modules",
+        lambda: {**real, "graspcap.tasks.core.geometry": fake},
+    )
+    offenders = _layer_offenders()
+    assert len(offenders) == 1 and "imports graspcap.tasks.hand.model" in offenders[0]
+    assert "(core may import [])" in offenders[0]
+
+
+def test_schemas_do_not_import_tasks():
+    for path in sorted((REPO / "schemas").rglob("*.py")):
+        imported = [m for _, m in _graspcap_imports(path, "graspcap.schemas")]
+        assert not [m for m in imported if m.startswith("graspcap.tasks")], path

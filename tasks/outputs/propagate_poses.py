@@ -13,9 +13,9 @@ from enum import StrEnum
 
 import numpy as np
 
+from graspcap.schemas.transforms import rigidity_problems
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.core.geometry import rigidity_problems
 
 STAGE_VERSION = "propagate_poses/1"
 STAGE = "propagate_poses"
