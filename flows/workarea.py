@@ -6,7 +6,10 @@ as they are) into ``<root>/results/<stage>/<key>.pkl`` and tasks hand each
 other a small :class:`ResultRef` (path + content digest). Writes are atomic
 (temporary file, then rename) and the result's small JSON record
 (``<key>.json``: digest, build, seconds) is written after the pickle, so a
-killed build never leaves a half result that a later lookup would trust.
+killed build never leaves a half result that a later lookup would trust. The record lists the
+modules the pickle names (classes, functions); a result whose modules cannot be imported any
+more (a module moved, as in the ``tasks/`` sub-package layout) is a cache miss, not a crash,
+and so is a record from before the list.
 
 A deterministic failure (a ``StageError``) is remembered too, as ``<key>.failed.json`` (its
 reason): running the same stage version and config on the same bytes fails the same way, so an
@@ -20,12 +23,15 @@ attempt (stage, session, key, build, seconds, CPU seconds, pid, ok, error), appe
 from __future__ import annotations
 
 import hashlib
+import importlib.util
+import io
 import json
 import os
 import pickle
 import tempfile
 import threading
 import time
+import types
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -143,12 +149,13 @@ class WorkArea:
              seconds: float = 0.0) -> ResultRef:
         """Store ``result`` under ``(stage, key)``; the record is written last. The result
         stays in this process's memory under its digest (``load`` of its ref needs no read)."""
-        data = pickle.dumps(result, protocol=5)
+        data, modules = _pickle_with_modules(result)
         path = self.result_path(stage, key)
         _atomic_write(path, data)
         ref = ResultRef(stage, key, str(path), hashlib.sha256(data).hexdigest(), build_id,
                         cached=False, seconds=seconds)
-        record = {"digest": ref.digest, "build_id": build_id, "seconds": seconds}
+        record = {"digest": ref.digest, "build_id": build_id, "seconds": seconds,
+                  "modules": modules}
         _atomic_write(path.with_suffix(".json"), canonical_json(record).encode())
         self._remember(ref.digest, result)
         return ref
@@ -160,8 +167,8 @@ class WorkArea:
             record = json.loads(path.with_suffix(".json").read_text())
         except (FileNotFoundError, json.JSONDecodeError):
             return None
-        if not path.exists():
-            return None
+        if not path.exists() or not _importable(record.get("modules")):
+            return None  # a result the code cannot unpickle (a module moved) is a miss
         return ResultRef(stage, key, str(path), record["digest"], record["build_id"],
                          cached=True, seconds=float(record.get("seconds", 0.0)))
 
@@ -237,6 +244,44 @@ class WorkArea:
             if build_id is None or rec.get("build_id") == build_id:
                 out.append(rec)
         return out
+
+
+class _ModulePickler(pickle.Pickler):
+    """A pickler that notes the module of every class and function its output names."""
+
+    def __init__(self, file: io.BytesIO):
+        super().__init__(file, protocol=5)
+        self.modules: set[str] = set()
+
+    def reducer_override(self, obj: Any) -> Any:
+        named = isinstance(obj, type | types.FunctionType | types.BuiltinFunctionType)
+        module = getattr(obj, "__module__", None) if named else type(obj).__module__
+        if isinstance(module, str):
+            self.modules.add(module)
+        return NotImplemented
+
+
+def _pickle_with_modules(result: Any) -> tuple[bytes, list[str]]:
+    """``result`` pickled (protocol 5) and the modules unpickling it imports."""
+    buf = io.BytesIO()
+    pickler = _ModulePickler(buf)
+    pickler.dump(result)
+    return buf.getvalue(), sorted(pickler.modules)
+
+
+def _importable(modules: list[str] | None) -> bool:
+    """True when every module a stored result needs can be imported. A record without the list
+    predates it (and the tasks/ sub-package layout, whose results name modules that are gone):
+    it is not trusted."""
+    if not isinstance(modules, list):
+        return False
+    for name in modules:
+        try:
+            if importlib.util.find_spec(name) is None:
+                return False
+        except (ImportError, ValueError):
+            return False
+    return True
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
