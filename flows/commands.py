@@ -16,15 +16,24 @@ from graspcap.flows.runtime import configure
 
 
 def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
-              dask: str | None = None, retry_failed: bool = False) -> int:
-    """``graspcap build``: exit status 0, or 1 when a session failed."""
+              dask: str | None = None, retry_failed: bool = False,
+              settings: Sequence[str] = ()) -> int:
+    """``graspcap build``: exit status 0, 1 when a session failed, 2 when a ``--set`` is
+    wrong (the message names it)."""
+    from graspcap.tasks.pipeline import settings_overrides
+
+    try:
+        overrides = settings_overrides(list(settings), preset)
+    except ValueError as exc:
+        print(f"graspcap build: {exc}", file=sys.stderr)
+        return 2
     configure(Path(catalog) / "work")
     from graspcap.flows.build import build_dataset
     from graspcap.flows.progress import ConsoleProgress
 
     with ConsoleProgress(sys.stdout) as progress:
         report = build_dataset(roots, catalog, preset, dask=dask, retry_failed=retry_failed,
-                               progress=progress)
+                               progress=progress, overrides=overrides or None)
     print(report.summary())
     return 1 if report.failed else 0
 

@@ -14,6 +14,7 @@ from pathlib import Path
 from graspcap.catalog.cli import add_catalog_parser
 from graspcap.catalog.layout import DEFAULT_CATALOG
 from graspcap.detect_cli import add_detect_parser
+from graspcap.tasks.core.presets import PIPELINE_PRESETS
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -67,7 +68,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
     from graspcap.flows.commands import run_build
 
     return run_build(args.roots, args.catalog, args.preset, dask=args.dask,
-                     retry_failed=args.retry_failed)
+                     retry_failed=args.retry_failed, settings=args.settings)
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -117,7 +118,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("build", help="build or update the catalog from capture sessions")
     p.add_argument("roots", type=Path, nargs="+", help="session folders or roots holding many")
     p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
-    p.add_argument("--preset", default="default", help="stage preset (default, fast, ...)")
+    p.add_argument("--preset", default="default", choices=list(PIPELINE_PRESETS),
+                   metavar="PRESET", help="pipeline preset: " + ", ".join(PIPELINE_PRESETS))
+    p.add_argument("--set", dest="settings", action="append", default=[],
+                   metavar="STAGE.FIELD=VALUE",
+                   help="override one config field over the preset, checked against the "
+                        "stage's config (repeatable), e.g. reconstruct_hand.huber_k=1.5")
     p.add_argument("--dask", default=None, metavar="ADDRESS|local:N",
                    help="run on a Dask scheduler, or a local cluster of N worker processes")
     p.add_argument("--retry-failed", action="store_true",
@@ -132,7 +138,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("serve", help="run the build on a schedule (Prefect serve)")
     p.add_argument("roots", type=Path, nargs="+", help="session folders or roots holding many")
     p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
-    p.add_argument("--preset", default="default", help="stage preset")
+    p.add_argument("--preset", default="default", choices=list(PIPELINE_PRESETS),
+                   metavar="PRESET", help="pipeline preset: " + ", ".join(PIPELINE_PRESETS))
     when = p.add_mutually_exclusive_group(required=True)
     when.add_argument("--cron", help='cron schedule, e.g. "0 2 * * *"')
     when.add_argument("--interval", type=float, help="run every this many seconds")

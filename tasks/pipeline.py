@@ -25,6 +25,7 @@ from graspcap.tasks.contact import build_contactmap
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, project, transform_points
+from graspcap.tasks.core.presets import PIPELINE_PRESETS, UnknownPreset
 from graspcap.tasks.core.render import render
 from graspcap.tasks.hand import fit_hand, refine_grasp
 from graspcap.tasks.hand.model import SURFACE_OFFSET_M, HandSide
@@ -355,9 +356,31 @@ the build still commits the session's rows with its QA status, and notes the fai
 build report; it never fails the session."""
 
 
+def _check_presets() -> None:
+    """Every stage preset is a named pipeline preset (``core.presets``)."""
+    for stage in STAGES.values():
+        missing = set(stage.presets) - set(PIPELINE_PRESETS)
+        if missing:
+            raise RuntimeError(f"{stage.name}: presets {sorted(missing)} are not in "
+                               "tasks/core/presets.py PIPELINE_PRESETS")
+
+
+_check_presets()
+
+
+def preset_stages(preset: str) -> tuple[str, ...]:
+    """The stages whose config ``preset`` sets (the others run their default)."""
+    if preset not in PIPELINE_PRESETS:
+        raise UnknownPreset(preset)
+    return tuple(n for n, s in STAGES.items() if preset in s.presets)
+
+
 def configs_for(preset: str = "default", **overrides: StageConfig) -> dict[str, StageConfig]:
     """Every stage's config: the named preset where the stage has one, else its default,
-    with explicit per-stage ``overrides``."""
+    with explicit per-stage ``overrides``. An unknown preset raises :class:`UnknownPreset`
+    (it lists the known ones)."""
+    if preset not in PIPELINE_PRESETS:
+        raise UnknownPreset(preset)
     unknown = set(overrides) - set(STAGES)
     if unknown:
         raise KeyError(f"no such stage(s): {sorted(unknown)}; stages are {list(STAGES)}")
@@ -365,6 +388,60 @@ def configs_for(preset: str = "default", **overrides: StageConfig) -> dict[str, 
         name: overrides.get(name) or stage.presets.get(preset, stage.presets["default"])
         for name, stage in STAGES.items()
     }
+
+
+def settings_overrides(settings: list[str] | tuple[str, ...],
+                       preset: str = "default") -> dict[str, StageConfig]:
+    """``["stage.field=value", ...]`` (``--set``) as the configs of the stages they change,
+    ``preset``'s with the fields set, each setting checked against the stage's config model:
+    the stage, the field (a dotted path into nested configs) and the value's type. The value
+    is read as JSON (``1.5``, ``true``, ``"x"``, ``[1, 2]``), else taken as a string (enum
+    values). Raises ``ValueError`` naming the setting and what is wrong with it."""
+    import json
+
+    from pydantic import ValidationError
+
+    base = configs_for(preset)
+    out: dict[str, dict[str, Any]] = {}
+    configs: dict[str, StageConfig] = {}
+    for setting in settings:
+        path, sep, raw = setting.partition("=")
+        stage, _, field = path.strip().partition(".")
+        if not sep or not field:
+            raise ValueError(f"--set {setting!r}: expected STAGE.FIELD=VALUE")
+        if stage not in STAGES:
+            raise ValueError(f"--set {setting!r}: no stage {stage!r}; stages are {list(STAGES)}")
+        try:
+            value = json.loads(raw)
+        except ValueError:
+            value = raw
+        fields = out.setdefault(stage, {})
+        node, model, keys = fields, type(base[stage]), field.split(".")
+        for i, key in enumerate(keys):
+            known = getattr(model, "model_fields", None)
+            if known is None or key not in known:
+                where = ".".join([stage, *keys[:i]])
+                raise ValueError(f"--set {setting!r}: {where} has no field {key!r}; its fields "
+                                 f"are {sorted(known or [])}")
+            if i == len(keys) - 1:
+                node[key] = value
+            else:
+                node = node.setdefault(key, {})
+                model = known[key].annotation
+        merged = _deep_merge(base[stage].model_dump(), fields)
+        try:
+            configs[stage] = type(base[stage]).model_validate(merged)
+        except ValidationError as exc:
+            raise ValueError(f"--set {setting!r}: {exc.errors()[0]['msg']}") from None
+    return configs
+
+
+def _deep_merge(a: dict, b: Mapping) -> dict:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, Mapping) and isinstance(
+            out.get(k), dict) else v
+    return out
 
 
 def run_stage(
