@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -26,14 +26,12 @@ from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, project, transform_points
 from graspcap.tasks.core.presets import PIPELINE_PRESETS, UnknownPreset
-from graspcap.tasks.core.render import render
 from graspcap.tasks.hand import fit_hand, refine_grasp
 from graspcap.tasks.hand.model import SURFACE_OFFSET_M, HandSide
 from graspcap.tasks.hand_sfm import crosscheck_sfm, reconstruct_hand, select_steady
 from graspcap.tasks.hand_sfm.metric_scale import window_median
 from graspcap.tasks.keypoints import detect_keypoints
 from graspcap.tasks.object_pose import estimate_adjustment, register_object, register_scan
-from graspcap.tasks.object_pose.adjustment_region import hand_mask_from_keypoints
 from graspcap.tasks.outputs import pictures, propagate_poses, qa_metrics
 from graspcap.tasks.session import load_session
 from graspcap.tasks.session.load_session import Session
@@ -142,60 +140,16 @@ def _estimate_adjustment(
     session, config, register_object, detect_keypoints, select_steady, reconstruct_hand,
     fit_hand, **_,
 ):
-    """Depth of the first steady frame with the hand masked out: the fitted hand rendered
-    into that frame, plus the detected keypoints' bones in case the fit misses a finger.
-    When that fails or fits below ``config.accept_fitness`` (the onset is often detected a
-    few frames early, while the object still settles), also the frame
-    ``config.frames_after_onset`` later, its pose carried back by that frame's virtual
-    camera; the better fit is kept."""
     s = select_steady.steady_from
-    V, F = read_mesh(session)
     hand = fit_hand.mesh()
-    # a stage-1 pose that could be another (near-symmetric object) is tried both ways
-    alt = register_object.T_w_o_runner_up if register_object.ambiguous else None
-
-    T_w_c = reconstruct_hand.T_w_c
-
-    def view(k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Steady frame k's depth and hand mask (the fitted hand seen by its camera)."""
-        depth = session.read_depth_m(session.grasp_path("depth", s + k))
-        h, w = depth.shape
-        rendered = render([(hand.vertices, hand.faces)], [inv_T(T_w_c[k])], _K(session), w, h)
-        kp = detect_keypoints.keypoints[s + k]
-        bones = hand_mask_from_keypoints(kp[:, :2], kp[:, 2], (h, w), 6.0)
-        return depth, (rendered.mesh_index >= 0) | bones
-
-    def attempt(k: int):
-        depth, mask = view(k)
-
-        def others() -> list[estimate_adjustment.SteadyView]:
-            return [
-                estimate_adjustment.SteadyView(*view(j), inv_T(T_w_c[k]) @ T_w_c[j])
-                for j in estimate_adjustment.spread_frames(
-                    reconstruct_hand.pose_valid, k, config.other_views
-                )
-            ]
-
-        adj = estimate_adjustment.estimate_adjustment(
-            depth, _K(session), V, F, register_object.T_w_o, mask, config, T_w_o_stage1_alt=alt,
-            other_views=others,
-        )  # fmt: skip
-        return replace(adj, T_adj=T_w_c[k] @ adj.T_adj, T_w_o=T_w_c[k] @ adj.T_w_o)
-
-    k = min(config.frames_after_onset, len(reconstruct_hand.T_w_c) - 1)
-    try:
-        first = attempt(0)
-    except StageError:
-        if k == 0 or not reconstruct_hand.pose_valid[k]:
-            raise
-        return attempt(k)
-    if first.fitness >= config.accept_fitness or k == 0 or not reconstruct_hand.pose_valid[k]:
-        return first
-    try:
-        later = attempt(k)
-    except StageError:
-        return first
-    return later if later.fitness > first.fitness else first
+    return estimate_adjustment.estimate_adjustment_steady(
+        lambda k: session.read_depth_m(session.grasp_path("depth", s + k)), _K(session),
+        *read_mesh(session), (hand.vertices, hand.faces),
+        detect_keypoints.keypoints[s : s + len(reconstruct_hand.T_w_c)], reconstruct_hand.T_w_c,
+        reconstruct_hand.pose_valid, register_object.T_w_o, config,
+        # a stage-1 pose that could be another (near-symmetric object) is tried both ways
+        T_w_o_stage1_alt=register_object.T_w_o_runner_up if register_object.ambiguous else None,
+    )
 
 
 def _register_scan(session, config, **_):

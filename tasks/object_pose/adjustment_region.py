@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from graspcap.tasks.core.render import render
 from graspcap.tasks.hand.model import RIGID_PALM_POINTS, SKELETON
 from graspcap.tasks.object_pose.registration.point_clouds import to_pcd
 
@@ -129,3 +130,20 @@ def hand_mask_from_keypoints(
     if len(palm) >= 3:
         cv2.fillPoly(mask, [cv2.convexHull(pts[palm])], 1)
     return mask.astype(bool)
+
+
+def hand_mask(
+    shape: tuple[int, int],
+    K: np.ndarray,
+    T_c_w: np.ndarray,
+    hand_mesh_w: tuple[np.ndarray, np.ndarray],
+    keypoints: np.ndarray,
+    bone_radius_px: float = 6.0,
+) -> np.ndarray:
+    """Pixels (h, w) bool of a frame the hand covers: the fitted hand mesh (world vertices,
+    faces) rendered by the frame's camera ``T_c_w``, plus the detected keypoints' bones
+    (``keypoints`` (21, 3): pixels and confidence) in case the fit misses a finger."""
+    h, w = shape
+    rendered = render([hand_mesh_w], [T_c_w], K, w, h)
+    bones = hand_mask_from_keypoints(keypoints[:, :2], keypoints[:, 2], (h, w), bone_radius_px)
+    return (rendered.mesh_index >= 0) | bones
