@@ -122,7 +122,7 @@ def _reconstruct_hand(session, config, detect_keypoints, select_steady, **_):
         np.asarray(SURFACE_OFFSET_M),
         config,
         depth_frame=read,
-        T_c_tt=_T_color_turntable(session),
+        T_color_turntable=_T_color_turntable(session),
     )
 
 

@@ -192,7 +192,7 @@ def reconstruct_hand(
     config: ReconstructConfig = PRESETS["default"],
     *,
     depth_frame: DepthFrame | None = None,
-    T_c_tt: np.ndarray | None = None,
+    T_color_turntable: np.ndarray | None = None,
 ) -> HandReconstruction:
     """Structure from motion of the hand from ``steady_from`` on.
 
@@ -213,8 +213,9 @@ def reconstruct_hand(
         depth work is done once per call (``hand_sfm.depth_sweep``), with ``prefetch_depth`` on a
         second thread: ``depth_frame`` should be the cached reader behind ``depth_at`` (as
         ``pipeline`` passes it), so that a frame decodes once for both.
-    T_c_tt : (4, 4) turntable pose in the colour camera: the platter and table below its top
-        plane are cut from the depth links' surfaces; without it there are no depth links.
+    T_color_turntable : (4, 4) turntable pose in the colour camera: the platter and table
+        below its top plane are cut from the depth links' surfaces; without it there are no
+        depth links.
     """
     if not callable(depth_at):
         frames_m = np.asarray(depth_at)
@@ -230,7 +231,7 @@ def reconstruct_hand(
         cfg.depth_use is DepthUse.FACTORS
         and link_cfg.enabled
         and depth_frame is not None
-        and T_c_tt is not None
+        and T_color_turntable is not None
     )
 
     def surface_at(i: int, uv_i: np.ndarray, depth_i: np.ndarray):
@@ -239,7 +240,8 @@ def reconstruct_hand(
             return None
         return surface_cloud(
             depth_frame(steady_from + i), K, centre, radius_m=link_cfg.radius_m,
-            stride_px=link_cfg.stride_px, T_c_tt=T_c_tt, min_height_m=link_cfg.min_height_m,
+            stride_px=link_cfg.stride_px, T_color_turntable=T_color_turntable,
+            min_height_m=link_cfg.min_height_m,
         )  # fmt: skip
 
     compute = partial(

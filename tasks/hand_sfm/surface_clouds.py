@@ -56,15 +56,15 @@ def surface_cloud(
     *,
     radius_m: float,
     stride_px: int,
-    T_c_tt: np.ndarray | None = None,
+    T_color_turntable: np.ndarray | None = None,
     min_height_m: float = 0.015,
     normal_step: int = 2,
     max_jump_m: float = 0.01,
     min_points: int = 50,
 ) -> SurfaceCloud | None:
     """Depth pixels on a lattice of ``stride_px`` within ``radius_m`` of ``centre_c`` (3,) and,
-    when the turntable pose ``T_c_tt`` (4, 4) is given, at least ``min_height_m`` above its
-    top plane. Normals from the lattice neighbours ``normal_step`` nodes away (central
+    when the turntable pose ``T_color_turntable`` (4, 4) is given, at least ``min_height_m``
+    above its top plane. Normals from the lattice neighbours ``normal_step`` nodes away (central
     differences), none across a depth jump over ``max_jump_m``. None with fewer than
     ``min_points``."""
     h, w = depth_m.shape
@@ -91,9 +91,9 @@ def surface_cloud(
     v = (np.arange(z.shape[0]) * stride_px + v0 - cy) / fy
     P = np.stack([u[None, :] * z, v[:, None] * z, z], axis=2)
     keep = (z > 0) & (np.sum((P - c) ** 2, axis=2) < radius_m**2)
-    if T_c_tt is not None:
-        T_tt_c = inv_T(T_c_tt)
-        keep &= P @ T_tt_c[2, :3] + T_tt_c[2, 3] > min_height_m
+    if T_color_turntable is not None:
+        T_turntable_color = inv_T(T_color_turntable)
+        keep &= P @ T_turntable_color[2, :3] + T_turntable_color[2, 3] > min_height_m
     du = P[k:-k, 2 * k :] - P[k:-k, : -2 * k]
     dv = P[2 * k :, k:-k] - P[: -2 * k, k:-k]
     keep = (

@@ -161,7 +161,7 @@ def register_scan(
         Object mesh, object frame, metres.
     """
     cfg = config.registration
-    T_t_c = inv_T(np.asarray(T_color_turntable, float))
+    T_turntable_color = inv_T(np.asarray(T_color_turntable, float))
     per_view, counts, pts_all, nrm_all = [], [], [], []
     for depth_m, angle in views:
         pts_c = crop_platter(depth_m, K, T_color_turntable, config.crop)
@@ -171,7 +171,7 @@ def register_scan(
             continue
         pcd = to_pcd(pts_c)
         estimate_normals(pcd, cfg.normal_radius_factor * cfg.voxel_m, np.zeros(3))
-        T_t0_c = rot_z(-angle) @ T_t_c
+        T_t0_c = rot_z(-angle) @ T_turntable_color
         pts_t0 = transform_points(T_t0_c, pts_c)
         per_view.append(pts_t0)
         pts_all.append(pts_t0)
@@ -187,7 +187,7 @@ def register_scan(
         np.concatenate(pts_all), np.concatenate(nrm_all), np.zeros(3), cfg
     )
     candidates = register(scene, down, feats, model, cfg)
-    violation = _violation_of(views, K, T_t_c, model, config)
+    violation = _violation_of(views, K, T_turntable_color, model, config)
     candidates = _ranked(candidates, violation, cfg)
     if config.check_ambiguity:
         candidates = _ranked(probe_symmetry(scene, model, candidates, cfg), violation, cfg)
@@ -234,7 +234,7 @@ def register_scan(
     )
 
 
-def _violation_of(views, K, T_t_c, model, config: RegisterScanConfig):
+def _violation_of(views, K, T_turntable_color, model, config: RegisterScanConfig):
     """``violation(candidate) -> float``, memoised per candidate; 0 when not checked."""
     if not config.check_free_space:
         return lambda c: 0.0
@@ -244,7 +244,8 @@ def _violation_of(views, K, T_t_c, model, config: RegisterScanConfig):
         [[x, y, z] for x in (-r, r) for y in (-r, r) for z in (0.0, crop.max_height_m)]
     )
     fs = prepare_views(
-        [(d, rot_z(-a) @ T_t_c) for d, a in views], K, config.free_space_window_px, corners
+        [(d, rot_z(-a) @ T_turntable_color) for d, a in views], K, config.free_space_window_px,
+        corners,
     )
     pts_o = np.asarray(strided(model.dense, config.free_space_points).points)
     memo: dict[Candidate, float] = {}

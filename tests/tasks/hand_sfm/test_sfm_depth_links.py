@@ -70,7 +70,7 @@ def _clouds(frames, with_table_cut=True):
     depth, centre, _, T_c_tt = frames
     return [
         surface_cloud(d, K, c, radius_m=0.15, stride_px=3,
-                      T_c_tt=T_c_tt if with_table_cut else None, min_height_m=0.015)
+                      T_color_turntable=T_c_tt if with_table_cut else None, min_height_m=0.015)
         for d, c in zip(depth, centre, strict=True)
     ]  # fmt: skip
 

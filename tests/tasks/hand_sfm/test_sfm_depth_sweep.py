@@ -109,7 +109,7 @@ def test_reconstruct_hand_is_the_same_with_the_second_thread_on_and_off():
     for prefetch in (False, True):
         cfg = ReconstructConfig(prefetch_depth=prefetch)
         out.append(reconstruct_hand(video.keypoints, video.K, video.steady_from, frames,
-                                    video.surface_offset_m, cfg, T_c_tt=T_c_tt))
+                                    video.surface_offset_m, cfg, T_color_turntable=T_c_tt))
     a, b = out
     assert np.array_equal(a.joints_w, b.joints_w)
     assert np.array_equal(a.T_w_c, b.T_w_c, equal_nan=True)

@@ -192,7 +192,7 @@ def test_rig_sessions_of_the_build_benchmark(tmp_path):
         K = np.asarray(session.manifest.color_camera.K)
         onset = _true_onset(d) if onset is None else onset
         rec = reconstruct_hand(kp, K, onset, depth, np.asarray(SURFACE_OFFSET_M),
-                               T_c_tt=np.asarray(session.manifest.turntable.T_color_turntable))
+                               T_color_turntable=np.asarray(session.manifest.turntable.T_color_turntable))
         ev = evaluate(d, {"steady_from": onset, "joints_w": rec.joints_w, "T_w_c": rec.T_w_c})
         assert rec.diagnostics.restarted_after.startswith(before)
         assert ev["joints_mpjpe_mm"] < 4.0 and ev["camera_rot_deg"] < 1.0  # measured 0.9-3.1
