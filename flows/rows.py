@@ -18,18 +18,15 @@ from typing import Any
 import numpy as np
 
 from graspcap.catalog.commit import ObjectMesh, SessionArrays
+from graspcap.schemas.qa import qa_columns
 from graspcap.schemas.tables import Status
 from graspcap.tasks.core.geometry import inv_T, transform_points
 from graspcap.tasks.outputs.qa_metrics import QaReport, qa_metrics
 
 IDENTITY_COLUMNS = ("participant", "object_id", "intent", "hand")
-QA_COLUMNS = ("reproj_rmse_px", "inlier_ratio", "crosscheck_mm", "registration_rmse_mm",
-              "fit_residual_mm", "penetration_max_mm", "penetration_mean_mm",
-              "contact_agreement", "contact_coverage", "window_outlier_share",
-              "crosscheck_camera_deg", "rgbd_discrepancy_mm", "fit_contact_agreement")
+QA_COLUMNS = tuple(m.name for m in qa_columns())
 """``qa_<name>`` columns of ``sessions``, filled from ``QaReport.metrics[<name>]``."""
-FORMAT_3_QA = ("qa_window_outlier_share", "qa_crosscheck_camera_deg", "qa_rgbd_discrepancy_mm",
-               "qa_fit_contact_agreement")
+FORMAT_3_QA = tuple(m.column for m in qa_columns() if m.column_format == 3)
 NEWEST_COLUMNS = ("keypoint_backend", *FORMAT_3_QA, "qa_flags")
 """``sessions`` columns formats 2, 3 and 4 added: :func:`predates_columns` reads them."""
 

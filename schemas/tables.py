@@ -26,6 +26,8 @@ from enum import StrEnum
 import numpy as np
 import pyarrow as pa
 
+from graspcap.schemas.qa import qa_columns
+
 CATALOG_FORMAT_VERSION = 4
 """Bumped on any change of the tables' columns, their encodings, their Delta table properties or
 the Zarr layout (``docs/data_changelog.md``)."""
@@ -105,30 +107,7 @@ SESSIONS_SCHEMA = pa.schema([
                unit="m", shape="21x3")),
     _result(_f("joints_fit_w", pa.list_(_F64, 63), "Joints of the fitted and refined hand model.",
                unit="m", shape="21x3")),
-    _qa("qa_reproj_rmse_px", "SfM reprojection RMSE.", "px"),
-    _qa("qa_inlier_ratio", "Share of keypoint observations kept as inliers.", "1"),
-    _qa("qa_crosscheck_mm", "GTSAM vs COLMAP joint discrepancy.", "mm"),
-    _qa("qa_registration_rmse_mm", "Object registration inlier RMSE.", "mm"),
-    _qa("qa_fit_residual_mm", "Hand model fit residual.", "mm"),
-    _qa("qa_penetration_max_mm", "Maximum hand-object penetration.", "mm"),
-    _qa("qa_penetration_mean_mm", "Mean hand-object penetration.", "mm"),
-    _qa("qa_contact_agreement", "Share of the contacted object vertices (seen by a thermal view, "
-        "contact >= 0.4) that the final hand (refined, else fitted) touches: within 3 mm of its "
-        "surface or inside it (hand_surface.contact_agreement; 0.4 and 3 mm are the stage "
-        "configs' defaults).", "1"),
-    _qa("qa_contact_coverage", "Share of object vertices seen by a thermal view.", "1"),
-    _qa("qa_window_outlier_share", "Share of the keypoint detections stage 2 rejected as "
-        "outliers in the worst window of consecutive steady frames (8 by default; high: the "
-        "hand moved after the detected onset). Format 3; null on rows written before.", "1"),
-    _qa("qa_crosscheck_camera_deg", "Largest camera rotation discrepancy between GTSAM and "
-        "pycolmap on the same pixels-only problem. Format 3; null on rows written before.",
-        "deg"),
-    _qa("qa_rgbd_discrepancy_mm", "Largest joint difference between the RGB-D result and "
-        "pycolmap's pixels-only optimum, after a similarity. Format 3; null on rows written "
-        "before.", "mm"),
-    _qa("qa_fit_contact_agreement", "qa_contact_agreement of the stage-3 fit, before "
-        "refine_grasp drew the hand to the contact map (low: the video's hand and the thermal "
-        "scan disagree on the grasp). Format 3; null on rows written before.", "1"),
+    *[_qa(m.column, m.column_doc, m.column_unit) for m in qa_columns()],  # schemas/qa.py
     _f("qa_flags", pa.list_(_STR), "Why qa_metrics flagged the session (QaReport.flags): one "
        "reason per flag limit a metric crossed or warning a stage raised, e.g. 'RGB-D result vs "
        "pixels-only optimum 15.62 mm > 12.50 mm'; empty when none (a failed session's failures "

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from graspcap.schemas.qa import QA_METRICS
 from graspcap.schemas.tables import Status
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.outputs.qa_measures import (
@@ -63,26 +64,8 @@ class MetricSpec:
 
 
 METRICS: dict[str, MetricSpec] = {
-    "reproj_rmse_px": MetricSpec("reprojection RMSE", "px", True),
-    "inlier_ratio": MetricSpec("keypoint inlier ratio", "", False),
-    "window_outlier_share": MetricSpec("keypoint outliers in the worst frame window", "", True),
-    "crosscheck_mm": MetricSpec("GTSAM vs pycolmap joint discrepancy", "mm", True),
-    "crosscheck_camera_deg": MetricSpec("GTSAM vs pycolmap camera discrepancy", "deg", True),
-    "rgbd_discrepancy_mm": MetricSpec("RGB-D result vs pixels-only optimum", "mm", True),
-    "registration_fitness": MetricSpec("stage-1 registration fitness", "", False),
-    "registration_rmse_mm": MetricSpec("stage-1 registration RMSE", "mm", True),
-    "adjustment_fitness": MetricSpec("adjustment registration fitness", "", False),
-    "adjustment_rmse_mm": MetricSpec("adjustment registration RMSE", "mm", True),
-    "scan_fitness": MetricSpec("scan registration fitness", "", False),
-    "scan_rmse_mm": MetricSpec("scan registration RMSE", "mm", True),
-    "fit_residual_mm": MetricSpec("hand fit residual", "mm", True),
-    "penetration_max_mm": MetricSpec("hand-object penetration (max)", "mm", True),
-    "penetration_mean_mm": MetricSpec("hand-object penetration (mean)", "mm", True),
-    "fit_contact_agreement": MetricSpec("contacted vertices near the fitted hand", "", False),
-    "contact_agreement": MetricSpec("contacted vertices near the hand", "", False),
-    "hand_contact_agreement": MetricSpec("hand-touching vertices contacted", "", False),
-    "contact_coverage": MetricSpec("contact-map coverage", "", False),
-}
+    m.name: MetricSpec(m.label, m.unit, m.higher_is_worse, m.digits) for m in QA_METRICS
+}  # declared once, in schemas/qa.py
 """Every metric of a :class:`QaReport`, in report order."""
 
 
