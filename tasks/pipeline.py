@@ -251,8 +251,8 @@ def _pictures(session, config, **up):
 # --- the DAG ----------------------------------------------------------------------------------
 
 _REFINE: tuple[str, ...] = ("refine_grasp",)
-"""``("refine_grasp",)`` once stage 5 is in the DAG: propagate_poses, qa_metrics and pictures
-then use the refined hand (``final_hand``); until then the stage-3 fit."""
+"""``("refine_grasp",)`` once ``refine_grasp`` is in the DAG: propagate_poses, qa_metrics and
+pictures then use the refined hand (``final_hand``); until then ``fit_hand``'s."""
 
 STAGES: dict[str, Stage] = {
     s.name: s

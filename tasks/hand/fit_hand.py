@@ -1,4 +1,5 @@
-"""Stage 3: fit the 20-DoF hand model to the reconstructed 3D joints.
+"""The ``fit_hand`` stage (the paper's stage 3): fit the 20-DoF hand model to the reconstructed
+3D joints.
 
 As in the paper: the palm pose ``T_w_p`` and the hand's scale come from the Umeyama
 similarity between the model's six rigid palm points (0, 1, 5, 9, 13, 17) and their targets;
@@ -92,7 +93,7 @@ PRESETS: dict[str, FitHandConfig] = {
 
 @dataclass(frozen=True)
 class HandFit:
-    """Result of stage 3 (small: the mesh is rebuilt on demand by :meth:`mesh`).
+    """Result of ``fit_hand`` (small: the mesh is rebuilt on demand by :meth:`mesh`).
 
     Attributes
     ----------
@@ -261,13 +262,14 @@ def fit_hand(
     Parameters
     ----------
     joints_w : (21, 3) float
-        Target joints in the world, metres, 21-keypoint order (e.g. stage 2's ``joints_w``).
+        Target joints in the world, metres, 21-keypoint order (e.g. ``reconstruct_hand``'s
+        ``joints_w``).
     side : HandSide
         Which hand (from the session manifest).
     config : FitHandConfig
     weights : (21,) float, optional
-        Non-negative weight per joint (e.g. from stage 2's inlier counts); joints with weight 0
-        are ignored and may be NaN. Default: all 1.
+        Non-negative weight per joint (e.g. from ``reconstruct_hand``'s inlier counts); joints
+        with weight 0 are ignored and may be NaN. Default: all 1.
 
     Raises
     ------

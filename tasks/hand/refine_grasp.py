@@ -1,4 +1,5 @@
-"""Stage 5: refine the fitted hand against the object and its contact map (after ContactGrasp).
+"""The ``refine_grasp`` stage (the paper's stage 5): refine the fitted hand against the object
+and its contact map (after ContactGrasp).
 
 Brahmbhatt et al., ContactGrasp (IROS 2019), grasp optimisation: the nearest hand segment is
 drawn to contacted object points, the hand surface is pushed away from points observed without
@@ -308,7 +309,7 @@ def refine_grasp(
     Parameters
     ----------
     fit : HandFit
-        Stage 3 (palm pose in the world of the first steady frame, scale, angles).
+        ``fit_hand``'s result (palm pose in the world of the first steady frame, scale, angles).
     side : HandSide
         The session's hand (must be the fit's).
     T_w_o : (4, 4) float
@@ -317,7 +318,7 @@ def refine_grasp(
     object_faces : (m, 3) int
         The object mesh in its own frame (closed), file vertex order.
     contact : (n,) float
-        Contact in [0, 1] per vertex (stage 4).
+        Contact in [0, 1] per vertex (``build_contactmap``).
     observed : (n,) bool
         Vertices the thermal scan saw; unobserved vertices neither attract nor repel.
     config : RefineGraspConfig

@@ -1,4 +1,5 @@
-"""Cross-check of stage 2: the same inlier observations solved by pycolmap (COLMAP's BA).
+"""Cross-check of ``reconstruct_hand``: the same inlier observations solved by pycolmap
+(COLMAP's BA).
 
 One PINHOLE camera from K, one image (trivial rig and frame) per posed video frame, one 3D
 point per reconstructed joint with its inlier observations as the track; poses start from

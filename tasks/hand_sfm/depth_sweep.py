@@ -1,4 +1,4 @@
-"""The depth work of stage 2 (``reconstruct_hand``), each frame done once per stage call.
+"""The depth work of ``reconstruct_hand``, each frame done once per stage call.
 
 Every solve of the stage (the pair scoring of the two-view start, the depth sweep of the
 scale and the range factors, the dense depth links, the depth initialisation of a restart)

@@ -1,4 +1,5 @@
-"""Stage 2: structure from motion of the static hand seen by virtual cameras (GTSAM).
+"""The ``reconstruct_hand`` stage (the paper's stage 2): structure from motion of the static
+hand seen by virtual cameras (GTSAM).
 
 From the first steady frame on, the 2D keypoints are observations of one fixed set of 21
 joints by a moving virtual camera. Two-view geometry with RANSAC starts it, PnP poses the

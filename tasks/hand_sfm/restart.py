@@ -1,4 +1,4 @@
-"""When stage 2 (``reconstruct_hand``) solves again from the depth, and which result it keeps.
+"""When ``reconstruct_hand`` solves again from the depth, and which result it keeps.
 
 The first solve starts from the two-view geometry of the pixels (``hand_sfm.two_view_init``).
 Two ways it ends in a wrong hand: it fails a plausibility check (``hand_sfm.sanity``: the stage

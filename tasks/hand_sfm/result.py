@@ -1,4 +1,4 @@
-"""The result of stage 2 (``reconstruct_hand``) and its assembly from a finished solve.
+"""The result of ``reconstruct_hand`` and its assembly from a finished solve.
 
 The solves work in the frame of the initial pair's first camera and, before the scale,
 in its units; the result is metric and in the frame of the first steady camera

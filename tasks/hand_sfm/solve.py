@@ -1,4 +1,4 @@
-"""The solves of stage 2 (``reconstruct_hand``): reprojection-only with outlier rounds, the
+"""The solves of ``reconstruct_hand``: reprojection-only with outlier rounds, the
 depth sweep (scale samples and the frames' surfaces), and the metric RGB-D solve.
 
 The functions take the stage's ``ReconstructConfig`` as ``cfg``; ``reconstruct_hand`` strings

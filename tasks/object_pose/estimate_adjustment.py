@@ -11,16 +11,16 @@ hand's pixels masked out. Two paths, tried in order:
    RANSAC + ICP as in stage 1, the stage-1 pose one more start. Among poses that explain
    the depth equally well (a symmetric object) the one closest in rotation to stage 1 wins.
 
-One frame shows one side of the object, partly hidden by the hand: a mug's visible half
-fits its own flipped twin as well as the truth (rig seed 11 #0: 163 deg off, fitness 0.98),
-and with its handle hidden any turn about its body's axis. The global path's candidates
-include, when the model's principal axes are ill-defined, half turns about its own
-near-symmetry axes and the best pose turned about the rotation the depth leaves free, to the
-rotation nearest stage 1 (:mod:`free_rotation`). Other steady frames (``other_views``) show
-it turned: when the first frame alone fits below ``views_below_fitness`` or is ambiguous (axes
-ill-defined), their points, carried into the first frame by stage 2's virtual cameras, are
-registered together with it, every pose is scored against all their depth images and the
-better pose is kept (one frame alone is sharper when it is right).
+One frame shows one side of the object, partly hidden by the hand: a mug's visible half fits its
+own flipped twin as well as the truth (rig seed 11 #0: 163 deg off, fitness 0.98), and with its
+handle hidden any turn about its body's axis. The global path's candidates include, when the
+model's principal axes are ill-defined, half turns about its own near-symmetry axes and the best
+pose turned about the rotation the depth leaves free, to the rotation nearest stage 1
+(:mod:`free_rotation`). Other steady frames (``other_views``) show it turned: when the first
+frame alone fits below ``views_below_fitness`` or is ambiguous (axes ill-defined), their points,
+carried into the first frame by ``reconstruct_hand``'s virtual cameras, are registered together
+with it, every pose is scored against all their depth images and the better pose is kept (one
+frame alone is sharper when it is right).
 """
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ class SteadyView:
 
     depth_m : (h, w) float metres, 0 = invalid; hand_mask : (h, w) bool, the hand's pixels.
     T_ref_c : (4, 4) this frame's camera into the frame of ``estimate_adjustment``'s depth
-        (``inv(T_w_c[ref]) @ T_w_c[this]`` from stage 2's virtual cameras).
+        (``inv(T_w_c[ref]) @ T_w_c[this]`` from ``reconstruct_hand``'s cameras).
     """
 
     depth_m: np.ndarray
@@ -244,7 +244,7 @@ def estimate_adjustment(
     mesh_vertices, mesh_faces : (n, 3) float, (m, 3) int
         Object mesh, object frame, metres.
     T_w_o_stage1 : (4, 4) float
-        Object pose from stage 1.
+        Object pose from ``register_object``.
     hand_mask : (h, w) bool
         Pixels of the hand (from the fitted hand or
         :func:`adjustment_region.hand_mask_from_keypoints`).
@@ -372,7 +372,8 @@ def estimate_adjustment_steady(
     keypoints : (m, 21, 3) float, the steady frames' keypoints (pixels, confidence).
     T_w_c : (m, 4, 4) the steady frames' cameras; the world is steady frame 0's camera.
     pose_valid : (m,) bool, frames whose camera was solved.
-    T_w_o_stage1, T_w_o_stage1_alt : stage 1's pose and, when it is ambiguous, its runner-up.
+    T_w_o_stage1, T_w_o_stage1_alt : ``register_object``'s pose and, when it is ambiguous, its
+        runner-up.
     """
 
     def view(k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -153,7 +153,7 @@ def keypoints_picture(image_rgb: np.ndarray, detected: np.ndarray,
     model_px : (21, 2) float, optional
         The model's joints projected into the frame (NaN: not projected).
     outlier : (21,) bool, optional
-        Detections stage 2 rejected as outliers (ringed in magenta).
+        Detections ``reconstruct_hand`` rejected as outliers (ringed in magenta).
     title : str
         Written on the top left.
 

@@ -25,7 +25,7 @@ class JointSource(StrEnum):
     """Which static 3D joints are carried into the frames."""
 
     SFM = "sfm"
-    """Stage 2's reconstructed joints (``joints_w``): what best explains the 2D detections."""
+    """``reconstruct_hand``'s joints (``joints_w``): what best explains the 2D detections."""
     FIT = "fit"
     """The fitted (and refined) hand model's joints (``joints_fit_w``): consistent with the
     hand mesh and ``T_c_p``."""
@@ -147,15 +147,15 @@ def propagate_poses(
     Parameters
     ----------
     T_w_c : (m, 4, 4) float
-        Virtual cameras of stage 2 (world = colour camera at the first steady frame).
+        Virtual cameras of ``reconstruct_hand`` (world = colour camera at the first steady frame).
     T_adj : (4, 4) float
         Object motion during grasp adjustment, world frame.
     T_w_o_stage1 : (4, 4) float
-        Object pose of stage 1.
+        Object pose of ``register_object``.
     T_w_p : (4, 4) float
-        Palm pose (stage 3 or 5).
+        Palm pose (``fit_hand``'s, or ``refine_grasp``'s).
     joints_w : (21, 3) float
-        Stage 2's joints, world, metres.
+        ``reconstruct_hand``'s joints, world, metres.
     K : (3, 3) float
         Colour intrinsics.
     frame_indices : (m,) int

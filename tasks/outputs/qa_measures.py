@@ -97,8 +97,8 @@ def refined_metrics(refined: Any) -> tuple[dict[str, float], dict[str, str]]:
 def window_outlier_share(inlier: np.ndarray, residuals_px: np.ndarray, window: int) -> float:
     """Share of the detections rejected as outliers in the worst window of steady frames.
 
-    Stage 2 keeps one rigid hand for every frame from the onset on; where the hand still
-    moves (an onset detected too early, a re-grasp) the detections of those frames cannot fit
+    ``reconstruct_hand`` keeps one rigid hand for every frame from the onset on; where the hand
+    still moves (an onset detected too early, a re-grasp) the detections of those frames cannot fit
     it and most are rejected, while detector outliers are spread evenly over the video. So the
     worst window of ``window`` consecutive frames stands out when the static-hand assumption
     broke, even when the session's overall inlier ratio and RMSE look normal.
@@ -106,7 +106,7 @@ def window_outlier_share(inlier: np.ndarray, residuals_px: np.ndarray, window: i
     Parameters
     ----------
     inlier : (m, 21) bool
-        Stage 2's inlier flags per solve frame (from the onset on).
+        ``reconstruct_hand``'s inlier flags per solve frame (from the onset on).
     residuals_px : (m, 21) float
         Its residuals, NaN where nothing was detected.
     window : int
