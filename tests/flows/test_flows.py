@@ -114,7 +114,7 @@ def test_downstream_of_a_failed_stage_does_not_run(warm, synth_root, tmp_path, m
 def test_file_digests_are_remembered_until_the_file_changes(tmp_path, monkeypatch):
     import os
 
-    from graspcap.catalog import workarea
+    from graspcap.flows import workarea
     from graspcap.flows.workarea import sha256_file
 
     work = WorkArea(tmp_path / "work")
