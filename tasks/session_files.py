@@ -343,9 +343,9 @@ def mesh_problems(path: Path, limits: SessionLimits = DEFAULT_LIMITS) -> list[st
         mesh = trimesh.load(trimesh.util.wrap_as_stream(data), file_type=path.suffix[1:].lower(),
                             force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for a bad file
-        text = f"{type(exc).__name__}: {exc}"
+        text = str(exc).strip() or type(exc).__name__
         return [f"does not load as a {path.suffix[1:].upper()} mesh (corrupt or not a mesh "
-                f"file; the loader said {text[:200]})"]
+                f"file; the loader said: {text[:200]})"]
     vertices = np.asarray(getattr(mesh, "vertices", np.empty((0, 3))))
     faces = np.asarray(getattr(mesh, "faces", np.empty((0, 3))))
     if len(vertices) == 0 or len(faces) == 0:
@@ -395,7 +395,7 @@ def json_depth_exceeds(text: str, max_depth: int) -> bool:
     return bool(len(step)) and int(np.cumsum(step).max()) > max_depth
 
 
-def load_json(path: Path, max_bytes: int | None = None,
+def load_json(path: Path, max_bytes: int | None = DEFAULT_LIMITS.max_keypoint_bytes,
               max_depth: int = DEFAULT_LIMITS.max_json_depth) -> object | JsonSyntaxError:
     """The parsed JSON at ``path``, or a :class:`JsonSyntaxError` saying why not (line and
     column of a syntax error; not a regular file; larger than ``max_bytes``; nested deeper
