@@ -46,7 +46,14 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         return 2
     failed = 0
     for directory in found.sessions:
-        problems = validate_session(directory, check_images=not args.no_images)
+        try:
+            problems = validate_session(directory, check_images=not args.no_images)
+        except Exception as exc:  # noqa: BLE001 - a validator bug must not stop the others
+            failed += 1
+            why = f"{type(exc).__name__}: {str(exc)[:200]}"
+            print(f"FAIL {_shown_path(directory)}: the validator failed on it ({why}); "
+                  "please report this as a bug")
+            continue
         if any(p.severity == "error" for p in problems):  # frame-level ones do not fail it
             failed += 1
             print(f"FAIL {_shown_path(directory)}: {len(problems)} problem(s)")

@@ -243,10 +243,8 @@ class Session:
         path = self._any(rel_or_path)
         rel = os.path.relpath(path, self.root)
         data = read_regular(path)
-        camera = self.manifest.thermal_camera if kind is ImageKind.THERMAL else (
-            self.manifest.color_camera)
         why = data.message if isinstance(data, Unreadable) else (
-            size_problem(data, None, camera.width * camera.height))
+            size_problem(data, None, DEFAULT_LIMITS.max_image_pixels))
         if why is not None:
             raise SessionInvalid([Problem(self.session_id, rel, WHOLE_FILE, f"{kind}: {why}")])
         image = decode(data, flags)  # type: ignore[arg-type]
@@ -410,13 +408,16 @@ class _Checker:
                 self.add(rel, field, message)
 
     def grasp_frames(self, grasp: Grasp, kind: FrameKind, size, check: bool) -> None:
-        field, missing = f"grasp.{kind}", []
+        field, missing, unusable = f"grasp.{kind}", [], []
         for i in range(grasp.count):
             rel = grasp.frame_path(kind, i) or ""
-            path = self.existing(rel, field, report_missing=False)
-            if path is None:
-                if (inside := self.inside(rel)[0]) is not None and not_regular(inside) == MISSING:
-                    missing.append(i)
+            path, why = self.inside(rel)
+            if path is not None:
+                why = not_regular(path)
+            if why == MISSING:
+                missing.append(i)
+            elif why is not None:  # leaves the session, a directory, a FIFO, ...
+                unusable.append((rel, why))
             elif kind == "keypoints":
                 self.keypoints(path, rel, field)
             elif check:
@@ -426,6 +427,11 @@ class _Checker:
                 for message in image_problems(path, image_kind, size, limits=self.limits):
                     self.add(rel, field, message, severity)
         pattern, count = getattr(grasp, kind), grasp.count
+        for rel, why in unusable[:MAX_LISTED]:
+            self.add(rel, field, why)
+        if len(unusable) > MAX_LISTED:
+            self.add(pattern, field, f"{len(unusable) - MAX_LISTED} more frames are not "
+                     f"readable files (the first: {unusable[MAX_LISTED][1]})")
         if missing and missing == list(range(missing[0], count)):
             self.add(pattern.format(index=missing[0]), "grasp.count",
                      f"count is {count} but {field} has files for frames 0..{missing[0] - 1} "

@@ -284,3 +284,16 @@ def test_reads_digest_refuses_a_directory_without_opening_it(tmp_path):
     (d / "object.ply").mkdir()
     with pytest.raises(NotARegularFile):
         reads_digest(WorkArea(tmp_path / "work"), files, ("object_mesh",))
+
+
+def test_many_unreadable_frames_are_capped(tmp_path):
+    d = write_session(tmp_path / "s", frames=30)
+    for i in range(25):  # directories where 25 depth frames should be
+        (d / f"grasp/depth/{i:06d}.png").unlink()
+        (d / f"grasp/depth/{i:06d}.png").mkdir()
+    problems = [p for p in validate_session(d) if p.field == "grasp.depth"]
+    assert [p.file for p in problems[:20]] == [f"grasp/depth/{i:06d}.png" for i in range(20)]
+    assert {p.message for p in problems[:20]} == {"is a directory, not a file"}
+    assert [(p.file, p.message) for p in problems[20:]] == [
+        ("grasp/depth/{index:06d}.png",
+         "5 more frames are not readable files (the first: is a directory, not a file)")]
