@@ -43,10 +43,15 @@ FORMAT = "grasp-capture-session/1"
 
 SCHEMA_RESOURCE = "session.schema.json"
 
-RELATIVE_PATH_RE = r"^(?!/)(?!.*(?:^|/)\.\.(?:/|$)).+$"
-"""A non-empty relative POSIX path without a ``..`` component (same regex in the JSON Schema)."""
+RELATIVE_PATH_RE = r"^(?!/)(?!.*(?:^|/)\.\.(?:/|$))[^\x00-\x1f\x7f]+(?![\s\S])"
+r"""A non-empty relative POSIX path without a ``..`` component or a control character (same
+regex in the JSON Schema; ``(?![\s\S])`` ends the string, where ``$`` would let a trailing
+newline through in Python)."""
 
-MESH_PATH_RE = r"^(?!/)(?!.*(?:^|/)\.\.(?:/|$)).+\.([Pp][Ll][Yy]|[Oo][Bb][Jj]|[Ss][Tt][Ll])$"
+MESH_PATH_RE = (
+    r"^(?!/)(?!.*(?:^|/)\.\.(?:/|$))[^\x00-\x1f\x7f]+\.("
+    r"[Pp][Ll][Yy]|[Oo][Bb][Jj]|[Ss][Tt][Ll])(?![\s\S])"
+)
 """A relative path (as above) to a PLY, OBJ or STL mesh (any letter case)."""
 
 INDEX_FIELD_RE = r"\{index[^{}]*\}"

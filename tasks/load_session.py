@@ -328,7 +328,7 @@ def _message(error: dict[str, Any]) -> str:
     if kind == "string_pattern_mismatch" and ctx.get("pattern") in (RELATIVE_PATH_RE, MESH_PATH_RE):
         mesh = " ending in .ply, .obj or .stl" if ctx["pattern"] == MESH_PATH_RE else ""
         return (f"{_shown(error['input'])} is not a relative path inside the session{mesh} "
-                "(no leading '/', no '..')")
+                "(no leading '/', no '..', no control character)")
     message = error["msg"].removeprefix("Value error, ")
     got = repr(error.get("input"))
     return message if kind == "value_error" else f"{message} (got {got[:60]})"
