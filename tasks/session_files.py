@@ -357,7 +357,7 @@ def mesh_problems(path: Path, limits: SessionLimits = DEFAULT_LIMITS) -> list[st
         return ["mesh has non-finite vertex coordinates"]
     if faces.min() < 0 or faces.max() >= len(vertices):
         bad = int(np.argmax((faces < 0).any(axis=1) | (faces >= len(vertices)).any(axis=1)))
-        return [f"face {bad} indexes vertex {faces[bad].tolist()}, but the mesh has "
+        return [f"face {bad} indexes vertices {faces[bad].tolist()}, but the mesh has "
                 f"{len(vertices)} vertices (indices 0..{len(vertices) - 1})"]
     return []
 

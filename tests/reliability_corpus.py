@@ -309,7 +309,7 @@ ISSUE_ROWS: list[Kind] = [
          Fails(stage="build_contactmap", message_contains="scan/thermal/000.png"),
          issue_row=True),
     Kind("mesh face index out of range", _mesh_index_past_end,
-         Invalid("object.ply", "object_mesh", "indexes vertex .* 8 vertices"), issue_row=True),
+         Invalid("object.ply", "object_mesh", "face 11 indexes vertices .1, 7, 99., but the mesh has 8 vertices"), issue_row=True),
     Kind("root folder without session.json", lambda d: (d / "session.json").unlink(),
          Invalid("session.json", "(file)", "missing"), issue_row=True),
     Kind("keypoints only for the other hand",
