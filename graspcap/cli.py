@@ -36,24 +36,42 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from graspcap.tasks.load_session import discover_sessions, validate_session
+    from graspcap.tasks.load_session import NOT_A_SESSION, discover, validate_session
 
-    sessions = discover_sessions(args.dirs)
-    if not sessions:
+    found = discover(args.dirs)
+    for folder in found.not_sessions:
+        print(f"SKIP {_shown_path(folder)}: {NOT_A_SESSION}")
+    if not found.sessions:
         print(f"no session.json found under {' '.join(map(str, args.dirs))}", file=sys.stderr)
         return 2
     failed = 0
-    for directory in sessions:
-        problems = validate_session(directory, check_images=not args.no_images)
+    for directory in found.sessions:
+        try:
+            problems = validate_session(directory, check_images=not args.no_images)
+        except Exception as exc:  # noqa: BLE001 - a validator bug must not stop the others
+            failed += 1
+            why = f"{type(exc).__name__}: {str(exc)[:200]}"
+            print(f"FAIL {_shown_path(directory)}: the validator failed on it ({why}); "
+                  "please report this as a bug")
+            continue
         if any(p.severity == "error" for p in problems):  # frame-level ones do not fail it
             failed += 1
-            print(f"FAIL {directory}: {len(problems)} problem(s)")
+            print(f"FAIL {_shown_path(directory)}: {len(problems)} problem(s)")
         else:
-            print(f"OK   {directory}" + (f" ({len(problems)} frame(s) skipped)" * bool(problems)))
+            print(f"OK   {_shown_path(directory)}"
+                  + (f" ({len(problems)} frame(s) skipped)" * bool(problems)))
         for p in problems:
             print(f"  - {p}")
-    print(f"{len(sessions) - failed} ok, {failed} failed")
+    skipped = f", {len(found.not_sessions)} not a session" * bool(found.not_sessions)
+    print(f"{len(found.sessions) - failed} ok, {failed} failed{skipped}")
     return 1 if failed else 0
+
+
+def _shown_path(path: Path) -> str:
+    """A folder for one output line: as is, or its repr when its name holds a control
+    character (a newline in a folder name must not split the line)."""
+    text = str(path)
+    return text if text.isprintable() else repr(text)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:

@@ -101,7 +101,8 @@ def depth_lookup(session: Session, window_px: int = 2, read: Callable | None = N
 
 
 def _load(session_dir: Path | str, config) -> Session:
-    return load_session.load_session(Path(session_dir), check_images=config.check_images)
+    return load_session.load_session(Path(session_dir), check_images=config.check_images,
+                                     limits=config.limits)
 
 
 def _register_object(session, config, **_):
