@@ -55,7 +55,7 @@ COLUMNS_ADDED: dict[int, dict[str, tuple[str, ...]]] = {
 """``{format: {table: columns that format added}}`` (docs/data_changelog.md): a catalog of an
 older format lacks them."""
 FORMAT_2_COLUMNS = COLUMNS_ADDED[2]
-GOLDEN_FORMATS = (1, 2, 3)
+GOLDEN_FORMATS = (1, 2, 3, 4)
 """Older formats with a golden catalog (every one ``graspcap catalog migrate`` leads from)."""
 
 
