@@ -2,8 +2,10 @@
 
 ``GraspDataset`` items are dicts of numpy arrays: a frame row (``unit="frames"``) or a session row
 (``unit="sessions"``) joined with its session's arrays (contact map, refined hand mesh and
-joints) and its object mesh. QA's flag reasons and notes (``qa_flags``, ``qa_notes``: lists of
-strings of any length, which a batch collate cannot stack) are not in the items:
+joints) and the session's own object mesh (the one its contact map indexes; sessions of one
+``object_id`` may carry different meshes). QA's flag reasons and notes (``qa_flags``,
+``qa_notes``: lists of strings of any length, which a batch collate cannot stack) are not in
+the items:
 ``session_qa(session_id)`` gives them. The dataset pickles as its catalog root, pinned version
 and item keys; tables and arrays are opened lazily in whichever process indexes it, so it works
 with a torch ``DataLoader`` with workers.
@@ -144,11 +146,11 @@ class GraspDataset:
         cat, v = self._catalog, self.version
         contact, observed = cat.contactmap(session_id, v)
         hand_v, hand_f = cat.hand_mesh(session_id, v)
-        object_id = self._session_meta[session_id]["object_id"]
-        objects = self._load()["objects"]
-        if object_id not in objects:
-            objects[object_id] = cat.object_mesh(object_id, v)
-        obj_v, obj_f = objects[object_id]
+        digest = cat._digest(session_id, v, "object_mesh_digest")
+        objects = self._load()["objects"]  # by mesh digest: each session has its own mesh
+        if digest not in objects:
+            objects[digest] = cat.object_mesh(session_id=session_id, version=v)
+        obj_v, obj_f = objects[digest]
         arrays = {"contact": contact, "contact_observed": observed, "hand_vertices": hand_v,
                   "hand_faces": hand_f, "hand_joints_o": cat.hand_joints(session_id, v),
                   "object_vertices": obj_v, "object_faces": obj_f}
