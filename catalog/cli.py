@@ -1,4 +1,4 @@
-"""`graspcap catalog versions|show|diff|tag|export|vacuum|migrate` on the command line.
+"""`graspcap catalog versions|show|diff|tag|export|vacuum|verify|migrate` on the command line.
 
 ``add_catalog_parser(subparsers)`` adds the ``catalog`` command to graspcap's parser. Every
 subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL), prints text for a
@@ -201,7 +201,33 @@ def _cmd_migrate(args: argparse.Namespace) -> int:
     else:
         made = f"; new version {r.new_version} pins the upgraded tables" if r.new_version else ""
         print(f"migrated {r.root} from format {r.from_format} to {r.to_format}{made}")
+        for digest, problem in sorted(r.damaged_arrays.items()):
+            print(f"  array group {digest} left as it was: {problem} (`graspcap catalog "
+                  "verify` names the sessions using it)")
     return 0
+
+
+VERIFY_DAMAGED = 1
+"""Exit status of ``catalog verify`` when something the version needs is missing or altered
+(2, as for every subcommand, when the catalog or version cannot be opened at all)."""
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
+    from graspcap.catalog.verify import verify_version
+
+    report = verify_version(_open(args), _version_arg(args.version))
+    if args.json:
+        _print_json(report.as_dict())
+        return 0 if report.ok else VERIFY_DAMAGED
+    files = sum(report.table_files.values())
+    checked = f"{files} table file(s) and {report.arrays} array group(s)"
+    if report.ok:
+        print(f"version {report.version}: {checked} checked, nothing damaged")
+        return 0
+    print(f"version {report.version}: {checked} checked, {len(report.damaged)} damaged:")
+    for d in report.damaged:
+        print(f"  {d.line()}")
+    return VERIFY_DAMAGED
 
 
 def _guard(func):
@@ -221,8 +247,8 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
                         help="catalog folder or URL (file://, s3://, ... read-only)")
     as_json = argparse.ArgumentParser(add_help=False)
     as_json.add_argument("--json", action="store_true", help="print JSON")
-    parser = subparsers.add_parser("catalog", help="list, show, compare, tag, export, vacuum "
-                                   "and migrate catalog versions")
+    parser = subparsers.add_parser("catalog", help="list, show, compare, tag, export, vacuum, "
+                                   "verify and migrate catalog versions")
     sub = parser.add_subparsers(dest="catalog_command", required=True)
 
     p = sub.add_parser("versions", parents=[common, as_json], help="every version")
@@ -251,6 +277,11 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
                        help="delete files no kept version needs (newest N plus tagged)")
     p.add_argument("--keep", type=int, required=True, help="newest versions to keep (>= 1)")
     p.set_defaults(func=_guard(_cmd_vacuum))
+    p = sub.add_parser("verify", parents=[common, as_json],
+                       help="check that every file a version needs exists and every array "
+                       "matches its digest; exit 1 naming what is damaged")
+    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
+    p.set_defaults(func=_guard(_cmd_verify))
     p = sub.add_parser("migrate", parents=[common],
                        help="upgrade an older-format catalog to this graspcap's format")
     p.add_argument("path", nargs="?", help="the catalog (default: --catalog)")
