@@ -57,9 +57,21 @@ def _with_any(column: pa.ChunkedArray) -> int:
                or 0)
 
 
+def several_meshes(sessions: pa.Table) -> dict[str, dict[str, list[str]]]:
+    """``{object_id: {mesh digest: [session ids]}}`` of the object ids whose sessions carry
+    more than one object mesh (allowed: each session brings its own; worth a look)."""
+    by_object: dict[str, dict[str, list[str]]] = {}
+    for r in sessions.select(["session_id", "object_id", "object_mesh_digest"]).to_pylist():
+        if r["object_mesh_digest"]:
+            by_object.setdefault(r["object_id"], {}).setdefault(
+                r["object_mesh_digest"], []).append(r["session_id"])
+    return {o: {d: sorted(s) for d, s in sorted(m.items())}
+            for o, m in sorted(by_object.items()) if len(m) > 1}
+
+
 def summary(cat, version: int | str | None = None) -> dict:
-    """A version's summary: number, build, tags, row counts, status counts, QA medians, and
-    how many sessions have QA flag reasons and notes."""
+    """A version's summary: number, build, tags, row counts, status counts, QA medians, how
+    many sessions have QA flag reasons and notes, and the object ids with several meshes."""
     v = cat.resolve(version)
     info = next(r for r in cat.versions().to_pylist() if r["version"] == v)
     sessions = cat.table("sessions", v)
@@ -78,6 +90,7 @@ def summary(cat, version: int | str | None = None) -> dict:
         "status": {r["status"]: r["count_all"] for r in status},
         "qa_median": qa,
         "sessions_with": {c: _with_any(sessions[c]) for c in QA_TEXT_COLUMNS},
+        "objects_with_several_meshes": several_meshes(sessions),
         "build": None if not build else {
             k: build[0][k] for k in ("build_id", "code_version", "config_digest")} | {
             k: len(build[0][k]) for k in ("sessions_added", "sessions_changed",
@@ -127,6 +140,10 @@ def _cmd_show(args: argparse.Namespace) -> int:
         w = out["sessions_with"]
         print(f"QA:     {w['qa_flags']} session(s) with flag reasons, {w['qa_notes']} with "
               "notes (show --session ID lists them)")
+        for obj, meshes in out["objects_with_several_meshes"].items():
+            print(f"meshes: object {obj!r} has {len(meshes)} different meshes (each session "
+                  "keeps its own): " + "; ".join(f"{d[:12]}: {', '.join(s)}"
+                                                 for d, s in meshes.items()))
         print("QA medians:")
         for k, v in out["qa_median"].items():
             print(f"  {k:<26} {'-' if v is None else f'{v:.4g}'}")

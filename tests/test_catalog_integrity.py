@@ -43,7 +43,7 @@ def _two_mugs() -> gc.BuildCommit:
                                object_meshes={A: small, B: large, "mug": small})
 
 
-def test_sessions_of_one_object_id_keep_their_own_meshes(tmp_path):
+def test_sessions_of_one_object_id_keep_their_own_meshes(tmp_path, capsys):
     cat = gc.open(tmp_path / "cat", create=True)
     build = _two_mugs()
     assert cat.commit(build) == 1
@@ -65,6 +65,13 @@ def test_sessions_of_one_object_id_keep_their_own_meshes(tmp_path):
         cat.object_mesh("mug", 1)
     with pytest.raises(KeyError, match="of object 'mug', not 'bowl'"):
         cat.object_mesh("bowl", 1, session_id=A)
+
+    code = main(["catalog", "show", "--catalog", str(cat.layout.root)])
+    out = capsys.readouterr().out
+    d_a, d_b = sorted([rows[A]["object_mesh_digest"], rows[B]["object_mesh_digest"]])
+    users = {rows[A]["object_mesh_digest"]: f"{A}, {C}", rows[B]["object_mesh_digest"]: B}
+    assert code == 0 and (f"meshes: object 'mug' has 2 different meshes (each session keeps its "
+                          f"own): {d_a[:12]}: {users[d_a]}; {d_b[:12]}: {users[d_b]}") in out
 
     ds = gc.GraspDataset(cat, unit="sessions")
     items = {ds[i]["session_id"]: ds[i] for i in range(len(ds))}
