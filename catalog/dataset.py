@@ -22,6 +22,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from graspcap.catalog.arrays import DamagedArrayError
 from graspcap.catalog.store import Catalog
 from graspcap.catalog.store import open as open_catalog
 from graspcap.schemas.tables import FRAMES_SCHEMA, SESSIONS_SCHEMA
@@ -144,15 +145,20 @@ class GraspDataset:
             cache.move_to_end(session_id)
             return cache[session_id]
         cat, v = self._catalog, self.version
-        contact, observed = cat.contactmap(session_id, v)
-        hand_v, hand_f = cat.hand_mesh(session_id, v)
-        digest = cat._digest(session_id, v, "object_mesh_digest")
-        objects = self._load()["objects"]  # by mesh digest: each session has its own mesh
-        if digest not in objects:
-            objects[digest] = cat.object_mesh(session_id=session_id, version=v)
+        try:
+            contact, observed = cat.contactmap(session_id, v)
+            hand_v, hand_f = cat.hand_mesh(session_id, v)
+            joints = cat.hand_joints(session_id, v)
+            digest = cat._digest(session_id, v, "object_mesh_digest")
+            objects = self._load()["objects"]  # by mesh digest: each session has its own
+            if digest not in objects:
+                objects[digest] = cat.object_mesh(session_id=session_id, version=v)
+        except DamagedArrayError as exc:  # say whose item it is
+            raise DamagedArrayError(exc.digest, f"session {session_id!r} (catalog version "
+                                    f"{v}): {exc}", array=exc.array, file=exc.file) from exc
         obj_v, obj_f = objects[digest]
         arrays = {"contact": contact, "contact_observed": observed, "hand_vertices": hand_v,
-                  "hand_faces": hand_f, "hand_joints_o": cat.hand_joints(session_id, v),
+                  "hand_faces": hand_f, "hand_joints_o": joints,
                   "object_vertices": obj_v, "object_faces": obj_f}
         cache[session_id] = arrays
         if len(cache) > _CACHE_SESSIONS:

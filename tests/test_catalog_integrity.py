@@ -132,7 +132,8 @@ def test_missing_chunk_fails_reads_export_and_verify(damaged, tmp_path):
                        "'vertices' is missing"):
         cat.hand_mesh(sid)
     np.testing.assert_array_equal(cat.hand_joints(sid).shape, (21, 3))  # joints are intact
-    with pytest.raises(DamagedArrayError, match="vertices/c/0/0"):
+    with pytest.raises(DamagedArrayError, match=rf"session '{sid}' \(catalog version 1\): "
+                       rf"array group {digest}: file vertices/c/0/0"):
         gc.GraspDataset(cat, objects=["drill"])[0]
     with pytest.raises(DamagedArrayError, match=rf"cannot export hand_mesh of session\(s\) "
                        rf"{sid}: array group {digest}: file vertices/c/0/0"):
