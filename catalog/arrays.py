@@ -225,6 +225,10 @@ def read_group(layout: CatalogLayout, digest: str,
     try:
         files = _group_files(layout, root, names)
     except FileNotFoundError:
+        if layout.fs.isdir(root):
+            raise DamagedArrayError(digest, f"array group {digest}: its zarr.json is missing "
+                                    f"({root}/zarr.json); the catalog is damaged (`graspcap "
+                                    "catalog verify`)", file="zarr.json") from None
         raise DamagedArrayError(digest, f"array group {digest} is missing from {layout.uri}/"
                                 "arrays; it was removed by vacuum or the catalog is damaged "
                                 "(`graspcap catalog verify` lists what is)") from None
@@ -269,13 +273,16 @@ def check_files(root: str, digest: str, files: Mapping[str, bytes],
                 "(`graspcap catalog verify`)", array=array, file=key)
 
 
-def verify_group(layout: CatalogLayout, digest: str) -> list[str]:
+def verify_group(layout: CatalogLayout, digest: str, kind: str | None = None) -> list[str]:
     """What is wrong with the group ``digest`` (empty: nothing): every file the manifest lists
-    present and matching, the whole group decodable, its content matching its digest."""
+    present and matching, the whole group decodable, of ``kind`` (when given), its content
+    matching its digest."""
     root = layout.group_fs_path(digest)
     try:
         files = _group_files(layout, root, None)
     except FileNotFoundError:
+        if layout.fs.isdir(root):
+            return [f"its zarr.json is missing ({root}/zarr.json)"]
         return [f"group {root} is missing"]
     problems = []
     manifest = manifest_of(files)
@@ -290,8 +297,10 @@ def verify_group(layout: CatalogLayout, digest: str) -> list[str]:
     try:
         arrays = _run(_decode(files, None))
         meta = json.loads(files["zarr.json"])
-        kind = meta["attributes"]["kind"]
-        if array_digest(kind, arrays) != digest:
+        found = meta["attributes"]["kind"]
+        if kind is not None and found != kind:
+            problems.append(f"it holds a {found!r} group where a {kind!r} one is referenced")
+        elif array_digest(found, arrays) != digest:
             problems.append("its content does not match its digest (an altered or missing "
                             "chunk, or altered metadata)")
     except Exception as exc:  # noqa: BLE001 - any failure to decode is damage to report

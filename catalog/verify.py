@@ -127,7 +127,7 @@ def verify_version(cat: Catalog, version: int | str | None = None) -> VerifyRepo
                               "groups it references were not checked"))
     digests = sorted(users)
     with ThreadPoolExecutor(max_workers=VERIFY_THREADS) as pool:
-        found = list(pool.map(lambda d: verify_group(cat.layout, d), digests))
+        found = list(pool.map(lambda d: verify_group(cat.layout, d, users[d][0]), digests))
     for digest, problems in zip(digests, found, strict=True):
         kind, sessions = users[digest]
         damaged.extend(Damage("array", digest, p, tuple(sorted(sessions)), kind)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -193,6 +194,30 @@ def test_altered_metadata_is_caught_by_verify_only(damaged):
     assert verify_group(cat.layout, digest) == [
         "its content does not match its digest (an altered or missing chunk, or altered "
         "metadata)"]
+
+
+def test_missing_group_metadata_and_a_group_of_the_wrong_kind(damaged):
+    cat, rows = damaged
+    sid = "p02-drill-use-00"
+    digest = rows[sid]["hand_mesh_digest"]
+    (cat.layout.array_group(digest) / "zarr.json").unlink()
+    with pytest.raises(DamagedArrayError, match=rf"{digest}: its zarr.json is missing"):
+        cat.hand_joints(sid)
+    shutil.rmtree(cat.layout.array_group(rows[sid]["contact_digest"]))
+    with pytest.raises(DamagedArrayError, match="is missing from .* removed by vacuum or the "
+                       "catalog is damaged"):
+        cat.contactmap(sid)
+    # another group's files under this digest (a botched restore from a backup)
+    other = rows["p01-bowl-use-00"]["object_mesh_digest"]
+    shutil.copytree(cat.layout.array_group(rows["p01-bowl-use-00"]["contact_digest"]),
+                    cat.layout.array_group(rows[sid]["contact_digest"]))
+    problems = {(d.name, d.problem) for d in verify_version(cat).damaged}
+    assert problems == {
+        (digest, f"its zarr.json is missing ({cat.layout.array_group(digest)}/zarr.json)"),
+        (rows[sid]["contact_digest"], "its content does not match its digest (an altered or "
+                                      "missing chunk, or altered metadata)")}
+    assert verify_group(cat.layout, other, "contact") == [
+        "it holds a 'object_mesh' group where a 'contact' one is referenced"]
 
 
 def test_deleted_parquet_file_is_named_by_verify(damaged):
