@@ -47,6 +47,9 @@ _SESSION_FIELDS = ["session_id", "participant", "object_id", "intent", "hand", "
                    "hand_scale", "joint_angles_rad", "joints_w", "joints_fit_w"]
 _QA_FIELDS = ["status", "qa_flags", "qa_notes"]
 _CACHE_SESSIONS = 64
+_CACHE_MESHES = 64
+"""Object meshes kept per process, by digest (sessions of one object usually share one; with
+a mesh per session, an unbounded cache would hold every session's)."""
 
 
 def _shape(field: pa.Field) -> tuple[int, ...] | None:
@@ -132,7 +135,8 @@ class GraspDataset:
                                                 pa.array(self.session_ids, pa.string())))
             scols = _columns(sessions.select(_SESSION_FIELDS), SESSIONS_SCHEMA)
             srow = {s: i for i, s in enumerate(scols["session_id"])}
-            state = {"sessions": scols, "srow": srow, "arrays": OrderedDict(), "objects": {}}
+            state = {"sessions": scols, "srow": srow, "arrays": OrderedDict(),
+                     "objects": OrderedDict()}
             if self.unit is Unit.FRAMES:
                 frames = self._frames_table()
                 state["frames"] = _columns(frames.drop_columns(["build_id"]), FRAMES_SCHEMA)
@@ -151,8 +155,12 @@ class GraspDataset:
             joints = cat.hand_joints(session_id, v)
             digest = cat._digest(session_id, v, "object_mesh_digest")
             objects = self._load()["objects"]  # by mesh digest: each session has its own
-            if digest not in objects:
+            if digest in objects:
+                objects.move_to_end(digest)
+            else:
                 objects[digest] = cat.object_mesh(session_id=session_id, version=v)
+                if len(objects) > _CACHE_MESHES:
+                    objects.popitem(last=False)
         except DamagedArrayError as exc:  # say whose item it is
             raise DamagedArrayError(exc.digest, f"session {session_id!r} (catalog version "
                                     f"{v}): {exc}", array=exc.array, file=exc.file) from exc
