@@ -5,7 +5,8 @@ Protocol (under the writer lock):
 1. read the last ``versions`` row: the Delta version every data table must be at;
 2. roll back any table that is newer (a writer died after a table commit, before its versions
    row) with ``DeltaTable.restore``;
-3. write the arrays (content-addressed Zarr groups, temp name then rename);
+3. write the arrays (content-addressed Zarr groups, temp name then rename; first remove what
+   killed writers left under ``arrays/.tmp``);
 4. per data table one Delta commit: replace the rows of the sessions the build touches
    (``mode="overwrite"`` with a ``session_id IN (...)`` predicate), append the builds row;
 5. append the ``versions`` row: this write is the linearisation point. Readers resolve a catalog
@@ -32,7 +33,12 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from deltalake import DeltaTable, write_deltalake
 
-from graspcap.catalog.arrays import array_digest, check_arrays, write_group
+from graspcap.catalog.arrays import (
+    array_digest,
+    check_arrays,
+    remove_temp_groups,
+    write_group,
+)
 from graspcap.catalog.delta import (
     INITIAL_TABLE_VERSIONS,
     delta_version,
@@ -104,7 +110,11 @@ class BuildCommit:
 
     ``sessions`` and ``frames`` are batches (``pyarrow.Table``, a mapping of columns or a list
     of row dicts) of the catalog schemas; the three ``*_digest`` columns may be left out, they
-    are filled from ``session_arrays`` (by session id) and ``object_meshes`` (by object id).
+    are filled from ``session_arrays`` (by session id) and ``object_meshes``. Every session has
+    its own object mesh (the input contract): ``object_meshes`` is keyed by session id; a key
+    that is an object id instead serves the sessions of that object that have no entry of their
+    own (a shorthand where each object has one mesh). Meshes are content-addressed, so equal
+    meshes are stored once, and each session's contact map is checked against its own mesh.
     Every session in ``sessions`` replaces its previous row and frames; sessions in ``remove``
     leave the catalog.
     """
@@ -209,17 +219,20 @@ def _prepare(commit: BuildCommit) -> tuple[pa.Table, pa.Table, dict[str, tuple[s
                 digest = array_digest(kind, checked)
                 groups[digest] = (kind, checked)
                 filled[ZARR_LAYOUT[kind].digest_column][i] = digest
-        mesh = commit.object_meshes.get(objects[i]) if i < len(objects) else None
+        mesh = commit.object_meshes.get(sid)
+        if mesh is None and i < len(objects):
+            mesh = commit.object_meshes.get(objects[i])
         if mesh is not None:
             checked = check_arrays("object_mesh", {"vertices": mesh.vertices,
-                                                    "faces": mesh.faces}, owner=objects[i])
+                                                    "faces": mesh.faces}, owner=sid)
             digest = array_digest("object_mesh", checked)
             groups[digest] = ("object_mesh", checked)
             filled["object_mesh_digest"][i] = digest
             if arrays is not None and len(arrays.contact) != len(checked["vertices"]):
                 raise CatalogSchemaError("arrays/contact", "values", [sid],
-                                         f"{len(arrays.contact)} contact values for an object "
-                                         f"mesh of {len(checked['vertices'])} vertices")
+                                         f"{len(arrays.contact)} contact values for the "
+                                         f"session's object mesh of {len(checked['vertices'])} "
+                                         f"vertices (object {objects[i]!r})")
     for col in digest_cols:
         if col not in sessions:
             sessions[col] = filled[col]
@@ -249,6 +262,7 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
     with writer_lock(layout, lock_timeout_s):
         _pause("after_lock")
         recover(layout)
+        remove_temp_groups(layout)  # what a killed writer left; no live writer holds the lock
         row = last_version_row(layout)
         previous = table_versions_of(row) if row else INITIAL_TABLE_VERSIONS
         version = (row["version"] if row else 0) + 1

@@ -24,7 +24,7 @@ LOCAL_SCHEMES = ("", "file", "local")
 """URL schemes that name a local folder: ``/data/cat``, ``file:///data/cat``."""
 DELTA_SCHEMES = ("s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl")
 """Object stores deltalake reads itself (its storage_options take the credentials)."""
-MIGRATIONS_FROM = (1, 2, 3)
+MIGRATIONS_FROM = (1, 2, 3, 4)
 """Older formats ``graspcap catalog migrate`` upgrades (``graspcap.catalog.migrate``)."""
 
 

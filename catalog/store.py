@@ -217,15 +217,49 @@ class Catalog:
         digest = self._digest(session_id, version, "hand_mesh_digest")
         return read_group(self.layout, digest, ("joints",))["joints"]
 
-    def object_mesh(self, object_id: str, version: int | str | None = None
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """vertices : (n, 3) float32 (object frame, m); faces : (m, 3) int32."""
+    def object_meshes(self, object_id: str, version: int | str | None = None
+                      ) -> dict[str, list[str]]:
+        """``{mesh digest: [session ids]}``: the object meshes the sessions of ``object_id``
+        carry in ``version`` (one entry unless sessions of the object brought different
+        meshes; the contract gives every session its own)."""
         v = self.resolve(version)
-        for row in self._sessions_index(v).values():
+        out: dict[str, list[str]] = {}
+        for sid, row in sorted(self._sessions_index(v).items()):
             if row["object_id"] == object_id and row["object_mesh_digest"]:
-                g = read_group(self.layout, row["object_mesh_digest"], ("vertices", "faces"))
-                return g["vertices"], g["faces"]
-        raise KeyError(f"object {object_id!r} has no mesh in catalog version {v}")
+                out.setdefault(row["object_mesh_digest"], []).append(sid)
+        return out
+
+    def object_mesh(self, object_id: str | None = None, version: int | str | None = None, *,
+                    session_id: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """vertices : (n, 3) float32 (object frame, m); faces : (m, 3) int32.
+
+        ``session_id=``: that session's own mesh (the one its contact map indexes). An
+        ``object_id`` alone: its mesh when every session of the object in ``version`` has the
+        same one; where they differ this fails naming the sessions of each mesh (pass
+        ``session_id``; ``object_meshes(object_id)`` lists them).
+        """
+        v = self.resolve(version)
+        if session_id is not None:
+            row = self._session_row(session_id, v)
+            if object_id is not None and row["object_id"] != object_id:
+                raise KeyError(f"session {session_id!r} is of object {row['object_id']!r}, "
+                               f"not {object_id!r}")
+            digest = self._digest(session_id, v, "object_mesh_digest")
+        elif object_id is None:
+            raise TypeError("object_mesh() needs an object_id or session_id=")
+        else:
+            meshes = self.object_meshes(object_id, v)
+            if not meshes:
+                raise KeyError(f"object {object_id!r} has no mesh in catalog version {v}")
+            if len(meshes) > 1:
+                which = "; ".join(f"mesh {d[:12]}: {', '.join(s)}" for d, s in meshes.items())
+                raise CatalogError(
+                    f"object {object_id!r} has {len(meshes)} different meshes in catalog "
+                    f"version {v} ({which}); ask for one session's mesh with "
+                    f"object_mesh(session_id=...)")
+            digest = next(iter(meshes))
+        g = read_group(self.layout, digest, ("vertices", "faces"))
+        return g["vertices"], g["faces"]
 
     # writing ----------------------------------------------------------------------------
     def commit(self, build: BuildCommit) -> int:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from graspcap.catalog.arrays import all_digests
+from graspcap.catalog.arrays import all_digests, remove_temp_groups
 from graspcap.catalog.commit import recover, writer_lock
 from graspcap.catalog.delta import delta_version, table_files
 from graspcap.schemas.tables import DATA_TABLES, TABLE_SCHEMAS, ZARR_LAYOUT
@@ -83,8 +83,9 @@ def vacuum_catalog(catalog: Catalog, keep: int) -> VacuumReport:
             shutil.rmtree(group)
             removed_arrays += 1
         if layout.arrays_tmp.is_dir():
-            freed += _size(layout.arrays_tmp)
-            shutil.rmtree(layout.arrays_tmp)
+            before = _size(layout.arrays_tmp)
+            remove_temp_groups(layout)  # killed writers' (a live process's stays)
+            freed += before - _size(layout.arrays_tmp)
     catalog._tables.clear()
     return VacuumReport(kept, sorted(set(all_versions) - set(kept)), removed_files,
                         removed_arrays, freed)

@@ -294,7 +294,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         rows.append(sr.session)
         frames.extend(sr.frames)
         arrays[sid] = sr.arrays
-        meshes[sr.object_id] = sr.object_mesh
+        meshes[sid] = sr.object_mesh  # the session's own mesh (content-addressed)
         reports.append(SessionReport(outcome=Outcome.CHANGED if prev else Outcome.ADDED,
                                      status=sr.session["status"],
                                      error=sr.session["error"], **info))
