@@ -3,7 +3,8 @@
 ``add_catalog_parser(subparsers)`` adds the ``catalog`` command to graspcap's parser. Every
 subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL), prints text for a
 person or ``--json`` for a script, and exits 2 with the catalog's message on a catalog error
-(missing version or tag, older format, ...). Prefect-free, like every catalog reader.
+(missing version or tag, older format, a damaged file: one line per problem, never a
+traceback). Prefect-free, like every catalog reader.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
+from deltalake.exceptions import DeltaError
 
 from graspcap.catalog.errors import CatalogError
 from graspcap.catalog.layout import DEFAULT_CATALOG
@@ -204,12 +206,20 @@ def _cmd_migrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def problem_lines(exc: BaseException) -> list[str]:
+    """One line per problem of a catalog error (a Rust backtrace or a traceback never)."""
+    if isinstance(exc, DeltaError):  # deltalake's text ends in a Rust backtrace
+        return [(str(exc).strip().splitlines() or [type(exc).__name__])[0]]
+    return [line for line in str(exc).splitlines() if line.strip()] or [type(exc).__name__]
+
+
 def _guard(func):
     def run(args: argparse.Namespace) -> int:
         try:
             return func(args)
-        except (CatalogError, ValueError) as exc:
-            print(f"graspcap catalog {args.catalog_command}: {exc}", file=sys.stderr)
+        except (CatalogError, ValueError, OSError, DeltaError) as exc:
+            for line in problem_lines(exc):
+                print(f"graspcap catalog {args.catalog_command}: {line}", file=sys.stderr)
             return 2
     return run
 
@@ -259,4 +269,4 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
     return parser
 
 
-__all__ = ["add_catalog_parser", "summary"]
+__all__ = ["add_catalog_parser", "problem_lines", "summary"]

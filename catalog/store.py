@@ -21,6 +21,7 @@ from deltalake import write_deltalake
 from graspcap.catalog.arrays import read_group
 from graspcap.catalog.commit import BuildCommit, commit_build, writer_lock
 from graspcap.catalog.delta import (
+    MissingFiles,
     create_tables,
     read_files,
     read_latest,
@@ -28,9 +29,9 @@ from graspcap.catalog.delta import (
     table_versions_of,
 )
 from graspcap.catalog.diff import diff_sessions
-from graspcap.catalog.errors import CatalogError, VersionNotFound
+from graspcap.catalog.errors import CatalogError, VersionNotFound, writing
 from graspcap.catalog.layout import CatalogLayout, check_format, write_format_file
-from graspcap.catalog.vacuum import VacuumReport, vacuum_catalog
+from graspcap.catalog.vacuum import VacuumReport, vacuum_catalog, vacuumed_versions
 from graspcap.catalog.validate import to_table
 from graspcap.schemas.tables import DATA_TABLES
 
@@ -48,9 +49,12 @@ def open(uri: str | Path, *, create: bool = False, lock_timeout_s: float = 60.0,
     """
     layout = CatalogLayout.from_uri(uri, storage_options)
     if create and layout.is_local and not layout.format_file.exists():
-        layout.root.mkdir(parents=True, exist_ok=True)
-        create_tables(layout)
-        write_format_file(layout)  # last: a half-created catalog has no stamp
+        with writing(layout.root):
+            layout.root.mkdir(parents=True, exist_ok=True)
+        with writer_lock(layout, lock_timeout_s):  # two creators at once: one creates
+            if not layout.format_file.exists():
+                create_tables(layout)
+                write_format_file(layout)  # last: a half-created catalog has no stamp
     check_format(layout)
     return Catalog(layout, lock_timeout_s=lock_timeout_s)
 
@@ -162,10 +166,23 @@ class Catalog:
         key = (name, v)
         if columns is None and key in self._tables:
             return self._tables[key]
-        table = read_files(name, self.files(name, v), columns, self.layout)
+        try:
+            table = read_files(name, self.files(name, v), columns, self.layout)
+        except MissingFiles as exc:
+            raise MissingFiles(name, exc.files, self._missing_cause(name, v)) from None
         if columns is None and name != "frames":
             self._tables[key] = table
         return table
+
+    def _missing_cause(self, name: str, version: int) -> str:
+        """Why files of ``name`` at ``version`` are gone: vacuumed, or deleted by hand."""
+        dropped = vacuumed_versions(self.layout)
+        if version in dropped:
+            return (f"version {version} was dropped by `catalog vacuum` at {dropped[version]} "
+                    "(read a kept version, see Catalog.versions())")
+        return (f"version {version} was never vacuumed, so the files were deleted outside "
+                "graspcap: put them back from a backup (`graspcap catalog verify` lists what "
+                "every version lacks)")
 
     def to_pandas(self, name: str, version: int | str | None = None) -> pd.DataFrame:
         """``table(name, version)`` as a DataFrame (list columns become numpy arrays)."""

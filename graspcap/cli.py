@@ -71,9 +71,19 @@ def _cmd_build(args: argparse.Namespace) -> int:
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
+    from deltalake.exceptions import DeltaError
+
+    from graspcap.catalog.cli import problem_lines
+    from graspcap.catalog.errors import CatalogError
     from graspcap.flows.commands import status_text
 
-    print(status_text(args.catalog, limit=args.limit))
+    try:
+        text = status_text(args.catalog, limit=args.limit)
+    except (CatalogError, ValueError, OSError, DeltaError) as exc:  # one line per problem
+        for line in problem_lines(exc):
+            print(f"graspcap status: {line}", file=sys.stderr)
+        return 2
+    print(text)
     return 0
 
 
