@@ -88,8 +88,22 @@ def summary(cat, version: int | str | None = None) -> dict:
     }
 
 
+def report_problems(cat, command: str) -> int:
+    """Print the catalog's problems (``Catalog.problems``) one a line; 2 when there are any."""
+    problems = cat.problems()
+    for line in problems:
+        print(f"{command}: {line}", file=sys.stderr)
+    return 2 if problems else 0
+
+
 def _cmd_versions(args: argparse.Namespace) -> int:
-    table = _open(args).versions()
+    cat = _open(args)
+    code = _listed_versions(args, cat)
+    return code or report_problems(cat, "graspcap catalog versions")
+
+
+def _listed_versions(args: argparse.Namespace, cat) -> int:
+    table = cat.versions()
     rows = [{"version": r["version"], "time_utc": r["time_utc"].isoformat(timespec="seconds"),
              "build_id": r["build_id"], "tags": r["tags"], "format": r["format_version"],
              **{f"rows_{n}": r[f"rows_{n}"] for n in DATA_TABLES}} for r in table.to_pylist()]
@@ -269,4 +283,4 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
     return parser
 
 
-__all__ = ["add_catalog_parser", "problem_lines", "summary"]
+__all__ = ["add_catalog_parser", "problem_lines", "report_problems", "summary"]

@@ -279,17 +279,17 @@ def check_versions(layout: CatalogLayout) -> tuple[dict | None, list[str]]:
         for delta_v, made_for in _commit_marks(delta_table(layout, name), expected[name] + 1):
             if made_for is not None and made_for > last + 1:
                 problems.append(
-                    f"{entry_path(layout, name, delta_v)}: table {name!r}'s Delta version "
-                    f"{delta_v} was made for catalog version {made_for}, so version(s) "
-                    f"{last + 1}-{made_for - 1} were published, but the versions table ends "
-                    f"at {last}")
+                    f"{entry_path(layout, name, delta_v)}: table {name!r}: Delta version "
+                    f"{delta_v} was made for catalog version {made_for}, so "
+                    f"{_published(last + 1, made_for - 1)} published, but the versions table "
+                    f"ends at {last}")
     builds = read_table(layout, "builds", newest["builds"], ["build_id", "catalog_version"])
     for build_id, made_for in zip(builds["build_id"].to_pylist(),
                                   builds["catalog_version"].to_pylist(), strict=True):
         if made_for > last + 1:
             problems.append(f"{layout.table('builds')}: build {build_id!r} was committed as "
-                            f"version {made_for}, so version(s) {last + 1}-{made_for - 1} "
-                            f"were published, but the versions table ends at {last}")
+                            f"version {made_for}, so {_published(last + 1, made_for - 1)} "
+                            f"published, but the versions table ends at {last}")
     if published is None:  # no record (older catalog): look for a row whose log entry is lost
         listed = {str(Path(f).resolve()) for f in intact_files(layout, "versions")}
         for path in sorted(layout.table("versions").glob("*.parquet")):
@@ -306,6 +306,10 @@ def check_versions(layout: CatalogLayout) -> tuple[dict | None, list[str]]:
                                 f"lists (its log entry {entry} was lost, or a writer died "
                                 "while appending it)")
     return row, problems
+
+
+def _published(first: int, last: int) -> str:
+    return f"version {first} was" if first == last else f"versions {first}-{last} were"
 
 
 REPAIR_VERSIONS = (

@@ -63,9 +63,9 @@ def _log_error(layout: CatalogLayout, name: str, version: int | None,
     problems = log_problems(layout, name) if layout.is_local else []
     commits = log_entries(layout, name)[0] if layout.is_local else []
     if not problems and commits and version is not None and version > commits[-1]:
-        gone = _ranges(list(range(commits[-1] + 1, version + 1)))
+        gone = _lost(list(range(commits[-1] + 1, version + 1)))
         problems = [f"{entry_path(layout, name, version)}: {where} is needed but the log ends "
-                    f"at Delta version {commits[-1]} (entries {gone} are gone)"]
+                    f"at Delta version {commits[-1]} ({gone})"]
     if isinstance(exc, TableNotFoundError) and not problems:
         problems = [f"{log_dir(layout, name)}: {where} has no Delta log (a table folder or its "
                     "_delta_log was deleted)"]
@@ -137,15 +137,19 @@ def log_problems(layout: CatalogLayout, name: str, *, parse: bool = True) -> lis
         more = f" (+{len(missing) - 5} more)" if len(missing) > 5 else ""
         problems.append(f"{folder}: table {name!r} lacks log entr"
                         f"{'y' if len(missing) == 1 else 'ies'} {shown}{more} (its log runs "
-                        f"{first}-{commits[-1]} with a gap: Delta versions "
-                        f"{_ranges(missing)} are lost)")
+                        f"{first}-{commits[-1]} with a gap: {_lost(missing)})")
     for n in commits if parse else ():
         try:
             _entry_actions(entry_path(layout, name, n))
         except (ValueError, OSError) as exc:
-            problems.append(f"{entry_path(layout, name, n)}: table {name!r}'s log entry for "
-                            f"Delta version {n} is unreadable: {exc}")
+            problems.append(f"{entry_path(layout, name, n)}: table {name!r}: the log entry "
+                            f"for Delta version {n} is unreadable: {exc}")
     return problems
+
+
+def _lost(numbers: list[int]) -> str:
+    many = len(numbers) > 1
+    return f"Delta version{'s' if many else ''} {_ranges(numbers)} {'are' if many else 'is'} lost"
 
 
 def _ranges(numbers: list[int]) -> str:

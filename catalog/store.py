@@ -19,7 +19,13 @@ import pyarrow.compute as pc
 from deltalake import write_deltalake
 
 from graspcap.catalog.arrays import read_group
-from graspcap.catalog.commit import BuildCommit, commit_build, writer_lock
+from graspcap.catalog.commit import (
+    REPAIR_VERSIONS,
+    BuildCommit,
+    check_versions,
+    commit_build,
+    writer_lock,
+)
 from graspcap.catalog.delta import (
     MissingFiles,
     create_tables,
@@ -29,7 +35,7 @@ from graspcap.catalog.delta import (
     table_versions_of,
 )
 from graspcap.catalog.diff import diff_sessions
-from graspcap.catalog.errors import CatalogError, VersionNotFound, writing
+from graspcap.catalog.errors import CatalogDamaged, CatalogError, VersionNotFound, writing
 from graspcap.catalog.layout import CatalogLayout, check_format, write_format_file
 from graspcap.catalog.vacuum import VacuumReport, vacuum_catalog, vacuumed_versions
 from graspcap.catalog.validate import to_table
@@ -140,8 +146,23 @@ class Catalog:
         self._pinned(int(version))
         row = {"tag": name, "version": int(version), "time_utc": datetime.now(UTC)}
         with writer_lock(self.layout, self.lock_timeout_s):
-            write_deltalake(str(self.layout.table("tags")), to_table("tags", [row]),
-                            mode="append")
+            _, problems = check_versions(self.layout)  # writers stop on a damaged catalog
+            if problems:
+                raise CatalogDamaged(self.layout.uri, problems, REPAIR_VERSIONS)
+            with writing(self.layout.table("tags")):
+                write_deltalake(str(self.layout.table("tags")), to_table("tags", [row]),
+                                mode="append")
+
+    def problems(self) -> list[str]:
+        """What a writer would stop on, one line per problem naming the file (empty for a
+        healthy catalog): lost or unreadable Delta log entries, lost versions rows, pins past a
+        table's log. Parquet files and arrays are not opened (``catalog verify`` does that)."""
+        if not self.layout.is_local:
+            return []
+        try:
+            return check_versions(self.layout)[1]
+        except CatalogDamaged as exc:
+            return exc.problems
 
     # tables -----------------------------------------------------------------------------
     def files(self, name: str, version: int | str | None = None) -> list[str]:
