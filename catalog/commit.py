@@ -40,6 +40,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from deltalake import CommitProperties, DeltaTable, write_deltalake
+from deltalake.exceptions import DeltaError
 
 from graspcap.catalog.arrays import array_digest, check_arrays, write_group
 from graspcap.catalog.delta import (
@@ -58,6 +59,7 @@ from graspcap.catalog.diff import diff_sessions
 from graspcap.catalog.errors import (
     CatalogDamaged,
     CatalogDiskFull,
+    CatalogError,
     CatalogLockTimeout,
     CatalogSchemaError,
     writing,
@@ -158,7 +160,9 @@ def _pause(point: str) -> None:
 def writer_lock(layout: CatalogLayout, timeout_s: float) -> Iterator[None]:
     """Hold the catalog's exclusive writer lock; wait up to ``timeout_s``, then fail clearly."""
     layout.require_local("writing to a catalog")
-    with writing(layout.lock_file), open(layout.lock_file, "a+") as fh:
+    with writing(layout.lock_file):
+        fh = open(layout.lock_file, "a+")  # noqa: SIM115 (closed below, after the yield)
+    with fh:
         deadline = time.monotonic() + timeout_s
         while True:
             try:
@@ -174,10 +178,11 @@ def writer_lock(layout: CatalogLayout, timeout_s: float) -> Iterator[None]:
                         "lock_timeout_s") from None
                 time.sleep(0.05)
         try:
-            fh.seek(0)
-            fh.truncate()
-            fh.write(f"pid {os.getpid()} since {datetime.now(UTC).isoformat()}")
-            fh.flush()
+            with writing(layout.lock_file):
+                fh.seek(0)
+                fh.truncate()
+                fh.write(f"pid {os.getpid()} since {datetime.now(UTC).isoformat()}")
+                fh.flush()
             yield
         finally:
             fcntl.flock(fh, fcntl.LOCK_UN)
@@ -340,12 +345,26 @@ def recover(layout: CatalogLayout) -> dict[str, int]:
         dt = delta_table(layout, name)
         if dt.version() != expected[name]:
             rolled[name] = dt.version()
-            with writing(layout.table(name)):
+            with _table_write(layout, name):
                 dt.restore(expected[name], commit_properties=_marked(
                     last, "recover", **{"graspcap.rolled_back_from": dt.version()}))
     if row is not None and (read_published(layout) or {}).get("version", 0) < last:
         write_published(layout, row)  # a writer died between its versions row and the record
     return rolled
+
+
+@contextmanager
+def _table_write(layout: CatalogLayout, name: str) -> Iterator[None]:
+    """One Delta commit to table ``name``: ENOSPC names the table folder; any other deltalake
+    error becomes a ``CatalogError`` naming the table, without the Rust backtrace."""
+    try:
+        with writing(layout.table(name)):
+            yield
+    except DeltaError as exc:
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise CatalogError(
+            f"writing table {name!r} ({layout.table(name)}) failed: {first[:500]}; nothing "
+            "of this build is committed and every earlier version is intact") from None
 
 
 def _as_list(values: Any) -> list:
@@ -440,12 +459,12 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
                              sessions, ignore=("build_id",))
         marked = _marked(version, commit.build.build_id)
         if touched:
-            with writing(layout.table("sessions")):
+            with _table_write(layout, "sessions"):
                 write_deltalake(str(layout.table("sessions")), sessions, mode="overwrite",
                                 predicate=_predicate(touched), commit_properties=marked)
         _pause("after_sessions")
         if touched:
-            with writing(layout.table("frames")):
+            with _table_write(layout, "frames"):
                 write_deltalake(str(layout.table("frames")), frames, mode="overwrite",
                                 predicate=_predicate(touched), commit_properties=marked)
         _pause("after_frames")
@@ -467,7 +486,7 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
             "sessions_failed": [{"session_id": s, "error": e} for s, st, e
                                 in zip(ids, status, errors, strict=True) if st == Status.FAILED],
         }
-        with writing(layout.table("builds")):
+        with _table_write(layout, "builds"):
             write_deltalake(str(layout.table("builds")), to_table("builds", [build_row]),
                             mode="append", commit_properties=marked)
         _pause("after_builds")
@@ -480,7 +499,7 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
             "table_versions": json.dumps(pinned, sort_keys=True),
             **{f"rows_{name}": counts[name] for name in DATA_TABLES},
         }
-        with writing(layout.table("versions")):
+        with _table_write(layout, "versions"):
             write_deltalake(str(layout.table("versions")), to_table("versions", [versions_row]),
                             mode="append", commit_properties=marked)
         try:  # evidence for recovery; the version is committed whatever happens here

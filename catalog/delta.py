@@ -228,8 +228,17 @@ def read_files(name: str, files: list[str], columns: list[str] | None = None,
                 if not Path(f).is_file()] or [exc.filename or str(exc)]
         raise MissingFiles(name, gone) from None
     except (OSError, pa.ArrowException) as exc:
-        raise CatalogError(f"table {name!r}: a file of this version is not readable "
-                           f"Parquet: {str(exc).strip().splitlines()[0][:300]}") from None
+        bad = []
+        for f in files:  # which file: pyarrow's message often names none
+            try:
+                pq.read_metadata(f, filesystem=filesystem)
+            except (OSError, pa.ArrowException) as file_exc:
+                bad.append(f"{f} ({_first(file_exc)})")
+        what = (f"file{'s' if len(bad) > 1 else ''} {', '.join(bad[:3])} of this version "
+                f"{'are' if len(bad) > 1 else 'is'} not readable Parquet" if bad else
+                f"the files of this version cannot be read: {_first(exc)}")
+        raise CatalogError(f"table {name!r}: {what}; put {'them' if len(bad) > 1 else 'it'} "
+                           "back from a backup") from None
     table = table.select(schema.names).cast(schema)
     for field in schema:  # validated on write, so a null here is a column the files lack
         if not field.nullable and table[field.name].null_count:
@@ -237,6 +246,10 @@ def read_files(name: str, files: list[str], columns: list[str] | None = None,
                 f"table {name!r}: files of this version lack column {field.name!r}, which "
                 "must not be null; only nullable columns can be added to existing rows")
     return table
+
+
+def _first(exc: BaseException) -> str:
+    return ((str(exc).strip().splitlines() or [type(exc).__name__])[0])[:300]
 
 
 def read_table(layout: CatalogLayout, name: str, delta_version: int,

@@ -333,6 +333,35 @@ def test_deleted_parquet_file_is_named_with_its_cause(tmp_path):
     _assert_reads_back(root, {4: v4})
 
 
+def test_garbage_parquet_and_a_missing_file_under_a_commit_are_named(tmp_path):
+    root = tmp_path / "cat"
+    cat = _commit_three(root)
+    v1 = _snapshot(cat, 1)
+    [bad] = [f for f in cat.files("sessions", 3) if f not in cat.files("sessions", 2)]
+    saved = Path(bad).read_bytes()
+    Path(bad).write_bytes(b"PAR1 not really")
+    with pytest.raises(gc.CatalogError) as err:
+        gc.open(root).table("sessions", 3)
+    assert str(err.value).startswith(f"table 'sessions': file {bad} (")
+    assert str(err.value).endswith(") of this version is not readable Parquet; put it back "
+                                   "from a backup")
+
+    Path(bad).write_bytes(saved)
+    [gone] = [f for f in cat.files("frames", 3) if f not in cat.files("frames", 2)]
+    Path(gone).unlink()  # the next build rewrites that session: deltalake reads the file
+    logs = _logs(root)
+    with pytest.raises(gc.CatalogError) as err:
+        gc.open(root).commit(make_build(["p04-mug-use-00"], seed=9, build_id="b9"))
+    message = str(err.value)
+    assert message.startswith(f"writing table 'frames' ({root / 'tables' / 'frames'}) failed: ")
+    assert gone in message and "<unknown>" not in message
+    assert message.endswith("nothing of this build is committed and every earlier version is "
+                            "intact")
+    assert len(_logs(root)) == len(logs) + 1  # the orphaned sessions commit, no version
+    assert gc.open(root).latest_version() == 3
+    _assert_reads_back(root, {1: v1})
+
+
 @pytest.mark.parametrize("content, problem", [
     (b"\x89PNG\r\n\x1a\n\x00\x00", "is not UTF-8 text (byte 0)"),
     (b'{"format": "graspcap-catalog", "format_ver', "is not valid JSON (Unterminated string"),
