@@ -496,3 +496,21 @@ def test_result_replaced_without_its_record_is_not_trusted(tmp_path):
     for garbage in (b"\xff", b"[]", b'{"digest": 1}', b"{" * 10000):
         record.write_bytes(garbage)
         assert work.lookup("stage", "key") is None
+
+
+def test_status_skips_a_torn_build_record_naming_the_line(tmp_path):
+    from graspcap.flows.commands import status_text
+
+    root = tmp_path / "cat"
+    _commit_three(root)
+    record = {"build_id": "b3", "catalog_version": 3, "seconds": {"total": 2.0}, "sessions": [],
+              "summary": {k: [] for k in ("added", "changed", "unchanged", "failed")}}
+    (root / "work").mkdir()
+    (root / "work" / "builds.jsonl").write_bytes(
+        json.dumps(record).encode() + b"\n[1]\n" + b'{"build_id": "b4", "summ')
+    assert status_text(root).splitlines() == [
+        f"catalog {root}: latest version 3",
+        f"note: {root / 'work' / 'builds.jsonl'}: line(s) [2, 3] are not build records (a "
+        "build killed while writing one?); skipped",
+        "build b3 (version 3): 0 added, 0 changed, 0 unchanged, 0 failed; 0 stage run(s), 0 "
+        "cache hit(s), 2.0 s"]
