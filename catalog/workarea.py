@@ -6,8 +6,8 @@ as they are) into ``<root>/results/<stage>/<key>.pkl`` and tasks hand each
 other a small :class:`ResultRef` (path + content digest). Writes are atomic
 (temporary file, then rename) and the result's small JSON record
 (``<key>.json``: digest, size, build, seconds) is written after the pickle, so a
-killed build never leaves a half result that a later lookup would trust: a lookup takes a
-result only when its pickle has the recorded size and is not newer than its record. Temporary
+killed build never leaves a half result that a later lookup would trust (a lookup also
+takes a result only when its pickle has the size its record names). Temporary
 files are named ``.tmp-<host>-<pid>-*``; those of a writer that is gone (same host, pid not
 running, or older than ``STALE_TEMP_S``) are removed when a process first opens the area.
 
@@ -194,8 +194,8 @@ class WorkArea:
 
     def lookup(self, stage: str, key: str) -> ResultRef | None:
         """The stored result of ``(stage, key)`` as a cached ref, or None: also when the
-        record is unreadable, or the pickle is not the one it records (another size, or newer
-        than the record: a build was killed between replacing the pickle and its record)."""
+        record is unreadable, or the pickle has another size than it records (a build was
+        killed between replacing the pickle and its record)."""
         path = self.result_path(stage, key)
         record_path = path.with_suffix(".json")
         try:
@@ -203,10 +203,8 @@ class WorkArea:
             ref = ResultRef(stage, key, str(path), str(record["digest"]),
                             str(record["build_id"]), cached=True,
                             seconds=float(record.get("seconds", 0.0)))
-            pickled, recorded = path.stat(), record_path.stat()
+            pickled = path.stat()
         except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
-            return None
-        if pickled.st_mtime_ns > recorded.st_mtime_ns:
             return None
         if "bytes" in record and record["bytes"] != pickled.st_size:
             return None
