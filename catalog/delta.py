@@ -26,7 +26,7 @@ from deltalake import DeltaTable
 from deltalake.exceptions import DeltaError, TableNotFoundError
 from pyarrow.fs import FSSpecHandler, PyFileSystem
 
-from graspcap.catalog.errors import CatalogDamaged, CatalogError
+from graspcap.catalog.errors import CatalogDamaged, CatalogError, writing
 from graspcap.catalog.layout import CatalogLayout
 from graspcap.schemas.tables import DATA_TABLES, DELTA_TABLE_PROPERTIES, TABLE_SCHEMAS
 
@@ -181,7 +181,8 @@ def intact_files(layout: CatalogLayout, name: str) -> list[str]:
 
 def create_tables(layout: CatalogLayout,
                   properties: dict[str, str] | None = DELTA_TABLE_PROPERTIES) -> None:
-    """Create every table that does not exist yet (each at Delta version 0, empty).
+    """Create every table that does not exist yet (each at Delta version 0, empty); call it
+    under the writer lock (``store.open`` does), else two creators race on one table.
 
     ``properties`` are the Delta table properties of the current format; only the golden
     catalog of an older format passes others (``tests/golden/make_golden.py``).
@@ -190,8 +191,9 @@ def create_tables(layout: CatalogLayout,
     for name, schema in TABLE_SCHEMAS.items():
         uri = layout.table_uri(name)
         if not DeltaTable.is_deltatable(uri):
-            layout.table(name).mkdir(parents=True, exist_ok=True)
-            DeltaTable.create(uri, schema, name=name, configuration=properties or None)
+            with writing(layout.table(name)):
+                layout.table(name).mkdir(parents=True, exist_ok=True)
+                DeltaTable.create(uri, schema, name=name, configuration=properties or None)
 
 
 def delta_version(layout: CatalogLayout, name: str) -> int:

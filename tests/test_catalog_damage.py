@@ -148,6 +148,26 @@ def test_gap_in_the_versions_log_keeps_readers_and_stops_writers(tmp_path):
     assert _logs(root) == pins
 
 
+def test_garbage_versions_entry_keeps_readers_and_stops_writers(tmp_path):
+    root = tmp_path / "cat"
+    cat = _commit_three(root)
+    snapshots = {v: _snapshot(cat, v) for v in (1, 3)}
+    _entry(root, "versions", 2).write_bytes(b"\xff\xd8 not json")
+    fresh = gc.open(root)
+    assert fresh.versions()["version"].to_pylist() == [1, 3]
+    _assert_reads_back(root, snapshots)
+    logs = _logs(root)
+    with pytest.raises(CatalogDamaged) as err:
+        fresh.commit(make_build(["p05-drill-use-00"], seed=5, build_id="b5"))
+    assert err.value.problems == [
+        f"{_entry(root, 'versions', 2)}: table 'versions': the log entry for Delta version 2 "
+        "is unreadable: not UTF-8 text (byte 0)"]
+    with pytest.raises(CatalogDamaged):
+        fresh.tag(3, "paper")
+    assert _logs(root) == logs
+    assert fresh.problems() == err.value.problems
+
+
 def test_lost_data_table_entry_is_named_and_other_versions_read(tmp_path):
     root = tmp_path / "cat"
     cat = _commit_three(root)
