@@ -126,6 +126,24 @@ def test_table_commits_made_for_a_later_version_are_evidence(tmp_path):
     _assert_reads_back(root, {1: v1})
 
 
+def test_a_tag_of_a_lost_version_is_evidence(tmp_path):
+    root = tmp_path / "cat"
+    cat = _commit_three(root)
+    cat.tag(3, "paper")
+    entry = _entry(root, "versions", 3)
+    [row_file] = [json.loads(line)["add"]["path"] for line in entry.read_text().splitlines()
+                  if line.startswith('{"add"')]
+    entry.unlink()
+    (root / "tables" / "versions" / row_file).unlink()
+    (root / "published.json").unlink()
+    logs = _logs(root)
+    with pytest.raises(CatalogDamaged) as err:  # else: the tables rolled back to version 2
+        gc.open(root).commit(make_build(["p05-drill-use-00"], seed=5, build_id="b5"))
+    assert err.value.problems == [f"{root / 'tables' / 'tags'}: tag 'paper' points at version "
+                                  "3 but the versions table ends at version 2"]
+    assert _logs(root) == logs
+
+
 def test_gap_in_the_versions_log_keeps_readers_and_stops_writers(tmp_path):
     root = tmp_path / "cat"
     cat = _commit_three(root)
