@@ -51,6 +51,7 @@ from graspcap.catalog.delta import (
     intact_files,
     log_dir,
     log_problems,
+    lost_versions,
     read_latest,
     read_table,
     table_versions_of,
@@ -265,8 +266,8 @@ def check_versions(layout: CatalogLayout) -> tuple[dict | None, list[str]]:
             if pinned > newest[name]:
                 problems.append(
                     f"{log_dir(layout, name)}: version {r['version']} pins table {name!r} at "
-                    f"Delta version {pinned} but its log ends at {newest[name]} (entries "
-                    f"{newest[name] + 1}-{pinned} are gone)")
+                    f"Delta version {pinned} but its log ends at {newest[name]} "
+                    f"({lost_versions(list(range(newest[name] + 1, pinned + 1)))})")
     published = read_published(layout)
     if published is not None and published["version"] > last:
         problems.append(f"{layout.published_file}: version {published['version']} was "
@@ -351,6 +352,15 @@ def recover(layout: CatalogLayout) -> dict[str, int]:
     if row is not None and (read_published(layout) or {}).get("version", 0) < last:
         write_published(layout, row)  # a writer died between its versions row and the record
     return rolled
+
+
+def _landed(layout: CatalogLayout, version: int, build_id: str) -> bool:
+    """Whether the versions row of ``version`` by ``build_id`` is committed."""
+    try:
+        row = last_version_row(layout)
+    except CatalogError:
+        return False
+    return row is not None and row["version"] == version and row["build_id"] == build_id
 
 
 @contextmanager
@@ -499,9 +509,15 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
             "table_versions": json.dumps(pinned, sort_keys=True),
             **{f"rows_{name}": counts[name] for name in DATA_TABLES},
         }
-        with _table_write(layout, "versions"):
-            write_deltalake(str(layout.table("versions")), to_table("versions", [versions_row]),
-                            mode="append", commit_properties=marked)
+        try:
+            with _table_write(layout, "versions"):
+                write_deltalake(str(layout.table("versions")),
+                                to_table("versions", [versions_row]), mode="append",
+                                commit_properties=marked)
+        except CatalogError as exc:  # a failure after the row landed (a checkpoint) is no loss
+            if not _landed(layout, version, commit.build.build_id):
+                raise
+            log.warning("version %d is committed; %s", version, exc)
         try:  # evidence for recovery; the version is committed whatever happens here
             write_published(layout, versions_row)
         except CatalogDiskFull as exc:

@@ -63,7 +63,7 @@ def _log_error(layout: CatalogLayout, name: str, version: int | None,
     problems = log_problems(layout, name) if layout.is_local else []
     commits = log_entries(layout, name)[0] if layout.is_local else []
     if not problems and commits and version is not None and version > commits[-1]:
-        gone = _lost(list(range(commits[-1] + 1, version + 1)))
+        gone = lost_versions(list(range(commits[-1] + 1, version + 1)))
         problems = [f"{entry_path(layout, name, version)}: {where} is needed but the log ends "
                     f"at Delta version {commits[-1]} ({gone})"]
     if isinstance(exc, TableNotFoundError) and not problems:
@@ -137,7 +137,7 @@ def log_problems(layout: CatalogLayout, name: str, *, parse: bool = True) -> lis
         more = f" (+{len(missing) - 5} more)" if len(missing) > 5 else ""
         problems.append(f"{folder}: table {name!r} lacks log entr"
                         f"{'y' if len(missing) == 1 else 'ies'} {shown}{more} (its log runs "
-                        f"{first}-{commits[-1]} with a gap: {_lost(missing)})")
+                        f"{first}-{commits[-1]} with a gap: {lost_versions(missing)})")
     for n in commits if parse else ():
         try:
             _entry_actions(entry_path(layout, name, n))
@@ -147,7 +147,8 @@ def log_problems(layout: CatalogLayout, name: str, *, parse: bool = True) -> lis
     return problems
 
 
-def _lost(numbers: list[int]) -> str:
+def lost_versions(numbers: list[int]) -> str:
+    """'Delta version 3 is lost', 'Delta versions 2-4, 7 are lost'."""
     many = len(numbers) > 1
     return f"Delta version{'s' if many else ''} {_ranges(numbers)} {'are' if many else 'is'} lost"
 

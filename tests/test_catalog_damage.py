@@ -203,7 +203,7 @@ def test_lost_data_table_entry_is_named_and_other_versions_read(tmp_path):
         fresh.commit(make_build(["p05-drill-use-00"], seed=5, build_id="b5"))
     assert err.value.problems == [
         f"{root / 'tables' / 'frames' / '_delta_log'}: version 3 pins table 'frames' at Delta "
-        "version 3 but its log ends at 2 (entries 3-3 are gone)"]
+        "version 3 but its log ends at 2 (Delta version 3 is lost)"]
 
 
 @pytest.mark.parametrize("garbage", [b"\x00\xff\xfe binary", b'{"add": {"path": "trunc',
@@ -307,6 +307,24 @@ def test_disk_full_names_the_path_and_keeps_every_version(tmp_path, monkeypatch,
     _assert_reads_back(root, {1: before})
     assert fresh.commit(make_build(IDS[1], seed=2, build_id="b2")) == 2  # space again: goes on
     _assert_reads_back(root, {1: before})
+
+
+def test_disk_full_after_the_versions_row_landed_is_no_failure(tmp_path, monkeypatch, caplog):
+    root = tmp_path / "cat"
+    cat = gc.open(root, create=True)
+    real = commit_mod.write_deltalake
+
+    def full_after_versions(uri, *args, **kwargs):  # e.g. its checkpoint (a post-commit hook)
+        real(uri, *args, **kwargs)
+        if uri.endswith("/versions"):
+            _enospc()
+
+    monkeypatch.setattr(commit_mod, "write_deltalake", full_after_versions)
+    assert cat.commit(make_build(IDS[0], seed=1, build_id="b1")) == 1
+    assert f"version 1 is committed; disk full writing {root / 'tables' / 'versions'}" \
+        in caplog.text
+    monkeypatch.undo()
+    assert gc.open(root).commit(make_build(IDS[1], seed=2, build_id="b2")) == 2
 
 
 def test_disk_full_from_deltalake_and_for_the_stamp_and_work_area(tmp_path, monkeypatch):
