@@ -279,6 +279,13 @@ def check_versions(layout: CatalogLayout) -> tuple[dict | None, list[str]]:
             problems.append(f"{layout.table('tags')}: tag {tag!r} points at version {version} "
                             f"but the versions table ends at version {last}")
     expected = table_versions_of(row) if row else INITIAL_TABLE_VERSIONS
+    for name in DATA_TABLES if row is not None and not problems else ():
+        have = delta_table(layout, name, expected[name]).count()  # from the log's stats
+        if have != row[f"rows_{name}"]:
+            problems.append(
+                f"{layout.table(name)}: table {name!r} at version {last} has {have} rows, but "
+                f"version {last} was committed with {row[f'rows_{name}']}: a Delta log entry "
+                "of it was altered")
     for name in DATA_TABLES:
         if newest[name] <= expected[name]:
             continue

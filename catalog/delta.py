@@ -115,6 +115,11 @@ def _entry_actions(path: Path) -> list[dict]:
             raise ValueError(f"line {i} is not JSON ({exc})") from None
         if not isinstance(action, dict) or len(action) != 1:
             raise ValueError(f"line {i} is not a Delta action (one-key JSON object)")
+        [(kind, body)] = action.items()
+        if not isinstance(body, dict):
+            raise ValueError(f"line {i}: action {kind[:40]!r} is not a JSON object")
+        if kind in ("add", "remove") and not isinstance(body.get("path"), str):
+            raise ValueError(f"line {i}: {kind} action without a file path")
         actions.append(action)
     if not actions:
         raise ValueError("empty")
@@ -138,6 +143,14 @@ def log_problems(layout: CatalogLayout, name: str, *, parse: bool = True) -> lis
         problems.append(f"{folder}: table {name!r} lacks log entr"
                         f"{'y' if len(missing) == 1 else 'ies'} {shown}{more} (its log runs "
                         f"{first}-{commits[-1]} with a gap: {lost_versions(missing)})")
+    last_checkpoint = folder / "_last_checkpoint"
+    if parse and last_checkpoint.exists():
+        try:
+            if not isinstance(json.loads(last_checkpoint.read_bytes()), dict):
+                raise ValueError("not a JSON object")
+        except (ValueError, RecursionError, OSError) as exc:
+            problems.append(f"{last_checkpoint}: table {name!r}: unreadable ({exc}); deleting "
+                            "it is safe (Delta then reads the log from its entries)")
     for n in commits if parse else ():
         try:
             _entry_actions(entry_path(layout, name, n))

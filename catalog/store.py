@@ -27,8 +27,10 @@ from graspcap.catalog.commit import (
     writer_lock,
 )
 from graspcap.catalog.delta import (
+    REPAIR_LOG,
     MissingFiles,
     create_tables,
+    log_problems,
     read_files,
     read_latest,
     table_files,
@@ -72,6 +74,8 @@ class Catalog:
         self.layout = layout
         self.lock_timeout_s = lock_timeout_s
         self._pins: dict[int, dict[str, int]] = {}
+        self._counts: dict[int, dict[str, int]] = {}
+        """Rows per data table of each version, as its ``versions`` row recorded them."""
         self._files: dict[tuple[str, int], list[str]] = {}
         self._tables: dict[tuple[str, int], pa.Table] = {}
         self._index: dict[int, dict[str, dict]] = {}
@@ -83,11 +87,12 @@ class Catalog:
         # pins and file lists are small and immutable: a worker that has them reads tables with
         # pyarrow alone (deltalake's tokio runtime panics in a fork of a process that used it)
         return {"layout": self.layout, "lock_timeout_s": self.lock_timeout_s,
-                "pins": self._pins, "files": self._files}
+                "pins": self._pins, "counts": self._counts, "files": self._files}
 
     def __setstate__(self, state: dict) -> None:
         self.__init__(state["layout"], lock_timeout_s=state["lock_timeout_s"])
         self._pins.update(state.get("pins", {}))
+        self._counts.update(state.get("counts", {}))
         self._files.update(state.get("files", {}))
 
     # versions and tags ------------------------------------------------------------------
@@ -136,7 +141,9 @@ class Catalog:
             if rows.num_rows == 0:
                 raise VersionNotFound(f"catalog {self.layout.uri} has no version {version} "
                                       f"(latest: {self.latest_version()})")
-            self._pins[version] = table_versions_of(rows.to_pylist()[0])
+            row = rows.to_pylist()[0]
+            self._counts[version] = {name: row[f"rows_{name}"] for name in DATA_TABLES}
+            self._pins[version] = table_versions_of(row)
         return self._pins[version]
 
     def tag(self, version: int, name: str) -> None:
@@ -191,6 +198,13 @@ class Catalog:
             table = read_files(name, self.files(name, v), columns, self.layout)
         except MissingFiles as exc:
             raise MissingFiles(name, exc.files, self._missing_cause(name, v)) from None
+        recorded = self._counts.get(v, {}).get(name)
+        if recorded is not None and table.num_rows != recorded:  # never read wrong
+            damage = log_problems(self.layout, name) if self.layout.is_local else []
+            raise CatalogDamaged(self.layout.uri, [
+                f"{self.layout.table_uri(name)}: table {name!r} at version {v} has "
+                f"{table.num_rows} rows, but version {v} was committed with {recorded}: a Delta "
+                "log entry or a data file of it was altered", *damage], REPAIR_LOG)
         if columns is None and name != "frames":
             self._tables[key] = table
         return table

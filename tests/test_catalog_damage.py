@@ -226,6 +226,27 @@ def test_garbage_log_entry_is_named_without_a_backtrace(tmp_path, garbage):
         assert "backtrace" not in str(err.value) and "0: <unknown>" not in str(err.value)
 
 
+def test_a_log_entry_rewritten_as_valid_json_never_reads_wrong(tmp_path):
+    root = tmp_path / "cat"
+    cat = _commit_three(root)
+    v1 = _snapshot(cat, 1)
+    _entry(root, "frames", 3).write_text('{"commitInfo": {"operation": "WRITE"}}\n')
+    fresh = gc.open(root)  # deltalake reads version 3 without its added file: 3 rows short
+    with pytest.raises(CatalogDamaged) as err:
+        fresh.table("frames", 3)
+    assert err.value.problems == [
+        f"{root / 'tables' / 'frames'}: table 'frames' at version 3 has 9 rows, but version 3 "
+        "was committed with 12: a Delta log entry or a data file of it was altered"]
+    logs = _logs(root)
+    with pytest.raises(CatalogDamaged) as err:
+        fresh.commit(make_build(["p05-drill-use-00"], seed=5, build_id="b5"))
+    assert err.value.problems == [
+        f"{root / 'tables' / 'frames'}: table 'frames' at version 3 has 9 rows, but version 3 "
+        "was committed with 12: a Delta log entry of it was altered"]
+    assert _logs(root) == logs
+    _assert_reads_back(root, {1: v1})
+
+
 def test_killed_writer_orphans_are_still_rolled_back(tmp_path):
     root = tmp_path / "cat"
     cat = _commit_three(root)
