@@ -170,6 +170,8 @@ class Catalog:
             return check_versions(self.layout)[1]
         except CatalogDamaged as exc:
             return exc.problems
+        except CatalogError as exc:  # a file the check needs is gone or unreadable
+            return [str(exc)]
 
     # tables -----------------------------------------------------------------------------
     def files(self, name: str, version: int | str | None = None) -> list[str]:
