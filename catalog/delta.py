@@ -284,7 +284,8 @@ def read_latest(layout: CatalogLayout, name: str) -> pa.Table:
     try:
         return read_table(layout, name, delta_version(layout, name))
     except CatalogDamaged:
-        if not layout.is_local or name not in ("versions", "tags"):
+        if not layout.is_local or name not in ("versions", "tags") \
+                or not log_entries(layout, name)[0]:  # no log at all: nothing to trust
             raise
         return read_files(name, intact_files(layout, name), None, layout)
 
