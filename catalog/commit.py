@@ -326,7 +326,9 @@ def _published(first: int, last: int) -> str:
 
 
 REPAIR_VERSIONS = (
-    "put the lost files back from a backup or snapshot of the catalog (the newest version "
+    "when the lost or garbled files are the versions table's log entries, `python -m "
+    "graspcap.catalog.repair CATALOG` puts their rows back from the rows' own data files; "
+    "else put the lost files back from a backup or snapshot of the catalog (the newest version "
     "stays unwritable until then: rolling the tables back would drop data a reader may have "
     "seen, and a new version would reuse a published number). Readers of the intact versions "
     "keep working; to go on without the lost version, rebuild into a new catalog (`graspcap "

@@ -34,7 +34,9 @@ LOG_ENTRY = re.compile(r"(\d{20})\.json")
 """A Delta commit file in ``_delta_log``: its number is the Delta version it makes."""
 CHECKPOINT = re.compile(r"(\d{20})\.checkpoint(\.\d+\.\d+)?\.parquet")
 REPAIR_LOG = (
-    "put the named files back from a backup or snapshot of the catalog; graspcap does not "
+    "for log entries of the versions table, `python -m graspcap.catalog.repair CATALOG` puts "
+    "their rows back from the rows' own data files; else put the named files back from a "
+    "backup or snapshot of the catalog; graspcap does not "
     "guess what a missing or unreadable log entry held. Versions that do not need them still "
     "read; to go on without them, rebuild into a new catalog (`graspcap build SESSIONS "
     "--catalog NEW`) or export a readable version (`graspcap catalog export VERSION --out DIR`)")
@@ -99,7 +101,7 @@ def entry_path(layout: CatalogLayout, name: str, number: int) -> Path:
     return log_dir(layout, name) / f"{number:020d}.json"
 
 
-def _entry_actions(path: Path) -> list[dict]:
+def entry_actions(path: Path) -> list[dict]:
     """The actions of one log entry; ``ValueError`` naming what is wrong with it."""
     try:
         text = path.read_bytes().decode("utf-8")
@@ -153,7 +155,7 @@ def log_problems(layout: CatalogLayout, name: str, *, parse: bool = True) -> lis
                             "it is safe (Delta then reads the log from its entries)")
     for n in commits if parse else ():
         try:
-            _entry_actions(entry_path(layout, name, n))
+            entry_actions(entry_path(layout, name, n))
         except (ValueError, OSError) as exc:
             problems.append(f"{entry_path(layout, name, n)}: table {name!r}: the log entry "
                             f"for Delta version {n} is unreadable: {exc}")
@@ -182,7 +184,7 @@ def intact_files(layout: CatalogLayout, name: str) -> list[str]:
     removed: set[str] = set()
     for n in log_entries(layout, name)[0]:
         try:
-            actions = _entry_actions(entry_path(layout, name, n))
+            actions = entry_actions(entry_path(layout, name, n))
         except (ValueError, OSError):
             continue
         for action in actions:

@@ -82,7 +82,7 @@ def test_lost_last_versions_entry_stops_writers_and_drops_nothing(tmp_path):
     assert err.value.problems == [
         f"{root / 'published.json'}: version 3 was published, but the versions table ends at "
         "version 2 (its rows or log entries after that were lost)"]
-    assert "put the lost files back from a backup" in str(err.value)
+    assert "`python -m graspcap.catalog.repair CATALOG` puts their rows back" in str(err.value)
     assert _logs(root) == pins  # nothing rolled back, nothing written
 
     (root / "published.json").unlink()  # without the record: the versions row's own file
@@ -98,6 +98,46 @@ def test_lost_last_versions_entry_stops_writers_and_drops_nothing(tmp_path):
     entry.write_bytes(saved)  # repaired: version 3 is back and the next build is version 4
     assert gc.open(root).commit(make_build(["p05-drill-use-00"], seed=5, build_id="b5")) == 4
     _assert_reads_back(root, snapshots)
+
+
+@pytest.mark.parametrize("damage", ["last entry lost", "middle entry lost", "entry garbled"])
+def test_repair_puts_lost_versions_rows_back_from_their_files(tmp_path, damage):
+    from graspcap.catalog.repair import main
+
+    root = tmp_path / "cat"
+    cat = _commit_three(root)
+    snapshots = {v: _snapshot(cat, v) for v in (1, 2, 3)}
+    n = 3 if damage == "last entry lost" else 2
+    if damage == "entry garbled":
+        _entry(root, "versions", n).write_bytes(b"\xff\xfe")
+    else:
+        _entry(root, "versions", n).unlink()
+    with pytest.raises(CatalogDamaged):
+        gc.open(root).commit(make_build(["p05-drill-use-00"], seed=5, build_id="b5"))
+
+    assert main([str(root)]) == 0
+    assert (root / "tables" / "versions" / "_delta_log" /
+            f"{n:020d}.json.damaged").exists() == (damage == "entry garbled")
+    fresh = gc.open(root)
+    assert fresh.versions()["version"].to_pylist() == [1, 2, 3]
+    assert fresh.problems() == []
+    _assert_reads_back(root, snapshots)
+    assert fresh.commit(make_build(["p05-drill-use-00"], seed=5, build_id="b5")) == 4
+    _assert_reads_back(root, snapshots)
+    assert main([str(root)]) == 0  # nothing left to do
+
+
+def test_repair_leaves_out_a_row_whose_tables_do_not_match(tmp_path, capsys):
+    from graspcap.catalog.repair import main
+
+    root = tmp_path / "cat"
+    _commit_three(root)
+    _entry(root, "versions", 3).unlink()
+    _entry(root, "frames", 3).write_text('{"commitInfo": {"operation": "WRITE"}}\n')
+    assert main([str(root)]) == 2
+    assert capsys.readouterr().err == (
+        "left out version 3: table 'frames' at Delta version 3 has 9 rows, the row says 12\n")
+    assert gc.open(root).latest_version() == 2
 
 
 def test_table_commits_made_for_a_later_version_are_evidence(tmp_path):
