@@ -3,7 +3,8 @@
 ``add_catalog_parser(subparsers)`` adds the ``catalog`` command to graspcap's parser. Every
 subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL), prints text for a
 person or ``--json`` for a script, and exits 2 with the catalog's message on a catalog error
-(missing version or tag, older format, ...). Prefect-free, like every catalog reader.
+(missing version or tag, older format, a damaged file: one line per problem, never a
+traceback). Prefect-free, like every catalog reader.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
+from deltalake.exceptions import DeltaError
 
 from graspcap.catalog.errors import CatalogError
 from graspcap.catalog.layout import DEFAULT_CATALOG
@@ -99,8 +101,22 @@ def summary(cat, version: int | str | None = None) -> dict:
     }
 
 
+def report_problems(cat, command: str) -> int:
+    """Print the catalog's problems (``Catalog.problems``) one a line; 2 when there are any."""
+    problems = cat.problems()
+    for line in problems:
+        print(f"{command}: {line}", file=sys.stderr)
+    return 2 if problems else 0
+
+
 def _cmd_versions(args: argparse.Namespace) -> int:
-    table = _open(args).versions()
+    cat = _open(args)
+    code = _listed_versions(args, cat)
+    return code or report_problems(cat, "graspcap catalog versions")
+
+
+def _listed_versions(args: argparse.Namespace, cat) -> int:
+    table = cat.versions()
     rows = [{"version": r["version"], "time_utc": r["time_utc"].isoformat(timespec="seconds"),
              "build_id": r["build_id"], "tags": r["tags"], "format": r["format_version"],
              **{f"rows_{n}": r[f"rows_{n}"] for n in DATA_TABLES}} for r in table.to_pylist()]
@@ -247,12 +263,20 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     return VERIFY_DAMAGED
 
 
+def problem_lines(exc: BaseException) -> list[str]:
+    """One line per problem of a catalog error (a Rust backtrace or a traceback never)."""
+    if isinstance(exc, DeltaError):  # deltalake's text ends in a Rust backtrace
+        return [(str(exc).strip().splitlines() or [type(exc).__name__])[0]]
+    return [line for line in str(exc).splitlines() if line.strip()] or [type(exc).__name__]
+
+
 def _guard(func):
     def run(args: argparse.Namespace) -> int:
         try:
             return func(args)
-        except (CatalogError, ValueError) as exc:
-            print(f"graspcap catalog {args.catalog_command}: {exc}", file=sys.stderr)
+        except (CatalogError, ValueError, OSError, DeltaError) as exc:
+            for line in problem_lines(exc):
+                print(f"graspcap catalog {args.catalog_command}: {line}", file=sys.stderr)
             return 2
     return run
 
@@ -307,4 +331,4 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
     return parser
 
 
-__all__ = ["add_catalog_parser", "summary"]
+__all__ = ["add_catalog_parser", "problem_lines", "report_problems", "summary"]

@@ -12,7 +12,7 @@ from typing import Any
 
 import fsspec
 
-from graspcap.catalog.errors import CatalogError, CatalogFormatError
+from graspcap.catalog.errors import CatalogError, CatalogFormatError, writing
 from graspcap.schemas.tables import CATALOG_FORMAT_NAME, CATALOG_FORMAT_VERSION
 
 DEFAULT_CATALOG = Path("graspcap-catalog")
@@ -57,6 +57,8 @@ class CatalogLayout:
     ROOT/arrays/<digest[:2]>/<digest>.zarr         content-addressed Zarr v3 groups
     ROOT/arrays/.tmp/                              groups being written (renamed when complete)
     ROOT/.lock                                     writer lock (fcntl.flock)
+    ROOT/published.json                            newest published version (recovery's evidence)
+    ROOT/vacuum.jsonl                              one line per vacuum: the versions it dropped
     ROOT/pictures/<session_id>/*.png               QA pictures (latest build; not versioned)
     ```
 
@@ -126,6 +128,17 @@ class CatalogLayout:
         return self.root / ".lock"
 
     @property
+    def published_file(self) -> Path:
+        """The newest version a writer saw published, with its pins: written after each
+        ``versions`` row, so recovery can tell a lost row from a killed writer's orphans."""
+        return self.root / "published.json"
+
+    @property
+    def vacuum_log(self) -> Path:
+        """One JSON line per vacuum (time, kept and dropped versions)."""
+        return self.root / "vacuum.jsonl"
+
+    @property
     def arrays_dir(self) -> Path:
         return self.root / "arrays"
 
@@ -156,31 +169,50 @@ def write_format_file(layout: CatalogLayout, version: int = CATALOG_FORMAT_VERSI
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     tmp = layout.format_file.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(stamp, indent=2) + "\n")
-    os.replace(tmp, layout.format_file)
+    try:
+        with writing(layout.format_file):
+            tmp.write_text(json.dumps(stamp, indent=2) + "\n")
+            os.replace(tmp, layout.format_file)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+FORMAT_FILE_MAX_BYTES = 1 << 16
+FORMAT_REPAIR = ("write it again: " + json.dumps({"format": CATALOG_FORMAT_NAME,
+                                                  "format_version": CATALOG_FORMAT_VERSION})
+                 + " (with the format_version the catalog's versions table lists last)")
 
 
 def read_format(layout: CatalogLayout) -> dict:
     """The stamp in ``catalog.json``, or ``CatalogFormatError`` when it is missing or unreadable."""
     path = layout.fs_path("catalog.json")
     try:
-        text = layout.fs.cat_file(path).decode()
+        data = layout.fs.cat_file(path)
     except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
         raise CatalogFormatError(
             f"{layout.uri} is not a graspcap catalog (no catalog.json); "
             "`graspcap build ... --catalog` creates one there (in Python: "
             "graspcap.catalog.open(..., create=True))") from None
+    except OSError as exc:
+        raise CatalogFormatError(f"{path} cannot be read: {exc}") from None
+    if len(data) > FORMAT_FILE_MAX_BYTES:
+        raise CatalogFormatError(f"{path} is {len(data)} bytes, not a catalog stamp (a few "
+                                 f"hundred bytes of JSON): {FORMAT_REPAIR}")
     try:
-        stamp = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CatalogFormatError(f"{path} is not valid JSON: {exc}") from exc
+        stamp = json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise CatalogFormatError(f"{path} is not UTF-8 text (byte {exc.start}): "
+                                 f"{FORMAT_REPAIR}") from None
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise CatalogFormatError(f"{path} is not valid JSON ({exc}): {FORMAT_REPAIR}") from None
     if not isinstance(stamp, dict) or stamp.get("format") != CATALOG_FORMAT_NAME:
         found = stamp.get("format") if isinstance(stamp, dict) else stamp
         raise CatalogFormatError(
-            f"{path}: format is {found!r}, expected {CATALOG_FORMAT_NAME!r}")
-    if not isinstance(stamp.get("format_version"), int):
+            f"{path}: format is {str(found)[:100]!r}, expected {CATALOG_FORMAT_NAME!r}")
+    if type(stamp.get("format_version")) is not int:  # bool is an int too
         raise CatalogFormatError(
-            f"{path}: format_version is {stamp.get('format_version')!r}, expected an integer")
+            f"{path}: format_version is {str(stamp.get('format_version'))[:100]!r}, expected an "
+            "integer")
     return stamp
 
 

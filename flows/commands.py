@@ -36,8 +36,7 @@ def status_text(catalog: Path, limit: int = 5) -> str:
     cat = gc.open(catalog)
     out = []
     log = cat.layout.root / "work" / "builds.jsonl"
-    records = [json.loads(x) for x in log.read_text().splitlines() if x.strip()] \
-        if log.exists() else []
+    records, torn = _build_records(log)
     committed = {}
     if cat.latest_version() is not None:
         for row in cat.table("builds").sort_by("catalog_version").to_pylist():
@@ -45,9 +44,12 @@ def status_text(catalog: Path, limit: int = 5) -> str:
             rec = json.loads(row["parameters_json"]).get("report")
             if rec and rec["build_id"] not in {r["build_id"] for r in records}:
                 records.append(rec)
+    if torn:
+        out.append(f"note: {log}: line(s) {torn} are not build records (a build killed while "
+                   "writing one?); skipped")
     if not records:
-        return f"catalog {cat.layout.root}: no builds yet"
-    out.append(f"catalog {cat.layout.root}: latest version {cat.latest_version()}")
+        return "\n".join([f"catalog {cat.layout.root}: no builds yet", *out])
+    out.insert(0, f"catalog {cat.layout.root}: latest version {cat.latest_version()}")
     for rec in records[::-1][:limit]:
         s = rec["summary"]
         version = rec.get("catalog_version")
@@ -73,6 +75,30 @@ def status_text(catalog: Path, limit: int = 5) -> str:
                 line += f"\n{' ' * 46}{x['status']}; pictures: {pictures}"
             out.append(line)
     return "\n".join(out)
+
+
+BUILD_RECORD_KEYS = frozenset({"build_id", "summary", "sessions", "seconds"})
+
+
+def _build_records(log: Path) -> tuple[list[dict], list[int]]:
+    """The build records of ``builds.jsonl`` and the numbers of its lines that are none."""
+    records, torn = [], []
+    try:
+        lines = log.read_text(errors="replace").splitlines()
+    except FileNotFoundError:
+        return [], []
+    for i, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except (ValueError, RecursionError):
+            record = None
+        if isinstance(record, dict) and BUILD_RECORD_KEYS <= record.keys():
+            records.append(record)
+        else:
+            torn.append(i)
+    return records, torn
 
 
 def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,

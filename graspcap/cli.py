@@ -89,10 +89,20 @@ def _cmd_build(args: argparse.Namespace) -> int:
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
+    from deltalake.exceptions import DeltaError
+
+    import graspcap.catalog as gc
+    from graspcap.catalog.cli import problem_lines, report_problems
     from graspcap.flows.commands import status_text
 
-    print(status_text(args.catalog, limit=args.limit))
-    return 0
+    try:
+        text = status_text(args.catalog, limit=args.limit)
+        print(text)
+        return report_problems(gc.open(args.catalog), "graspcap status")
+    except (gc.CatalogError, ValueError, OSError, DeltaError) as exc:  # one line per problem
+        for line in problem_lines(exc):
+            print(f"graspcap status: {line}", file=sys.stderr)
+        return 2
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
