@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.depth_agreement import depth_agreement
-from graspcap.tasks.errors import StageError
+from graspcap.tasks.errors import StageError, check_mesh
 from graspcap.tasks.free_rotation import FreeAxis, free_axis
 from graspcap.tasks.geometry import inv_T, transform_points
 from graspcap.tasks.open3d_threads import single_threaded
@@ -201,6 +201,9 @@ def register_object(
     mesh_vertices: np.ndarray,
     mesh_faces: np.ndarray,
     config: RegisterObjectConfig = PRESETS["default"],
+    *,
+    depth_name: str = "the stage-1 depth image",
+    mesh_name: str = "the object mesh",
 ) -> ObjectRegistration:
     """Register the object mesh in the stage-1 depth image.
 
@@ -216,15 +219,21 @@ def register_object(
         Object mesh vertices, object frame, metres.
     mesh_faces : (m, 3) int
         Triangles.
+    depth_name, mesh_name : str
+        The depth file and the mesh file, for messages.
     """
     cfg = config.registration
+    check_mesh(STAGE, mesh_vertices, mesh_faces, name=mesh_name)
+    if np.ndim(depth_m) != 2:
+        raise StageError(STAGE, f"{depth_name} has shape {np.shape(depth_m)}, expected (h, w)")
     if not valid_depth(depth_m, config.crop.max_range_m).any():
-        raise StageError(STAGE, "depth image has no valid pixel (all zero, NaN or out of range)")
+        raise StageError(STAGE, f"{depth_name} has no valid pixel (all zero, NaN or beyond "
+                                f"{config.crop.max_range_m} m)")
     points = crop_platter(depth_m, K, T_color_turntable, config.crop)
     if len(points) < config.min_points:
         raise StageError(
             STAGE,
-            f"object not found on the platter: {len(points)} depth points over it "
+            f"object not found on the platter: {len(points)} points of {depth_name} over it "
             f"(need {config.min_points}); check the turntable calibration and the crop",
         )
     model = prepare_model(mesh_vertices, mesh_faces, cfg)
@@ -234,8 +243,8 @@ def register_object(
     if best.fitness < config.min_fitness:
         raise StageError(
             STAGE,
-            f"registration fitness {best.fitness:.2f} below {config.min_fitness:.2f}: the mesh "
-            "does not explain the depth over the platter (wrong object or mesh units?)",
+            f"registration fitness {best.fitness:.2f} below {config.min_fitness:.2f}: {mesh_name} "
+            f"does not explain {depth_name} over the platter (wrong object or mesh units?)",
         )
     mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
     agreement: dict[Candidate, float] = {}
