@@ -28,6 +28,11 @@ A pixel of 0 K is no reading (a dropped frame, a padded border): vertices sample
 not seen by that view. A view without a reading or with one constant value holds no thermal
 image and is left out with a note in ``ContactMap.notes``; when every view is such, the stage
 fails naming the files. One usable view builds a map, with a note on the share it covers.
+
+A mesh of more than ``proxy_faces`` faces is projected and ray cast as its proxy
+(:mod:`mesh_proxy`): every vertex takes the views' samples of the proxy vertex standing for it,
+then fusion and normalisation run per vertex of the session's mesh, in file order (a note says
+so).
 """
 
 from __future__ import annotations
@@ -38,10 +43,12 @@ from enum import StrEnum
 
 import numpy as np
 import open3d as o3d
+from pydantic import Field
 
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError, check_mesh
 from graspcap.tasks.geometry import inv_T, rot_z, transform_points
+from graspcap.tasks.mesh_proxy import mesh_proxy
 
 STAGE_VERSION = "build_contactmap/2"
 STAGE = "build_contactmap"
@@ -93,6 +100,9 @@ class BuildContactmapConfig(StageConfig):
     """Rise of full contact in kelvin, used only with ``rise_mode = fixed``."""
     min_contact_rise_k: float = 1.0
     """A full-contact rise below this means nothing was touched: the scan is all ambient."""
+    proxy_faces: int = Field(200_000, ge=1000)
+    """A mesh with more faces is projected and ray cast as a proxy of about this many
+    (:mod:`mesh_proxy`); the map is still given for every vertex of the mesh."""
 
 
 PRESETS: dict[str, BuildContactmapConfig] = {
@@ -160,6 +170,14 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
     return normals, int((~good).sum())
+
+
+def _count_degenerate(vertices: np.ndarray, faces: np.ndarray) -> int:
+    """Zero-area faces, as :func:`vertex_normals` counts them."""
+    tri = vertices[faces]
+    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    scale = max(float(np.ptp(vertices, axis=0).max()), 1e-9)
+    return int((area2 <= 1e-12 * scale * scale).sum())
 
 
 def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -313,7 +331,14 @@ def build_contactmap(
                                 f"{'; '.join(_blank_text(blank, view_names))}; check the scan's "
                                 "thermal PNGs (centi-kelvin, uint16) and the thermal camera")
     notes = [f"{text}: left out" for text in _blank_text(blank, view_names)]
-    normals, n_degenerate = vertex_normals(vertices, faces)
+    proxy = mesh_proxy(vertices, faces, config.proxy_faces)
+    if proxy.is_original:
+        normals, n_degenerate = vertex_normals(vertices, faces)
+    else:
+        notes.append(proxy.note(len(faces), "visibility and sampling"))
+        n_degenerate = _count_degenerate(vertices, faces)
+        vertices, faces = proxy.vertices, proxy.faces
+        normals = vertex_normals(vertices, faces)[0]
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(vertices.astype(np.float32), faces.astype(np.uint32))
@@ -351,8 +376,15 @@ def build_contactmap(
         temps[idx[read], k] = sampled[read]
         weights[idx[read], k] = cos[read]
 
-    n_views_seen = (weights > 0).sum(1)
-    per_view_visible = (weights > 0).sum(0).astype(np.int64)
+    fused = weighted_median(temps, weights)
+    seen = weights > 0
+    if proxy.is_original:
+        n_views_seen, per_view_visible = seen.sum(1), seen.sum(0).astype(np.int64)
+    else:  # every vertex of the mesh takes its proxy vertex's fused samples
+        stands_for = np.bincount(proxy.of_vertex, minlength=n)  # original vertices per proxy
+        per_view_visible = (seen * stands_for[:, None]).sum(0).astype(np.int64)
+        n_views_seen, fused = seen.sum(1)[proxy.of_vertex], fused[proxy.of_vertex]
+        n = len(fused)
     observed = n_views_seen >= max(config.min_views, 1)
     if not observed.any():
         raise StageError(STAGE, "no thermal view sees the object (check T_turntable_o_scan, "
@@ -361,7 +393,6 @@ def build_contactmap(
     if used == 1:
         notes.append(f"one thermal view only: the contact map covers what one view sees "
                      f"({100 * observed.mean():.0f} % of the vertices observed)")
-    fused = weighted_median(temps, weights)
     fused[~observed] = np.nan
     seen_t = fused[observed]
     if config.ambient_mode is AmbientMode.FIXED:

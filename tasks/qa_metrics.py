@@ -320,6 +320,7 @@ def stage_notes(results: Mapping[str, Any]) -> list[str]:
     keypoints = results.get("detect_keypoints")
     if keypoints is not None and hasattr(keypoints, "qa_notes"):
         notes += keypoints.qa_notes()
+    notes += [f"register_object: {n}" for n in _attr(results, "register_object", "notes") or ()]
     notes += [f"register_scan: {n}" for n in _attr(results, "register_scan", "notes") or ()]
     notes += [f"build_contactmap: {n}" for n in _attr(results, "build_contactmap", "notes") or ()]
     return notes

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
+from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.config import StageConfig
@@ -31,6 +32,7 @@ from graspcap.tasks.depth_agreement import depth_agreement
 from graspcap.tasks.errors import StageError, check_mesh
 from graspcap.tasks.free_rotation import FreeAxis, free_axis
 from graspcap.tasks.geometry import inv_T, transform_points
+from graspcap.tasks.mesh_proxy import mesh_proxy
 from graspcap.tasks.open3d_threads import single_threaded
 from graspcap.tasks.point_clouds import PlatterCrop, crop_platter, valid_depth
 from graspcap.tasks.registration import (
@@ -112,6 +114,10 @@ class RegisterObjectConfig(StageConfig):
     move the pose. On 24 realistic sessions (seeds 9000, 9900) the bottles and the mug 5-32 deg
     off about their axis were 0.0003-0.0006, every good pose >= 0.015 (bottles showing their
     label 0.015-0.017, spray bottles 0.024-0.034, the rest 0.10-0.15): a factor 5 either side."""
+    proxy_faces: int = Field(200_000, ge=1000)
+    """A mesh with more faces is registered as a proxy of about this many
+    (:mod:`mesh_proxy`): sampling, features and the depth rendering need its surface, not a
+    scan's tenth-of-a-millimetre detail (a 2-million-face mesh took minutes)."""
     registration: RegistrationConfig = RegistrationConfig(
         coarse_model_points=5000, ransac_max_iterations=10_000
     )
@@ -175,6 +181,8 @@ class ObjectRegistration:
     free_weakness : float
         Its eigenvalue over the largest: 0 entirely free, ~0.1 as constrained as the rest
         (1 when not checked).
+    notes : tuple of str
+        What changes no verdict (a proxy registered for a very fine mesh).
     """
 
     T_w_o: np.ndarray
@@ -191,6 +199,7 @@ class ObjectRegistration:
     free_axis_o: np.ndarray
     free_point_o: np.ndarray
     free_weakness: float
+    notes: tuple[str, ...] = ()
 
 
 @single_threaded()
@@ -224,6 +233,9 @@ def register_object(
     """
     cfg = config.registration
     check_mesh(STAGE, mesh_vertices, mesh_faces, name=mesh_name)
+    proxy = mesh_proxy(mesh_vertices, mesh_faces, config.proxy_faces)
+    notes = () if proxy.is_original else (proxy.note(len(mesh_faces), "registered"),)
+    mesh_vertices, mesh_faces = proxy.vertices, proxy.faces
     if np.ndim(depth_m) != 2:
         raise StageError(STAGE, f"{depth_name} has shape {np.shape(depth_m)}, expected (h, w)")
     if not valid_depth(depth_m, config.crop.max_range_m).any():
@@ -338,6 +350,7 @@ def register_object(
         free_axis_o=np.zeros(3) if free is None else free.axis,
         free_point_o=np.zeros(3) if free is None else free.point,
         free_weakness=1.0 if free is None else free.weakness,
+        notes=notes,
     )
 
 

@@ -26,11 +26,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError, check_mesh
 from graspcap.tasks.geometry import inv_T, rot_z, transform_points
+from graspcap.tasks.mesh_proxy import mesh_proxy
 from graspcap.tasks.point_clouds import PlatterCrop, crop_platter, estimate_normals, to_pcd
 from graspcap.tasks.registration import (
     Candidate,
@@ -81,6 +83,8 @@ class RegisterScanConfig(StageConfig):
     ambiguous_violation: float = 0.01
     """A distinct pose is as good only if its free-space violation exceeds the best's by at
     most this much (on top of the fitness and RMSE tolerances of ``registration``)."""
+    proxy_faces: int = Field(200_000, ge=1000)
+    """A mesh with more faces is registered as a proxy of about this many (:mod:`mesh_proxy`)."""
     registration: RegistrationConfig = RegistrationConfig()
     """Global registration and ICP settings."""
 
@@ -174,6 +178,9 @@ def register_scan(
     if len(names) != len(views):
         raise ValueError(f"{len(names)} view names for {len(views)} views")
     check_mesh(STAGE, mesh_vertices, mesh_faces, name=mesh_name)
+    proxy = mesh_proxy(mesh_vertices, mesh_faces, config.proxy_faces)
+    proxy_notes = [] if proxy.is_original else [proxy.note(len(mesh_faces), "registered")]
+    mesh_vertices, mesh_faces = proxy.vertices, proxy.faces
     for name, (depth_m, _) in zip(names, views, strict=True):
         if np.ndim(depth_m) != 2:
             raise StageError(STAGE, f"{name} depth has shape {np.shape(depth_m)}, expected (h, w)")
@@ -249,7 +256,7 @@ def register_scan(
         runner_up_fitness=np.nan if runner is None else runner.fitness,
         runner_up_free_space_violation=v_runner,
         note=_note(ambiguous, amb.ambiguity_deg, v_best, config),
-        notes=tuple(_view_notes(views, names, counts, fits, config)),
+        notes=tuple(proxy_notes + _view_notes(views, names, counts, fits, config)),
     )
 
 
