@@ -48,7 +48,7 @@ from pydantic import Field
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError, check_mesh
 from graspcap.tasks.geometry import inv_T, rot_z, transform_points
-from graspcap.tasks.mesh_proxy import mesh_proxy
+from graspcap.tasks.mesh_proxy import PROXY_FACES, mesh_proxy
 
 STAGE_VERSION = "build_contactmap/2"
 STAGE = "build_contactmap"
@@ -100,7 +100,7 @@ class BuildContactmapConfig(StageConfig):
     """Rise of full contact in kelvin, used only with ``rise_mode = fixed``."""
     min_contact_rise_k: float = 1.0
     """A full-contact rise below this means nothing was touched: the scan is all ambient."""
-    proxy_faces: int = Field(200_000, ge=1000)
+    proxy_faces: int = Field(PROXY_FACES, ge=1000)
     """A mesh with more faces is projected and ray cast as a proxy of about this many
     (:mod:`mesh_proxy`); the map is still given for every vertex of the mesh."""
 

@@ -16,6 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+PROXY_FACES = 200_000
+"""The default face count above which a stage works on a proxy (the stages' ``proxy_faces``;
+``estimate_adjustment`` is handed one by the pipeline)."""
+
 
 @dataclass(frozen=True)
 class MeshProxy:

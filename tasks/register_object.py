@@ -32,7 +32,7 @@ from graspcap.tasks.depth_agreement import depth_agreement
 from graspcap.tasks.errors import StageError, check_mesh
 from graspcap.tasks.free_rotation import FreeAxis, free_axis
 from graspcap.tasks.geometry import inv_T, transform_points
-from graspcap.tasks.mesh_proxy import mesh_proxy
+from graspcap.tasks.mesh_proxy import PROXY_FACES, mesh_proxy
 from graspcap.tasks.open3d_threads import single_threaded
 from graspcap.tasks.point_clouds import PlatterCrop, crop_platter, valid_depth
 from graspcap.tasks.registration import (
@@ -114,7 +114,7 @@ class RegisterObjectConfig(StageConfig):
     move the pose. On 24 realistic sessions (seeds 9000, 9900) the bottles and the mug 5-32 deg
     off about their axis were 0.0003-0.0006, every good pose >= 0.015 (bottles showing their
     label 0.015-0.017, spray bottles 0.024-0.034, the rest 0.10-0.15): a factor 5 either side."""
-    proxy_faces: int = Field(200_000, ge=1000)
+    proxy_faces: int = Field(PROXY_FACES, ge=1000)
     """A mesh with more faces is registered as a proxy of about this many
     (:mod:`mesh_proxy`): sampling, features and the depth rendering need its surface, not a
     scan's tenth-of-a-millimetre detail (a 2-million-face mesh took minutes)."""

@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from graspcap.tasks.config import StageConfig
 from graspcap.tasks.errors import StageError, check_mesh
 from graspcap.tasks.geometry import inv_T, rot_z, transform_points
-from graspcap.tasks.mesh_proxy import mesh_proxy
+from graspcap.tasks.mesh_proxy import PROXY_FACES, mesh_proxy
 from graspcap.tasks.point_clouds import PlatterCrop, crop_platter, estimate_normals, to_pcd
 from graspcap.tasks.registration import (
     Candidate,
@@ -83,7 +83,7 @@ class RegisterScanConfig(StageConfig):
     ambiguous_violation: float = 0.01
     """A distinct pose is as good only if its free-space violation exceeds the best's by at
     most this much (on top of the fitness and RMSE tolerances of ``registration``)."""
-    proxy_faces: int = Field(200_000, ge=1000)
+    proxy_faces: int = Field(PROXY_FACES, ge=1000)
     """A mesh with more faces is registered as a proxy of about this many (:mod:`mesh_proxy`)."""
     registration: RegistrationConfig = RegistrationConfig()
     """Global registration and ICP settings."""

@@ -15,19 +15,22 @@ import pytest
 
 from graspcap.synth import generate
 from graspcap.tasks import pipeline
-from graspcap.tasks.build_contactmap import build_contactmap, lowest_peak
+from graspcap.tasks.build_contactmap import BuildContactmapConfig, build_contactmap, lowest_peak
 from graspcap.tasks.detect_keypoints import (
     DetectKeypointsConfig,
     corrupt_frames,
     detect_keypoints,
 )
 from graspcap.tasks.errors import StageError, check_mesh
+from graspcap.tasks.geometry import make_T, pose_error
 from graspcap.tasks.load_session import load_session
+from graspcap.tasks.mesh_proxy import mesh_proxy
 from graspcap.tasks.qa_metrics import stage_notes
 from graspcap.tasks.reconstruct_hand import reconstruct_hand
 from graspcap.tasks.register_object import register_object
 from graspcap.tasks.register_scan import PRESETS as register_scan_presets
 from graspcap.tasks.register_scan import register_scan
+from tests.registration_rig import look_at_turntable
 from tests.session_factory import write_session
 
 CONFIGS = pipeline.configs_for()
@@ -348,3 +351,65 @@ def test_keypoint_notes_reach_the_qa_notes():
                         "build_contactmap": contact}) == [
         "detect_keypoints: a", "register_scan: b", "build_contactmap: c"]
     assert "detect_keypoints" in pipeline.STAGES["qa_metrics"].upstream
+
+
+# ------------------------------------------------------------------ very fine meshes
+
+
+def test_mesh_proxy_stands_for_every_vertex_within_its_cell():
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=0.05)
+    V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces, np.int64)
+    proxy = mesh_proxy(V, F, 2000)
+    assert not proxy.is_original and 500 <= len(proxy.faces) <= 2000
+    assert proxy.of_vertex.shape == (len(V),) and proxy.of_vertex.max() == len(proxy.vertices) - 1
+    moved = np.linalg.norm(V - proxy.vertices[proxy.of_vertex], axis=1)
+    assert moved.max() <= np.sqrt(3) * proxy.voxel_m
+    assert len(np.unique(np.sort(proxy.faces, axis=1), axis=0)) == len(proxy.faces)
+    same = mesh_proxy(V, F, len(F))
+    assert same.is_original and same.vertices is not None and np.array_equal(same.faces, F)
+    assert np.array_equal(same.of_vertex, np.arange(len(V)))
+
+
+def test_a_fine_mesh_gets_a_contact_map_per_vertex_through_its_proxy():
+    """The map of a 20480-face sphere computed on a proxy of at most 2000 faces: one value per
+    vertex in file order, as close to the truth as the map computed on the mesh itself."""
+    import trimesh
+
+    from tests.test_contactmap import K_TH, contact_scores, render_thermal_views
+
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=0.05)
+    V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces, np.int64)
+    truth = np.clip((V[:, 0] - 0.02) / 0.02, 0, 1)
+    T_ct = look_at_turntable(distance_m=0.5, elevation_deg=30.0)
+    T_to = make_T(np.eye(3), [0, 0, 0.05])
+    views = render_thermal_views(V, F, truth, T_ct, T_to, n_views=6)
+    cfg = BuildContactmapConfig(proxy_faces=2000)
+    cm = build_contactmap(V, F, views, K_TH, np.eye(4), T_ct, T_to, cfg)
+    full = build_contactmap(V, F, views, K_TH, np.eye(4), T_ct, T_to)
+    assert cm.contact.shape == (len(V),) and cm.observed.shape == (len(V),)
+    assert len(cm.notes) == 1 and re.fullmatch(
+        r"object mesh of 20480 faces: visibility and sampling on a proxy of \d+ faces "
+        r"\(vertices clustered on a \d\.\d\d mm grid\)", cm.notes[0])
+    assert full.notes == ()
+    mae, iou, _ = contact_scores(cm.contact, truth, cm.observed)
+    assert mae <= 0.06 and iou >= 0.9, (mae, iou)
+    assert abs(cm.coverage - full.coverage) <= 0.03
+    assert cm.per_view_visible.sum() == cm.n_views_seen.sum()
+
+
+def test_a_fine_mesh_is_registered_through_its_proxy(synth):
+    """register_scan on the session's mesh with a proxy of at most 2000 faces: the true pose."""
+    session = load_session(synth, check_images=False)
+    V, F = pipeline.read_mesh(session)
+    assert len(F) > 2000
+    views = [(session.read_depth_m(v.depth), np.radians(v.angle_deg))
+             for v in session.manifest.scan.views]
+    cfg = register_scan_presets["fast"].model_copy(update={"proxy_faces": 2000})
+    scan = register_scan(views, pipeline._K(session), pipeline._T_color_turntable(session),
+                         V, F, cfg)
+    truth = _true_scan_pose(synth).T_turntable_o_scan
+    rot_deg, trans_m = pose_error(scan.T_turntable_o_scan, truth)
+    assert rot_deg < 3.0 and trans_m < 0.005, (rot_deg, trans_m)
+    assert scan.notes[0].startswith(f"object mesh of {len(F)} faces: registered on a proxy of ")
