@@ -44,7 +44,6 @@ from graspcap.tasks.errors import StageError
 from graspcap.tasks.geometry import inv_T, project, transform_points
 from graspcap.tasks.hand_model import SURFACE_OFFSET_M, HandSide
 from graspcap.tasks.load_session import Session
-from graspcap.tasks.mesh_proxy import PROXY_FACES, mesh_proxy
 from graspcap.tasks.render import render
 
 ALL_FILES = (
@@ -172,8 +171,7 @@ def _estimate_adjustment(
     ``config.frames_after_onset`` later, its pose carried back by that frame's virtual
     camera; the better fit is kept."""
     s = select_steady.steady_from
-    proxy = mesh_proxy(*read_mesh(session), PROXY_FACES)  # a pose needs the surface only
-    V, F = proxy.vertices, proxy.faces
+    V, F = read_mesh(session)
     hand = fit_hand.mesh()
     # a stage-1 pose that could be another (near-symmetric object) is tried both ways
     alt = register_object.T_w_o_runner_up if register_object.ambiguous else None
