@@ -117,7 +117,8 @@ class RegisterObjectConfig(StageConfig):
     proxy_faces: int = Field(PROXY_FACES, ge=1000)
     """A mesh with more faces is registered as a proxy of about this many
     (:mod:`mesh_proxy`): sampling, features and the depth rendering need its surface, not a
-    scan's tenth-of-a-millimetre detail (a 2-million-face mesh took minutes)."""
+    scan's tenth-of-a-millimetre detail (a synthetic mug subdivided to 979200 faces: 34.7 s at
+    fitness 0.970 on the mesh, 10.3 s at 0.998 on its 185628-face proxy)."""
     registration: RegistrationConfig = RegistrationConfig(
         coarse_model_points=5000, ransac_max_iterations=10_000
     )
