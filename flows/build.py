@@ -14,7 +14,13 @@
    ``builds`` table; with nothing to commit there is no new version, and the report says so.
 
 A session that fails keeps its previous good rows (the failure is in the build record);
-without previous good rows it gets a ``status="failed"`` row with the reason.
+without previous good rows it gets a ``status="failed"`` row with the reason. Nothing that
+happens to one session loses the others: a failure assembling its rows, or rows the catalog
+would refuse (its checks run per session before the commit), fails that session alone;
+pictures that cannot be written are a note. A folder reusing another's ``session_id`` (sorted:
+the first is built) is failed in the build record only. A failure of the build as a whole
+(the catalog's lock, the disk) raises :class:`BuildFailed`; the work area keeps every stage
+result for the next build. See ``docs/architecture.md``, "Build".
 """
 
 from __future__ import annotations
