@@ -86,6 +86,12 @@ def test_per_session_mishaps_after_the_stages_never_lose_the_build(warm, synth_r
            if s]  # "" falls back to the folder name, covered below
     for j, sid in enumerate(odd):
         write_session(extra / f"odd-{j}", session_id=sid)
+    # a real session (every stage runs) whose id is a path: its pictures stay in the catalog
+    climber = f"../../../../tmp/escaped-real-{uuid.uuid4().hex}"
+    shutil.copytree(_sessions(synth_root)[1], extra / "climber")
+    manifest = json.loads((extra / "climber" / "session.json").read_text())
+    (extra / "climber" / "session.json").write_text(json.dumps({**manifest,
+                                                                "session_id": climber}))
 
     real_rows = build_module.session_rows
     pictures_seen = []
@@ -108,7 +114,8 @@ def test_per_session_mishaps_after_the_stages_never_lose_the_build(warm, synth_r
 
     assert report.catalog_version == 1
     ran = executions(catalog, "mishaps")  # the odd sessions' stages; the others are cached
-    assert {s for s, _ in ran} == set(odd) and {(s, "load_session") for s in odd} <= set(ran)
+    assert {s for s, _ in ran} == {*odd, climber}
+    assert {(s, "load_session") for s in odd} <= set(ran)
     by_dir = {s.session_dir: s for s in report.sessions}
     first = by_dir[str(_sessions(synth_root)[0])]
     assert first.outcome == Outcome.ADDED and first.status in ("ok", "flagged")
@@ -123,21 +130,28 @@ def test_per_session_mishaps_after_the_stages_never_lose_the_build(warm, synth_r
     assert "comes first" in copy.error and not copy.kept_previous
     cat = gc.open(catalog)
     rows = {r["session_id"]: r for r in cat.table("sessions").to_pylist()}
-    assert sorted(rows) == sorted([good, buggy, *odd])  # one row per id: the first folder's
+    assert sorted(rows) == sorted([good, buggy, climber, *odd])  # one row per id
+    assert rows[climber]["status"] in ("ok", "flagged"), rows[climber]["error"]
     assert rows[good]["status"] in ("ok", "flagged") and rows[good]["error"] is None
     assert rows[buggy]["status"] == "failed" and "injected bug" in rows[buggy]["error"]
     for sid in odd:  # each failed at a stage with its reason, its id stored as it is
         assert rows[sid]["status"] == "failed" and rows[sid]["error"], repr(sid)
         assert by_dir[str(extra / f"odd-{odd.index(sid)}")].outcome == Outcome.FAILED
-    assert set(cat.table("frames")["session_id"].to_pylist()) == {good}
+    assert set(cat.table("frames")["session_id"].to_pylist()) == {good, climber}
+    assert len(cat.contactmap(climber)[0]) > 0
     assert len(cat.contactmap(good)[0]) > 0
     build = cat.table("builds").to_pylist()[0]
     assert sorted(f["session_id"] for f in build["sessions_failed"]) == sorted([buggy, *odd])
     record = json.loads(build["parameters_json"])["report"]
     assert str(dup) in record["summary"]["failed"][good]  # the duplicate: in the record only
     assert not escaped.exists() and not Path("/tmp/escaped-session").exists()
+    assert not Path("/tmp", climber.rsplit("/", 1)[1]).exists()
     # the sessions with pictures (written before their rows), each inside the catalog
-    assert sorted(pictures_seen) == [catalog / "pictures" / sid for sid in sorted([good, buggy])]
+    assert sorted(pictures_seen) == sorted(catalog / "pictures" / path_name(sid)
+                                           for sid in [good, buggy, climber])
+    encoded = catalog / "pictures" / path_name(climber)
+    assert encoded.name.startswith("_.._.._.._tmp_escaped-real-") and "~" in encoded.name
+    assert sorted(p.name for p in encoded.iterdir()) == ["contact.png", "keypoints.png"]
     assert sorted(p.name for p in (catalog / "pictures" / buggy).iterdir()) == [
         "contact.png", "keypoints.png"]
     # nothing under the catalog but its own folders
