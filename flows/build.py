@@ -271,22 +271,24 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         rows, the catalog's latest build already records this failure (replayed), or the id's
         row is not its own (``own_row=False``: a duplicated id)."""
         nonlocal recorded, new_failures
+        row = None
+        if own_row and not good_prev:
+            try:  # the failed row must not take the commit down either
+                row = failed_row(d, sid, error, **common)
+                check_commit(gc.BuildCommit(build=info_commit, sessions=[row], frames=[]))
+            except Exception as exc:  # noqa: BLE001 - the reason goes into the report
+                error, row = f"{error} (no failed row written: {exc})", None
         # a failure replayed from the work area (no stage body ran) that the catalog's
         # latest build already records needs no new version
         if recorded is None:
             recorded = recorded_failures(cat) if previous is not None else {}
         replayed = (not attempted and recorded.get(sid) == error
-                    and (good_prev or not own_row or (prev is not None and prev["input_digest"]
-                                       == common["input_digest"]
-                                       and prev["config_digest"] == cdigest)))
+                    and (good_prev or row is None or (prev is not None and prev["input_digest"]
+                                                      == common["input_digest"]
+                                                      and prev["config_digest"] == cdigest)))
         new_failures |= not replayed
-        if own_row and not good_prev and not replayed:
-            row = failed_row(d, sid, error, **common)
-            try:  # the failed row must not take the commit down either
-                check_commit(gc.BuildCommit(build=info_commit, sessions=[row], frames=[]))
-                rows.append(row)
-            except Exception as exc:  # noqa: BLE001 - the reason goes into the report
-                error += f" (no failed row written: {exc})"
+        if row is not None and not replayed:
+            rows.append(row)
         reports[i] = SessionReport(outcome=Outcome.FAILED, status=Status.FAILED.value,
                                    error=error, failed_stage=stage,
                                    kept_previous=good_prev, **info)

@@ -318,3 +318,38 @@ def test_build_help_documents_the_exit_codes(capsys):
     for line in ("0  every session built", "1  some sessions failed", "2  usage error",
                  "3  the build failed as a whole"):
         assert line in out
+
+
+def test_a_failed_row_the_catalog_refuses_is_left_out_and_replayed(warm, synth_root, tmp_path,
+                                                                   monkeypatch):
+    """A failed session whose own failed row would not validate: no row, the reason in the
+    build record, the others committed; an unchanged rebuild makes no new version."""
+    catalog, _ = _fresh_catalog_on_warm_work(warm, tmp_path / "d")
+    tiny = write_session(tmp_path / "more" / "tiny", session_id="tiny-one")
+    real_failed_row = build_module.failed_row
+
+    def bad_failed_row(*args, **kwargs):
+        return {**real_failed_row(*args, **kwargs), "bogus": 1}
+
+    monkeypatch.setattr(build_module, "failed_row", bad_failed_row)
+    report = build_dataset([synth_root, tiny.parent], catalog, PRESET, build_id="no-row")
+    assert report.catalog_version == 1 and sorted(report.added) == sorted(_ids(synth_root))
+    assert "no failed row written: table 'sessions', column 'bogus'" in report.failed["tiny-one"]
+    cat = gc.open(catalog)
+    assert sorted(cat.table("sessions")["session_id"].to_pylist()) == sorted(_ids(synth_root))
+    record = json.loads(cat.table("builds").to_pylist()[0]["parameters_json"])["report"]
+    assert record["summary"]["failed"] == report.failed
+    again = build_dataset([synth_root, tiny.parent], catalog, PRESET, build_id="no-row-again")
+    assert again.catalog_version is None and again.failed == report.failed
+
+
+def test_a_failed_row_never_opens_a_fifo_manifest(tmp_path):
+    import os
+
+    from graspcap.flows.rows import failed_row
+
+    (tmp_path / "s").mkdir()
+    os.mkfifo(tmp_path / "s" / "session.json")
+    row = failed_row(tmp_path / "s", "s", "why", input_digest="a" * 64, code_version="v",
+                     build_id="b", config_digest="c" * 64)  # returns: never blocks on it
+    assert row["participant"] == row["object_id"] == "unknown" and row["error"] == "why"
