@@ -353,3 +353,19 @@ def test_a_failed_row_never_opens_a_fifo_manifest(tmp_path):
     row = failed_row(tmp_path / "s", "s", "why", input_digest="a" * 64, code_version="v",
                      build_id="b", config_digest="c" * 64)  # returns: never blocks on it
     assert row["participant"] == row["object_id"] == "unknown" and row["error"] == "why"
+
+
+def test_a_failing_progress_callback_is_dropped_not_raised():
+    from graspcap.flows.progress import Tracker, reporting_to
+
+    calls = []
+
+    def broken(event):
+        calls.append(event)
+        raise BrokenPipeError(32, "Broken pipe")
+
+    with reporting_to(broken):
+        tracker = Tracker({"a": 2})
+    first = tracker.finished("a", "s1", "Completed")
+    last = tracker.finished("a", "s2", "Completed")
+    assert calls == [first] and last.session_done and tracker.sink is None
