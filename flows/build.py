@@ -97,12 +97,16 @@ def configs_digest(configs: Mapping[str, StageConfig]) -> str:
 
 
 def last_build_failures(cat: gc.Catalog, work: WorkArea) -> set[str]:
-    """Sessions that failed in the last build (the work area's log, else the catalog)."""
+    """Sessions that failed in the last build (the work area's log, else the catalog); after a
+    build that failed as a whole (nothing committed), every session of it."""
     log = work.root / BUILDS_LOG
     if log.exists():
         lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
         if lines:
-            return set(json.loads(lines[-1])["summary"]["failed"])
+            last = json.loads(lines[-1])
+            if last.get("error"):
+                return {s["session_id"] for s in last["sessions"]}
+            return set(last["summary"]["failed"])
     if cat.latest_version() is None:
         return set()
     builds = cat.table("builds").sort_by("catalog_version").to_pylist()

@@ -15,6 +15,7 @@ import pytest
 
 import graspcap.catalog as gc
 from graspcap.catalog.layout import PLAIN_NAME, CatalogLayout, path_name
+from graspcap.catalog.workarea import WorkArea
 from graspcap.flows import build as build_module
 from graspcap.flows.build import build_dataset
 from graspcap.flows.report import BuildFailed, BuildReport, Outcome, SessionReport
@@ -247,7 +248,11 @@ def test_a_build_level_failure_keeps_the_work_and_the_next_build_commits_it(
     ids = _ids(synth_root)
     assert ran_locked == sorted((s, st) for s in ids for st in ("pictures", "qa_metrics"))
 
+    from graspcap.flows.build import last_build_failures
     from graspcap.flows.commands import status_text
+
+    # --retry-failed after a build that committed nothing retries every session of it
+    assert last_build_failures(gc.open(catalog), WorkArea(work)) == set(ids)
 
     status = status_text(catalog)
     assert "build locked (FAILED, nothing committed)" in status
