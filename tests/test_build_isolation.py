@@ -219,49 +219,62 @@ def test_rows_the_catalog_would_refuse_fail_that_session_alone(warm, synth_root,
     assert fixed.failed == {} and fixed.changed == [bad] and fixed.catalog_version == 2
 
 
+@pytest.mark.parametrize("fault", ["lock", "disk"])
 def test_a_build_level_failure_keeps_the_work_and_the_next_build_commits_it(
-        warm, synth_root, tmp_path, monkeypatch):
-    """The catalog's writer lock times out at the commit: nothing is committed, the build
-    says so (BuildFailed, its record in builds.jsonl), and the next build commits every
-    session without running a stage again."""
-    from graspcap.catalog.commit import commit_build, writer_lock
+        fault, warm, synth_root, tmp_path, monkeypatch):
+    """The catalog's writer lock times out at the commit (``lock``), or the disk fills up
+    writing its arrays (``disk``): nothing is committed, the build says so (BuildFailed, its
+    record in builds.jsonl, ``graspcap status``), and the next build commits every session
+    without running a stage again."""
+    import contextlib
+
+    from graspcap.catalog import commit as commit_module
     from graspcap.catalog.store import Catalog
+    from graspcap.flows.build import last_build_failures
+    from graspcap.flows.commands import status_text
 
     catalog, work = _fresh_catalog_on_warm_work(warm, tmp_path / "c")
     for stage in ("qa_metrics", "pictures"):  # these run in the failing build
         shutil.rmtree(work / "results" / stage)
     layout = gc.open(catalog, create=True).layout
-    monkeypatch.setattr(Catalog, "commit", lambda self, b: commit_build(
-        self.layout, b, lock_timeout_s=0.3))
-    with writer_lock(layout, 5), pytest.raises(BuildFailed) as failed:
-        build_dataset([synth_root], catalog, PRESET, build_id="locked")
+    if fault == "lock":
+        monkeypatch.setattr(Catalog, "commit", lambda self, b: commit_module.commit_build(
+            self.layout, b, lock_timeout_s=0.3))
+        held = commit_module.writer_lock(layout, 5)
+        expected = "CatalogLockTimeout: another writer"
+    else:
+        def disk_full(layout, kind, arrays, digest):
+            raise OSError(errno.ENOSPC, "No space left on device",
+                          str(layout.arrays_tmp / digest))
+
+        monkeypatch.setattr(commit_module, "write_group", disk_full)
+        held = contextlib.nullcontext()
+        expected = "OSError: [Errno 28] No space left on device"
+    with held, pytest.raises(BuildFailed) as failed:
+        build_dataset([synth_root], catalog, PRESET, build_id="broken")
     text = str(failed.value)
-    assert text.startswith("build locked committed nothing: CatalogLockTimeout: another "
-                           "writer")
-    assert str(work) in text
+    assert text.startswith(f"build broken committed nothing: {expected}")
+    assert text.endswith(f"stay in the work area {work}; the next build commits them "
+                         "without running those stages again")
     assert gc.open(catalog).latest_version() is None
     recs = [json.loads(x) for x in (work / "builds.jsonl").read_text().splitlines()]
-    locked = [r for r in recs if r["build_id"] == "locked"]
-    assert len(locked) == 1 and locked[0]["catalog_version"] is None
-    assert "CatalogLockTimeout" in locked[0]["error"]
-    ran_locked = executions(catalog, "locked")
+    (broken,) = [r for r in recs if r["build_id"] == "broken"]
+    assert broken["catalog_version"] is None and broken["error"] == text
     ids = _ids(synth_root)
-    assert ran_locked == sorted((s, st) for s in ids for st in ("pictures", "qa_metrics"))
-
-    from graspcap.flows.build import last_build_failures
-    from graspcap.flows.commands import status_text
-
+    assert executions(catalog, "broken") == sorted(
+        (s, st) for s in ids for st in ("pictures", "qa_metrics"))
     # --retry-failed after a build that committed nothing retries every session of it
     assert last_build_failures(gc.open(catalog), WorkArea(work)) == set(ids)
-
     status = status_text(catalog)
-    assert "build locked (FAILED, nothing committed)" in status
-    assert "ERROR: build locked committed nothing: CatalogLockTimeout" in status
+    assert "build broken (FAILED, nothing committed)" in status
+    assert f"ERROR: build broken committed nothing: {expected}" in status
+
     monkeypatch.undo()
     report = build_dataset([synth_root], catalog, PRESET, build_id="after")
     assert executions(catalog, "after") == []
     assert report.catalog_version == 1 and sorted(report.added) == sorted(ids)
     assert sorted(gc.open(catalog).table("sessions")["session_id"].to_pylist()) == sorted(ids)
+    assert len(gc.open(catalog).contactmap(ids[0])[0]) > 0
 
 
 # --- graspcap build's exit codes -----------------------------------------------------------
