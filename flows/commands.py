@@ -7,6 +7,7 @@ the functions here import them lazily for that reason.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import sys
 import traceback
@@ -26,6 +27,20 @@ EXIT_BUILD_FAILED = 3
 commit); completed stage results stay in the work area for the next build."""
 
 
+class _NoTraceback(logging.Filter):
+    """Drops the traceback from Prefect's "Encountered exception during execution" line for
+    an expected failure (``graspcap build`` prints its reason once, without a traceback)."""
+
+    def __init__(self, types: tuple[type[BaseException], ...]):
+        super().__init__()
+        self.types = types
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and isinstance(record.exc_info[1], self.types):
+            record.exc_info = record.exc_text = None
+        return True
+
+
 def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
               dask: str | None = None, retry_failed: bool = False) -> int:
     """``graspcap build``: :data:`EXIT_OK`, :data:`EXIT_SESSIONS_FAILED`, :data:`EXIT_USAGE`
@@ -37,7 +52,14 @@ def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
     if not discover_sessions(list(roots)):
         print(f"no session.json found under {' '.join(map(str, roots))}", file=sys.stderr)
         return EXIT_USAGE
+    expected = (BuildFailed, CatalogError, KeyError, OSError)
+    quiet = _NoTraceback(expected)
+    flow_log = logging.getLogger("prefect.flow_runs")
+    flow_log.addFilter(quiet)
     try:
+        import graspcap.catalog as gc
+
+        gc.open(catalog, create=True)  # a catalog it cannot open fails before Prefect starts
         configure(Path(catalog) / "work")
         from graspcap.flows.build import build_dataset
         from graspcap.flows.progress import ConsoleProgress
@@ -48,10 +70,12 @@ def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
     except KeyboardInterrupt:
         raise
     except Exception as exc:  # noqa: BLE001 - any error here means nothing was committed
-        if not isinstance(exc, BuildFailed | CatalogError | KeyError | OSError):
+        if not isinstance(exc, expected):
             traceback.print_exc()  # a bug: its traceback helps
         print(f"graspcap build: the build failed, nothing committed: {exc}", file=sys.stderr)
         return EXIT_BUILD_FAILED
+    finally:
+        flow_log.removeFilter(quiet)
     print(report.summary())
     return EXIT_SESSIONS_FAILED if report.failed else EXIT_OK
 

@@ -387,3 +387,45 @@ def test_a_failing_progress_callback_is_dropped_not_raised():
     first = tracker.finished("a", "s1", "Completed")
     last = tracker.finished("a", "s2", "Completed")
     assert calls == [first] and last.session_done and tracker.sink is None
+
+
+@pytest.mark.slow
+def test_graspcap_build_exit_codes_end_to_end(tmp_path):
+    """The real command in a process of its own: 1 when a session failed (its row
+    committed), 3 with the reason and no traceback when the catalog cannot be opened, 2
+    without sessions."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    write_session(tmp_path / "s" / "tiny", session_id="tiny-one")  # fails at a stage
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+
+    def build(*roots: Path) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "graspcap.cli", "build", *map(str, roots),
+                               "--catalog", str(tmp_path / "cat"), "--preset", PRESET],
+                              capture_output=True, text=True, env=env, cwd=REPO, timeout=600)
+
+    failed = build(tmp_path / "s")
+    assert failed.returncode == 1, failed.stderr[-3000:]
+    assert "FAILED tiny-one" in failed.stdout and "catalog version 1" in failed.stdout
+    # the commit cannot take the writer lock (its file is a folder): 3, the work kept
+    (tmp_path / "cat" / ".lock").unlink()
+    (tmp_path / "cat" / ".lock").mkdir()
+    write_session(tmp_path / "s" / "tiny2", session_id="tiny-two")
+    locked = build(tmp_path / "s")
+    assert locked.returncode == 3, locked.stderr[-3000:]
+    assert ("graspcap build: the build failed, nothing committed: build " in locked.stderr
+            and "committed nothing: IsADirectoryError" in locked.stderr)
+    assert "Traceback" not in locked.stderr  # Prefect's copy of it is dropped too
+    (tmp_path / "cat" / ".lock").rmdir()
+    (tmp_path / "cat" / "catalog.json").write_text('{"format": "other"}')
+    broken = build(tmp_path / "s")
+    assert broken.returncode == 3
+    assert broken.stderr.strip() == (
+        "graspcap build: the build failed, nothing committed: "
+        f"{tmp_path / 'cat' / 'catalog.json'}: format is 'other', expected 'graspcap-catalog'")
+    (tmp_path / "none").mkdir()
+    assert build(tmp_path / "none").returncode == 2
