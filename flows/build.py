@@ -262,7 +262,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     for rec in work.executions(build_id):
         k = (rec["session_id"], rec["stage"])
         attempts[k] = attempts.get(k, 0) + 1
-    reports: dict[int, SessionReport] = {}
+    by_index: dict[int, SessionReport] = {}  # reports in the order of dirs
     rows, frames, arrays, meshes = [], [], {}, {}
     recorded: dict[str, str] | None = None
     new_failures = False
@@ -293,7 +293,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         new_failures |= not replayed
         if row is not None and not replayed:
             rows.append(row)
-        reports[i] = SessionReport(outcome=Outcome.FAILED, status=Status.FAILED.value,
+        by_index[i] = SessionReport(outcome=Outcome.FAILED, status=Status.FAILED.value,
                                    error=error, failed_stage=stage,
                                    kept_previous=good_prev, **info)
 
@@ -326,8 +326,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
             # cached results
             if (not ran and good_prev and prev["input_digest"] == common["input_digest"]
                     and prev["config_digest"] == cdigest and not predates_columns(prev)):
-                reports[i] = SessionReport(outcome=Outcome.UNCHANGED, status=prev["status"],
-                                           **info)
+                by_index[i] = SessionReport(outcome=Outcome.UNCHANGED,
+                                            status=prev["status"], **info)
                 continue
             sr = session_rows({k: WorkArea.load(r) for k, r in refs.items()}, **common)
             if sr.session["session_id"] != sid:
@@ -352,10 +352,10 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         rows.append(sr.session)
         frames.extend(sr.frames)
         arrays[sid] = sr.arrays
-        reports[i] = SessionReport(outcome=Outcome.CHANGED if prev else Outcome.ADDED,
+        by_index[i] = SessionReport(outcome=Outcome.CHANGED if prev else Outcome.ADDED,
                                    status=sr.session["status"], error=sr.session["error"],
                                    **info)
-    reports = [reports[i] for i in sorted(reports)]
+    reports = [by_index[i] for i in sorted(by_index)]
     t_rows = time.perf_counter()
 
     params = {"roots": [str(r) for r in roots], "catalog": str(cat.layout.root),
