@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from functools import cached_property
@@ -26,6 +28,30 @@ DELTA_SCHEMES = ("s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl")
 """Object stores deltalake reads itself (its storage_options take the credentials)."""
 MIGRATIONS_FROM = (1, 2, 3, 4)
 """Older formats ``graspcap catalog migrate`` upgrades (``graspcap.catalog.migrate``)."""
+PLAIN_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}")
+"""Session ids used as folder names as they are: the contract's character set, 1-128
+characters, not starting with '.' (so never ``.``, ``..`` or a hidden name)."""
+
+
+def path_name(session_id: str) -> str:
+    """A file-system name for ``session_id``, which is data, never a path: an id matching
+    :data:`PLAIN_NAME` is its own name; any other (``a/b``, ``../x``, 300 characters, a
+    newline or NUL) is its safe characters (at most 40, '/' and the like as '_') then ``~``
+    and 24 hex digits of its sha256. ``~`` is outside :data:`PLAIN_NAME`, so an encoded name
+    never equals a plain one, and two ids share a name only if their hashes collide."""
+    if PLAIN_NAME.fullmatch(session_id):
+        return session_id
+    readable = re.sub(r"[^A-Za-z0-9._-]", "_", session_id)[:40].lstrip(".")
+    digest = hashlib.sha256(session_id.encode("utf-8", "surrogatepass")).hexdigest()[:24]
+    return f"{readable}~{digest}"
+
+
+def child_path(parent: Path, session_id: str) -> Path:
+    """``parent / path_name(session_id)``, checked to stay directly inside ``parent``."""
+    path = parent / path_name(session_id)
+    if path.parent != parent or path.name in ("", ".", ".."):
+        raise CatalogError(f"session id {session_id!r} maps to {path}, outside {parent}")
+    return path
 
 
 def parse_uri(uri: str | Path) -> tuple[Path | None, str | None]:
@@ -59,7 +85,7 @@ class CatalogLayout:
     ROOT/.lock                                     writer lock (fcntl.flock)
     ROOT/published.json                            newest published version (recovery's evidence)
     ROOT/vacuum.jsonl                              one line per vacuum: the versions it dropped
-    ROOT/pictures/<session_id>/*.png               QA pictures (latest build; not versioned)
+    ROOT/pictures/<path_name(session_id)>/*.png    QA pictures (latest build; not versioned)
     ```
 
     Readers go through ``uri``-based paths and ``fs`` (fsspec), so the same code reads a local
@@ -156,8 +182,9 @@ class CatalogLayout:
 
     def pictures_dir(self, session_id: str) -> Path:
         """A session's QA pictures (``keypoints.png``, ``contact.png``): written by every
-        build that runs the session's ``pictures`` stage, the latest wins; not versioned."""
-        return self.root / "pictures" / session_id
+        build that runs the session's ``pictures`` stage, the latest wins; not versioned.
+        The folder's name is :func:`path_name` of the id (the id itself when it is plain)."""
+        return child_path(self.root / "pictures", session_id)
 
 
 def write_format_file(layout: CatalogLayout, version: int = CATALOG_FORMAT_VERSION) -> None:

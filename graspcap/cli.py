@@ -81,6 +81,16 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args.out, **{k: v for k, v in options.items() if v is not None})
 
 
+BUILD_EXIT_CODES = """exit status:
+  0  every session built (or unchanged)
+  1  some sessions failed: the others are committed in the new version (or were
+     already); every failure is in the build record with its reason
+  2  usage error: bad arguments, or no session.json under the roots
+  3  the build failed as a whole (catalog lock, disk, commit) and committed
+     nothing; completed stage results stay in the work area and the next build
+     commits them without running those stages again"""
+
+
 def _cmd_build(args: argparse.Namespace) -> int:
     from graspcap.flows.commands import run_build
 
@@ -142,7 +152,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, help="grasp-video frames per session")
     p.add_argument("--seed", type=int, help="random seed")
     p.set_defaults(func=_cmd_demo)
-    p = sub.add_parser("build", help="build or update the catalog from capture sessions")
+    p = sub.add_parser(
+        "build", help="build or update the catalog from capture sessions",
+        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=BUILD_EXIT_CODES)
     p.add_argument("roots", type=Path, nargs="+", help="session folders or roots holding many")
     p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
     p.add_argument("--preset", default="default", help="stage preset (default, fast, ...)")
