@@ -8,6 +8,7 @@
 Contract (columns, encodings, Zarr layout, format version): ``graspcap.schemas.tables``.
 """
 
+from graspcap.catalog.arrays import DamagedArrayError
 from graspcap.catalog.commit import BuildCommit, BuildInfo, ObjectMesh, SessionArrays
 from graspcap.catalog.dataset import GraspDataset
 from graspcap.catalog.errors import (
@@ -22,6 +23,6 @@ from graspcap.catalog.vacuum import VacuumReport
 
 __all__ = [
     "BuildCommit", "BuildInfo", "Catalog", "CatalogError", "CatalogFormatError",
-    "CatalogLockTimeout", "CatalogSchemaError", "GraspDataset", "ObjectMesh", "SessionArrays",
-    "VacuumReport", "VersionNotFound", "open",
+    "CatalogLockTimeout", "CatalogSchemaError", "DamagedArrayError", "GraspDataset",
+    "ObjectMesh", "SessionArrays", "VacuumReport", "VersionNotFound", "open",
 ]

@@ -1,9 +1,10 @@
-"""`graspcap catalog versions|show|diff|tag|export|vacuum|migrate` on the command line.
+"""`graspcap catalog versions|show|diff|tag|export|vacuum|verify|migrate` on the command line.
 
 ``add_catalog_parser(subparsers)`` adds the ``catalog`` command to graspcap's parser. Every
 subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL), prints text for a
 person or ``--json`` for a script, and exits 2 with the catalog's message on a catalog error
-(missing version or tag, older format, ...). Prefect-free, like every catalog reader.
+(missing version or tag, older format, a damaged file: one line per problem, never a
+traceback). Prefect-free, like every catalog reader.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
+from deltalake.exceptions import DeltaError
 
 from graspcap.catalog.errors import CatalogError
 from graspcap.catalog.layout import DEFAULT_CATALOG
@@ -57,9 +59,21 @@ def _with_any(column: pa.ChunkedArray) -> int:
                or 0)
 
 
+def several_meshes(sessions: pa.Table) -> dict[str, dict[str, list[str]]]:
+    """``{object_id: {mesh digest: [session ids]}}`` of the object ids whose sessions carry
+    more than one object mesh (allowed: each session brings its own; worth a look)."""
+    by_object: dict[str, dict[str, list[str]]] = {}
+    for r in sessions.select(["session_id", "object_id", "object_mesh_digest"]).to_pylist():
+        if r["object_mesh_digest"]:
+            by_object.setdefault(r["object_id"], {}).setdefault(
+                r["object_mesh_digest"], []).append(r["session_id"])
+    return {o: {d: sorted(s) for d, s in sorted(m.items())}
+            for o, m in sorted(by_object.items()) if len(m) > 1}
+
+
 def summary(cat, version: int | str | None = None) -> dict:
-    """A version's summary: number, build, tags, row counts, status counts, QA medians, and
-    how many sessions have QA flag reasons and notes."""
+    """A version's summary: number, build, tags, row counts, status counts, QA medians, how
+    many sessions have QA flag reasons and notes, and the object ids with several meshes."""
     v = cat.resolve(version)
     info = next(r for r in cat.versions().to_pylist() if r["version"] == v)
     sessions = cat.table("sessions", v)
@@ -78,6 +92,7 @@ def summary(cat, version: int | str | None = None) -> dict:
         "status": {r["status"]: r["count_all"] for r in status},
         "qa_median": qa,
         "sessions_with": {c: _with_any(sessions[c]) for c in QA_TEXT_COLUMNS},
+        "objects_with_several_meshes": several_meshes(sessions),
         "build": None if not build else {
             k: build[0][k] for k in ("build_id", "code_version", "config_digest")} | {
             k: len(build[0][k]) for k in ("sessions_added", "sessions_changed",
@@ -86,8 +101,22 @@ def summary(cat, version: int | str | None = None) -> dict:
     }
 
 
+def report_problems(cat, command: str) -> int:
+    """Print the catalog's problems (``Catalog.problems``) one a line; 2 when there are any."""
+    problems = cat.problems()
+    for line in problems:
+        print(f"{command}: {line}", file=sys.stderr)
+    return 2 if problems else 0
+
+
 def _cmd_versions(args: argparse.Namespace) -> int:
-    table = _open(args).versions()
+    cat = _open(args)
+    code = _listed_versions(args, cat)
+    return code or report_problems(cat, "graspcap catalog versions")
+
+
+def _listed_versions(args: argparse.Namespace, cat) -> int:
+    table = cat.versions()
     rows = [{"version": r["version"], "time_utc": r["time_utc"].isoformat(timespec="seconds"),
              "build_id": r["build_id"], "tags": r["tags"], "format": r["format_version"],
              **{f"rows_{n}": r[f"rows_{n}"] for n in DATA_TABLES}} for r in table.to_pylist()]
@@ -127,6 +156,10 @@ def _cmd_show(args: argparse.Namespace) -> int:
         w = out["sessions_with"]
         print(f"QA:     {w['qa_flags']} session(s) with flag reasons, {w['qa_notes']} with "
               "notes (show --session ID lists them)")
+        for obj, meshes in out["objects_with_several_meshes"].items():
+            print(f"meshes: object {obj!r} has {len(meshes)} different meshes (each session "
+                  "keeps its own): " + "; ".join(f"{d[:12]}: {', '.join(s)}"
+                                                 for d, s in meshes.items()))
         print("QA medians:")
         for k, v in out["qa_median"].items():
             print(f"  {k:<26} {'-' if v is None else f'{v:.4g}'}")
@@ -201,15 +234,49 @@ def _cmd_migrate(args: argparse.Namespace) -> int:
     else:
         made = f"; new version {r.new_version} pins the upgraded tables" if r.new_version else ""
         print(f"migrated {r.root} from format {r.from_format} to {r.to_format}{made}")
+        for digest, problem in sorted(r.damaged_arrays.items()):
+            print(f"  array group {digest} left as it was: {problem} (`graspcap catalog "
+                  "verify` names the sessions using it)")
     return 0
+
+
+VERIFY_DAMAGED = 1
+"""Exit status of ``catalog verify`` when something the version needs is missing or altered
+(2, as for every subcommand, when the catalog or version cannot be opened at all)."""
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
+    from graspcap.catalog.verify import verify_version
+
+    report = verify_version(_open(args), _version_arg(args.version))
+    if args.json:
+        _print_json(report.as_dict())
+        return 0 if report.ok else VERIFY_DAMAGED
+    files = sum(report.table_files.values())
+    checked = f"{files} table file(s) and {report.arrays} array group(s)"
+    if report.ok:
+        print(f"version {report.version}: {checked} checked, nothing damaged")
+        return 0
+    print(f"version {report.version}: {checked} checked, {len(report.damaged)} damaged:")
+    for d in report.damaged:
+        print(f"  {d.line()}")
+    return VERIFY_DAMAGED
+
+
+def problem_lines(exc: BaseException) -> list[str]:
+    """One line per problem of a catalog error (a Rust backtrace or a traceback never)."""
+    if isinstance(exc, DeltaError):  # deltalake's text ends in a Rust backtrace
+        return [(str(exc).strip().splitlines() or [type(exc).__name__])[0]]
+    return [line for line in str(exc).splitlines() if line.strip()] or [type(exc).__name__]
 
 
 def _guard(func):
     def run(args: argparse.Namespace) -> int:
         try:
             return func(args)
-        except (CatalogError, ValueError) as exc:
-            print(f"graspcap catalog {args.catalog_command}: {exc}", file=sys.stderr)
+        except (CatalogError, ValueError, OSError, DeltaError) as exc:
+            for line in problem_lines(exc):
+                print(f"graspcap catalog {args.catalog_command}: {line}", file=sys.stderr)
             return 2
     return run
 
@@ -221,8 +288,8 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
                         help="catalog folder or URL (file://, s3://, ... read-only)")
     as_json = argparse.ArgumentParser(add_help=False)
     as_json.add_argument("--json", action="store_true", help="print JSON")
-    parser = subparsers.add_parser("catalog", help="list, show, compare, tag, export, vacuum "
-                                   "and migrate catalog versions")
+    parser = subparsers.add_parser("catalog", help="list, show, compare, tag, export, vacuum, "
+                                   "verify and migrate catalog versions")
     sub = parser.add_subparsers(dest="catalog_command", required=True)
 
     p = sub.add_parser("versions", parents=[common, as_json], help="every version")
@@ -251,6 +318,11 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
                        help="delete files no kept version needs (newest N plus tagged)")
     p.add_argument("--keep", type=int, required=True, help="newest versions to keep (>= 1)")
     p.set_defaults(func=_guard(_cmd_vacuum))
+    p = sub.add_parser("verify", parents=[common, as_json],
+                       help="check that every file a version needs exists and every array "
+                       "matches its digest; exit 1 naming what is damaged")
+    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
+    p.set_defaults(func=_guard(_cmd_verify))
     p = sub.add_parser("migrate", parents=[common],
                        help="upgrade an older-format catalog to this graspcap's format")
     p.add_argument("path", nargs="?", help="the catalog (default: --catalog)")
@@ -259,4 +331,4 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
     return parser
 
 
-__all__ = ["add_catalog_parser", "summary"]
+__all__ = ["add_catalog_parser", "problem_lines", "report_problems", "summary"]

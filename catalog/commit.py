@@ -3,9 +3,17 @@
 Protocol (under the writer lock):
 
 1. read the last ``versions`` row: the Delta version every data table must be at;
-2. roll back any table that is newer (a writer died after a table commit, before its versions
-   row) with ``DeltaTable.restore``;
-3. write the arrays (content-addressed Zarr groups, temp name then rename);
+2. check that nothing after that row was published (``check_versions``: no gap in a table's log
+   or in the version numbers, no pin past a table's log, no ``published.json``, tag, table
+   commit or builds row made for a later version); if something was, stop with
+   ``CatalogDamaged`` naming it. Otherwise roll back any table that is newer (a writer died
+   after a table commit, before its versions row) with ``DeltaTable.restore``. Every table
+   commit carries the catalog version it was made for (commit metadata
+   ``graspcap.catalog_version``), and ``published.json`` records the newest published version
+   after each versions row: the evidence that tells a killed writer's orphans from a
+   published version whose row was lost. Version numbers are never reused;
+3. write the arrays (content-addressed Zarr groups, temp name then rename; first remove what
+   killed writers left under ``arrays/.tmp``);
 4. per data table one Delta commit: replace the rows of the sessions the build touches
    (``mode="overwrite"`` with a ``session_id IN (...)`` predicate), append the builds row;
 5. append the ``versions`` row: this write is the linearisation point. Readers resolve a catalog
@@ -17,6 +25,7 @@ from __future__ import annotations
 
 import fcntl
 import json
+import logging
 import os
 import time
 from collections.abc import Iterator, Mapping
@@ -30,21 +39,49 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from deltalake import DeltaTable, write_deltalake
+import pyarrow.parquet as pq
+from deltalake import CommitProperties, DeltaTable, write_deltalake
+from deltalake.exceptions import DeltaError
 
-from graspcap.catalog.arrays import array_digest, check_arrays, write_group
+from graspcap.catalog.arrays import (
+    array_digest,
+    check_arrays,
+    remove_temp_groups,
+    write_group,
+)
 from graspcap.catalog.delta import (
     INITIAL_TABLE_VERSIONS,
+    delta_table,
     delta_version,
+    entry_path,
+    intact_files,
+    log_dir,
+    log_problems,
+    lost_versions,
     read_latest,
     read_table,
     table_versions_of,
 )
 from graspcap.catalog.diff import diff_sessions
-from graspcap.catalog.errors import CatalogLockTimeout, CatalogSchemaError
+from graspcap.catalog.errors import (
+    CatalogDamaged,
+    CatalogDiskFull,
+    CatalogError,
+    CatalogLockTimeout,
+    CatalogSchemaError,
+    writing,
+)
 from graspcap.catalog.layout import CatalogLayout
 from graspcap.catalog.validate import Batch, rows_to_columns, to_table
-from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DATA_TABLES, ZARR_LAYOUT, Status
+from graspcap.schemas.tables import (
+    CATALOG_FORMAT_VERSION,
+    DATA_TABLES,
+    TABLE_SCHEMAS,
+    ZARR_LAYOUT,
+    Status,
+)
+
+log = logging.getLogger(__name__)
 
 PAUSE_ENV = "GRASPCAP_CATALOG_TEST_PAUSE_AT"
 """Test hook: name of a commit step at which the writer stops (sleeps) so a test can kill it."""
@@ -104,7 +141,11 @@ class BuildCommit:
 
     ``sessions`` and ``frames`` are batches (``pyarrow.Table``, a mapping of columns or a list
     of row dicts) of the catalog schemas; the three ``*_digest`` columns may be left out, they
-    are filled from ``session_arrays`` (by session id) and ``object_meshes`` (by object id).
+    are filled from ``session_arrays`` (by session id) and ``object_meshes``. Every session has
+    its own object mesh (the input contract): ``object_meshes`` is keyed by session id; a key
+    that is an object id instead serves the sessions of that object that have no entry of their
+    own (a shorthand where each object has one mesh). Meshes are content-addressed, so equal
+    meshes are stored once, and each session's contact map is checked against its own mesh.
     Every session in ``sessions`` replaces its previous row and frames; sessions in ``remove``
     leave the catalog.
     """
@@ -130,7 +171,9 @@ def _pause(point: str) -> None:
 def writer_lock(layout: CatalogLayout, timeout_s: float) -> Iterator[None]:
     """Hold the catalog's exclusive writer lock; wait up to ``timeout_s``, then fail clearly."""
     layout.require_local("writing to a catalog")
-    with open(layout.lock_file, "a+") as fh:
+    with writing(layout.lock_file):
+        fh = open(layout.lock_file, "a+")  # noqa: SIM115 (closed below, after the yield)
+    with fh:
         deadline = time.monotonic() + timeout_s
         while True:
             try:
@@ -146,13 +189,24 @@ def writer_lock(layout: CatalogLayout, timeout_s: float) -> Iterator[None]:
                         "lock_timeout_s") from None
                 time.sleep(0.05)
         try:
-            fh.seek(0)
-            fh.truncate()
-            fh.write(f"pid {os.getpid()} since {datetime.now(UTC).isoformat()}")
-            fh.flush()
+            with writing(layout.lock_file):
+                fh.seek(0)
+                fh.truncate()
+                fh.write(f"pid {os.getpid()} since {datetime.now(UTC).isoformat()}")
+                fh.flush()
             yield
         finally:
             fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+VERSION_KEY = "graspcap.catalog_version"
+"""Commit metadata of every table commit a build makes: the catalog version it was made for."""
+BUILD_KEY = "graspcap.build_id"
+
+
+def _marked(version: int, build_id: str, **more: Any) -> CommitProperties:
+    return CommitProperties(custom_metadata={VERSION_KEY: str(version), BUILD_KEY: build_id,
+                                             **{k: str(v) for k, v in more.items()}})
 
 
 def last_version_row(layout: CatalogLayout) -> dict | None:
@@ -164,20 +218,182 @@ def last_version_row(layout: CatalogLayout) -> dict | None:
     return versions.slice(i, 1).to_pylist()[0]
 
 
-def recover(layout: CatalogLayout) -> dict[str, int]:
-    """Roll back table commits no ``versions`` row covers; return ``{table: rolled-back-from}``.
+def read_published(layout: CatalogLayout) -> dict | None:
+    """``published.json``: ``{"version": N, "table_versions": {...}}`` or None (absent, or
+    unreadable: it is evidence only, the versions table stays the truth)."""
+    try:
+        record = json.loads(layout.published_file.read_text())
+        return record if isinstance(record, dict) and type(record.get("version")) is int \
+            else None
+    except (OSError, ValueError, RecursionError):
+        return None
 
-    Call only under the writer lock.
+
+def write_published(layout: CatalogLayout, row: Mapping[str, Any]) -> None:
+    """Record ``row`` (a ``versions`` row) as published (temp file, then rename)."""
+    record = {"version": int(row["version"]), "build_id": row["build_id"],
+              "table_versions": json.loads(row["table_versions"])}
+    tmp = layout.published_file.with_suffix(".json.tmp")
+    try:
+        with writing(layout.published_file):
+            tmp.write_text(json.dumps(record, sort_keys=True) + "\n")
+            os.replace(tmp, layout.published_file)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _commit_marks(dt: DeltaTable, start: int) -> list[tuple[int, int | None]]:
+    """``(Delta version, catalog version it was made for or None)`` of commits ``start``..."""
+    out = []
+    for entry in dt.history(dt.version() - start + 1):
+        mark = entry.get(VERSION_KEY)
+        out.append((int(entry["version"]), int(mark) if mark is not None else None))
+    return sorted(out)
+
+
+def check_versions(layout: CatalogLayout) -> tuple[dict | None, list[str]]:
+    """The last ``versions`` row and the problems that forbid writing on top of it.
+
+    Problems: a table log with a gap or an unreadable entry; version numbers with a gap; a
+    versions row pinning a Delta version its table no longer has; evidence that a version
+    after the last row was published (``published.json``, a tag, a table commit or builds row
+    made for a later version, a ``versions`` data file no log entry lists).
     """
+    problems = [p for name in TABLE_SCHEMAS for p in log_problems(layout, name, parse=False)]
+    if problems:
+        return None, problems
+    versions = read_latest(layout, "versions")
+    numbers = sorted(versions["version"].to_pylist())
     row = last_version_row(layout)
+    last = numbers[-1] if numbers else 0
+    lost = sorted(set(range(1, last + 1)) - set(numbers))
+    if lost:
+        problems.append(f"{layout.table('versions')}: the versions table has no row for "
+                        f"version(s) {lost} although later versions exist (rows deleted)")
+    newest = {name: delta_version(layout, name) for name in TABLE_SCHEMAS}
+    for r in versions.to_pylist():
+        for name, pinned in table_versions_of(r).items():
+            if pinned > newest[name]:
+                problems.append(
+                    f"{log_dir(layout, name)}: version {r['version']} pins table {name!r} at "
+                    f"Delta version {pinned} but its log ends at {newest[name]} "
+                    f"({lost_versions(list(range(newest[name] + 1, pinned + 1)))})")
+    published = read_published(layout)
+    if published is not None and published["version"] > last:
+        problems.append(f"{layout.published_file}: version {published['version']} was "
+                        f"published, but the versions table ends at version {last} (its "
+                        "rows or log entries after that were lost)")
+    tags = read_latest(layout, "tags")
+    for tag, version in zip(tags["tag"].to_pylist(), tags["version"].to_pylist(), strict=True):
+        if version > last:
+            problems.append(f"{layout.table('tags')}: tag {tag!r} points at version {version} "
+                            f"but the versions table ends at version {last}")
+    expected = table_versions_of(row) if row else INITIAL_TABLE_VERSIONS
+    for name in DATA_TABLES if row is not None and not problems else ():
+        have = delta_table(layout, name, expected[name]).count()  # from the log's stats
+        if have != row[f"rows_{name}"]:
+            problems.append(
+                f"{layout.table(name)}: table {name!r} at version {last} has {have} rows, but "
+                f"version {last} was committed with {row[f'rows_{name}']}: a Delta log entry "
+                "of it was altered")
+    for name in DATA_TABLES:
+        if newest[name] <= expected[name]:
+            continue
+        for delta_v, made_for in _commit_marks(delta_table(layout, name), expected[name] + 1):
+            if made_for is not None and made_for > last + 1:
+                problems.append(
+                    f"{entry_path(layout, name, delta_v)}: table {name!r}: Delta version "
+                    f"{delta_v} was made for catalog version {made_for}, so "
+                    f"{_published(last + 1, made_for - 1)} published, but the versions table "
+                    f"ends at {last}")
+    builds = read_table(layout, "builds", newest["builds"], ["build_id", "catalog_version"])
+    for build_id, made_for in zip(builds["build_id"].to_pylist(),
+                                  builds["catalog_version"].to_pylist(), strict=True):
+        if made_for > last + 1:
+            problems.append(f"{layout.table('builds')}: build {build_id!r} was committed as "
+                            f"version {made_for}, so {_published(last + 1, made_for - 1)} "
+                            f"published, but the versions table ends at {last}")
+    if published is None:  # no record (older catalog): look for a row whose log entry is lost
+        listed = {str(Path(f).resolve()) for f in intact_files(layout, "versions")}
+        for path in sorted(layout.table("versions").glob("*.parquet")):
+            if str(path.resolve()) in listed:
+                continue
+            try:
+                stray = pq.read_table(path, columns=["version"])["version"].to_pylist()
+            except (OSError, pa.ArrowException):
+                continue
+            if any(v > last for v in stray):
+                entry = entry_path(layout, "versions", newest["versions"] + 1)
+                problems.append(f"{path}: holds the versions row of version(s) "
+                                f"{sorted(v for v in stray if v > last)}, which no log entry "
+                                f"lists (its log entry {entry} was lost, or a writer died "
+                                "while appending it)")
+    return row, problems
+
+
+def _published(first: int, last: int) -> str:
+    return f"version {first} was" if first == last else f"versions {first}-{last} were"
+
+
+REPAIR_VERSIONS = (
+    "when the lost or garbled files are the versions table's log entries, `python -m "
+    "graspcap.catalog.repair CATALOG` puts their rows back from the rows' own data files; "
+    "else put the lost files back from a backup or snapshot of the catalog (the newest version "
+    "stays unwritable until then: rolling the tables back would drop data a reader may have "
+    "seen, and a new version would reuse a published number). Readers of the intact versions "
+    "keep working; to go on without the lost version, rebuild into a new catalog (`graspcap "
+    "build SESSIONS --catalog NEW`) or export a readable one (`graspcap catalog export VERSION "
+    "--out DIR`)")
+
+
+def recover(layout: CatalogLayout) -> dict[str, int]:
+    """Roll back table commits no ``versions`` row could have published; return
+    ``{table: rolled-back-from}``.
+
+    Only commits of a writer that died between a table commit and its ``versions`` row are
+    undone; when anything says a version after the last row was published (``check_versions``)
+    nothing is rolled back and ``CatalogDamaged`` names what is missing. Call only under the
+    writer lock.
+    """
+    row, problems = check_versions(layout)
+    if problems:
+        raise CatalogDamaged(layout.uri, problems, REPAIR_VERSIONS)
+    last = row["version"] if row else 0
     expected = table_versions_of(row) if row else INITIAL_TABLE_VERSIONS
     rolled = {}
     for name in DATA_TABLES:
-        dt = DeltaTable(str(layout.table(name)))
+        dt = delta_table(layout, name)
         if dt.version() != expected[name]:
             rolled[name] = dt.version()
-            dt.restore(expected[name])
+            with _table_write(layout, name):
+                dt.restore(expected[name], commit_properties=_marked(
+                    last, "recover", **{"graspcap.rolled_back_from": dt.version()}))
+    if row is not None and (read_published(layout) or {}).get("version", 0) < last:
+        write_published(layout, row)  # a writer died between its versions row and the record
     return rolled
+
+
+def _landed(layout: CatalogLayout, version: int, build_id: str) -> bool:
+    """Whether the versions row of ``version`` by ``build_id`` is committed."""
+    try:
+        row = last_version_row(layout)
+    except CatalogError:
+        return False
+    return row is not None and row["version"] == version and row["build_id"] == build_id
+
+
+@contextmanager
+def _table_write(layout: CatalogLayout, name: str) -> Iterator[None]:
+    """One Delta commit to table ``name``: ENOSPC names the table folder; any other deltalake
+    error becomes a ``CatalogError`` naming the table, without the Rust backtrace."""
+    try:
+        with writing(layout.table(name)):
+            yield
+    except DeltaError as exc:
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise CatalogError(
+            f"writing table {name!r} ({layout.table(name)}) failed: {first[:500]}; nothing "
+            "of this build is committed and every earlier version is intact") from None
 
 
 def _as_list(values: Any) -> list:
@@ -209,17 +425,20 @@ def _prepare(commit: BuildCommit) -> tuple[pa.Table, pa.Table, dict[str, tuple[s
                 digest = array_digest(kind, checked)
                 groups[digest] = (kind, checked)
                 filled[ZARR_LAYOUT[kind].digest_column][i] = digest
-        mesh = commit.object_meshes.get(objects[i]) if i < len(objects) else None
+        mesh = commit.object_meshes.get(sid)
+        if mesh is None and i < len(objects):
+            mesh = commit.object_meshes.get(objects[i])
         if mesh is not None:
             checked = check_arrays("object_mesh", {"vertices": mesh.vertices,
-                                                    "faces": mesh.faces}, owner=objects[i])
+                                                    "faces": mesh.faces}, owner=sid)
             digest = array_digest("object_mesh", checked)
             groups[digest] = ("object_mesh", checked)
             filled["object_mesh_digest"][i] = digest
             if arrays is not None and len(arrays.contact) != len(checked["vertices"]):
                 raise CatalogSchemaError("arrays/contact", "values", [sid],
-                                         f"{len(arrays.contact)} contact values for an object "
-                                         f"mesh of {len(checked['vertices'])} vertices")
+                                         f"{len(arrays.contact)} contact values for the "
+                                         f"session's object mesh of {len(checked['vertices'])} "
+                                         f"vertices (object {objects[i]!r})")
     for col in digest_cols:
         if col not in sessions:
             sessions[col] = filled[col]
@@ -249,6 +468,7 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
     with writer_lock(layout, lock_timeout_s):
         _pause("after_lock")
         recover(layout)
+        remove_temp_groups(layout)  # what a killed writer left; no live writer holds the lock
         row = last_version_row(layout)
         previous = table_versions_of(row) if row else INITIAL_TABLE_VERSIONS
         version = (row["version"] if row else 0) + 1
@@ -259,7 +479,8 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
         if absent:
             raise CatalogSchemaError("sessions", "*_digest", [], f"no array group {absent[0]} "
                                      "in this build or the catalog")
-        with ThreadPoolExecutor(max_workers=ARRAY_WRITERS) as pool:  # zarr waits on I/O
+        with writing(layout.arrays_dir), \
+                ThreadPoolExecutor(max_workers=ARRAY_WRITERS) as pool:  # zarr waits on I/O
             list(pool.map(lambda item: write_group(layout, item[1][0], item[1][1], item[0]),
                           groups.items()))
         _pause("after_arrays")
@@ -269,13 +490,16 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
         diff = diff_sessions(old.filter(pc.is_in(old["session_id"], pa.array(touched,
                                                                               pa.string()))),
                              sessions, ignore=("build_id",))
+        marked = _marked(version, commit.build.build_id)
         if touched:
-            write_deltalake(str(layout.table("sessions")), sessions, mode="overwrite",
-                            predicate=_predicate(touched))
+            with _table_write(layout, "sessions"):
+                write_deltalake(str(layout.table("sessions")), sessions, mode="overwrite",
+                                predicate=_predicate(touched), commit_properties=marked)
         _pause("after_sessions")
         if touched:
-            write_deltalake(str(layout.table("frames")), frames, mode="overwrite",
-                            predicate=_predicate(touched))
+            with _table_write(layout, "frames"):
+                write_deltalake(str(layout.table("frames")), frames, mode="overwrite",
+                                predicate=_predicate(touched), commit_properties=marked)
         _pause("after_frames")
 
         now = datetime.now(UTC)
@@ -295,18 +519,30 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
             "sessions_failed": [{"session_id": s, "error": e} for s, st, e
                                 in zip(ids, status, errors, strict=True) if st == Status.FAILED],
         }
-        write_deltalake(str(layout.table("builds")), to_table("builds", [build_row]),
-                        mode="append")
+        with _table_write(layout, "builds"):
+            write_deltalake(str(layout.table("builds")), to_table("builds", [build_row]),
+                            mode="append", commit_properties=marked)
         _pause("after_builds")
 
         pinned = {name: delta_version(layout, name) for name in DATA_TABLES}
-        counts = {name: DeltaTable(str(layout.table(name))).count() for name in DATA_TABLES}
+        counts = {name: delta_table(layout, name).count() for name in DATA_TABLES}
         versions_row = {
             "version": version, "time_utc": now, "build_id": commit.build.build_id,
             "format_version": format_version,
             "table_versions": json.dumps(pinned, sort_keys=True),
             **{f"rows_{name}": counts[name] for name in DATA_TABLES},
         }
-        write_deltalake(str(layout.table("versions")), to_table("versions", [versions_row]),
-                        mode="append")
+        try:
+            with _table_write(layout, "versions"):
+                write_deltalake(str(layout.table("versions")),
+                                to_table("versions", [versions_row]), mode="append",
+                                commit_properties=marked)
+        except CatalogError as exc:  # a failure after the row landed (a checkpoint) is no loss
+            if not _landed(layout, version, commit.build.build_id):
+                raise
+            log.warning("version %d is committed; %s", version, exc)
+        try:  # evidence for recovery; the version is committed whatever happens here
+            write_published(layout, versions_row)
+        except CatalogDiskFull as exc:
+            log.warning("version %d is committed; %s", version, exc)
     return version

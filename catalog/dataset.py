@@ -2,8 +2,10 @@
 
 ``GraspDataset`` items are dicts of numpy arrays: a frame row (``unit="frames"``) or a session row
 (``unit="sessions"``) joined with its session's arrays (contact map, refined hand mesh and
-joints) and its object mesh. QA's flag reasons and notes (``qa_flags``, ``qa_notes``: lists of
-strings of any length, which a batch collate cannot stack) are not in the items:
+joints) and the session's own object mesh (the one its contact map indexes; sessions of one
+``object_id`` may carry different meshes). QA's flag reasons and notes (``qa_flags``,
+``qa_notes``: lists of strings of any length, which a batch collate cannot stack) are not in
+the items:
 ``session_qa(session_id)`` gives them. The dataset pickles as its catalog root, pinned version
 and item keys; tables and arrays are opened lazily in whichever process indexes it, so it works
 with a torch ``DataLoader`` with workers.
@@ -20,6 +22,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from graspcap.catalog.arrays import DamagedArrayError
 from graspcap.catalog.store import Catalog
 from graspcap.catalog.store import open as open_catalog
 from graspcap.schemas.tables import FRAMES_SCHEMA, SESSIONS_SCHEMA
@@ -44,6 +47,9 @@ _SESSION_FIELDS = ["session_id", "participant", "object_id", "intent", "hand", "
                    "hand_scale", "joint_angles_rad", "joints_w", "joints_fit_w"]
 _QA_FIELDS = ["status", "qa_flags", "qa_notes"]
 _CACHE_SESSIONS = 64
+_CACHE_MESHES = 64
+"""Object meshes kept per process, by digest (sessions of one object usually share one; with
+a mesh per session, an unbounded cache would hold every session's)."""
 
 
 def _shape(field: pa.Field) -> tuple[int, ...] | None:
@@ -129,7 +135,8 @@ class GraspDataset:
                                                 pa.array(self.session_ids, pa.string())))
             scols = _columns(sessions.select(_SESSION_FIELDS), SESSIONS_SCHEMA)
             srow = {s: i for i, s in enumerate(scols["session_id"])}
-            state = {"sessions": scols, "srow": srow, "arrays": OrderedDict(), "objects": {}}
+            state = {"sessions": scols, "srow": srow, "arrays": OrderedDict(),
+                     "objects": OrderedDict()}
             if self.unit is Unit.FRAMES:
                 frames = self._frames_table()
                 state["frames"] = _columns(frames.drop_columns(["build_id"]), FRAMES_SCHEMA)
@@ -142,15 +149,24 @@ class GraspDataset:
             cache.move_to_end(session_id)
             return cache[session_id]
         cat, v = self._catalog, self.version
-        contact, observed = cat.contactmap(session_id, v)
-        hand_v, hand_f = cat.hand_mesh(session_id, v)
-        object_id = self._session_meta[session_id]["object_id"]
-        objects = self._load()["objects"]
-        if object_id not in objects:
-            objects[object_id] = cat.object_mesh(object_id, v)
-        obj_v, obj_f = objects[object_id]
+        try:
+            contact, observed = cat.contactmap(session_id, v)
+            hand_v, hand_f = cat.hand_mesh(session_id, v)
+            joints = cat.hand_joints(session_id, v)
+            digest = cat._digest(session_id, v, "object_mesh_digest")
+            objects = self._load()["objects"]  # by mesh digest: each session has its own
+            if digest in objects:
+                objects.move_to_end(digest)
+            else:
+                objects[digest] = cat.object_mesh(session_id=session_id, version=v)
+                if len(objects) > _CACHE_MESHES:
+                    objects.popitem(last=False)
+        except DamagedArrayError as exc:  # say whose item it is
+            raise DamagedArrayError(exc.digest, f"session {session_id!r} (catalog version "
+                                    f"{v}): {exc}", array=exc.array, file=exc.file) from exc
+        obj_v, obj_f = objects[digest]
         arrays = {"contact": contact, "contact_observed": observed, "hand_vertices": hand_v,
-                  "hand_faces": hand_f, "hand_joints_o": cat.hand_joints(session_id, v),
+                  "hand_faces": hand_f, "hand_joints_o": joints,
                   "object_vertices": obj_v, "object_faces": obj_f}
         cache[session_id] = arrays
         if len(cache) > _CACHE_SESSIONS:

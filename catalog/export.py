@@ -9,7 +9,9 @@
   columns (``vertices`` a list of ``[x, y, z]``, ``faces`` a list of ``[i, j, k]``);
 - ``manifest.json``: catalog, version, build, tags, format, files and row counts.
 
-Everything is written under ``OUT.partial/`` and renamed to ``OUT`` when complete.
+Every array group is checked against its digest as it is read: a damaged one fails the export
+naming the group, the file and the sessions that reference it. Everything is written under
+``OUT.partial/`` and renamed to ``OUT`` when complete.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
-from graspcap.catalog.arrays import read_group
+from graspcap.catalog.arrays import DamagedArrayError, array_digest, read_group
 from graspcap.catalog.errors import CatalogError
 from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DATA_TABLES, ZARR_LAYOUT
 
@@ -71,13 +73,33 @@ def _as_list_array(arrays: list[np.ndarray]) -> pa.Array:
     return pa.ListArray.from_arrays(pa.array(offsets), values, type=_array_type(first))
 
 
+def _read_checked(catalog: Catalog, kind: str, digest: str, sessions: pa.Table,
+                  column: str) -> dict[str, np.ndarray]:
+    """The whole group ``digest``, its content checked against the digest (an export reads
+    every array anyway, so this also covers groups written before format 5's manifests); a
+    damaged group fails naming it and the sessions that reference it."""
+    try:
+        arrays = read_group(catalog.layout, digest, tuple(ZARR_LAYOUT[kind].arrays))
+        if array_digest(kind, arrays) != digest:
+            raise DamagedArrayError(digest, f"array group {digest}: its content does not "
+                                    "match its digest (an altered or missing chunk)")
+    except DamagedArrayError as exc:
+        users = [r["session_id"] for r in sessions.select(["session_id", column]).to_pylist()
+                 if r[column] == digest]
+        raise DamagedArrayError(digest, f"cannot export {kind} of session(s) "
+                                f"{', '.join(users)}: {exc}", array=exc.array,
+                                file=exc.file) from exc
+    return arrays
+
+
 def _array_tables(catalog: Catalog, version: int) -> dict[str, pa.Table]:
     """One table per Zarr group kind: ``digest`` plus the group's arrays as list columns."""
     sessions = catalog.table("sessions", version)
     out = {}
     for kind, spec in ZARR_LAYOUT.items():
         digests = sorted(set(sessions[spec.digest_column].drop_null().to_pylist()))
-        groups = [read_group(catalog.layout, d, tuple(spec.arrays)) for d in digests]
+        groups = [_read_checked(catalog, kind, d, sessions, spec.digest_column)
+                  for d in digests]
         columns = {"digest": pa.array(digests, pa.string())}
         for name, a_spec in spec.arrays.items():
             if not groups:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from functools import cached_property
@@ -12,7 +14,7 @@ from typing import Any
 
 import fsspec
 
-from graspcap.catalog.errors import CatalogError, CatalogFormatError
+from graspcap.catalog.errors import CatalogError, CatalogFormatError, writing
 from graspcap.schemas.tables import CATALOG_FORMAT_NAME, CATALOG_FORMAT_VERSION
 
 DEFAULT_CATALOG = Path("graspcap-catalog")
@@ -24,8 +26,32 @@ LOCAL_SCHEMES = ("", "file", "local")
 """URL schemes that name a local folder: ``/data/cat``, ``file:///data/cat``."""
 DELTA_SCHEMES = ("s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl")
 """Object stores deltalake reads itself (its storage_options take the credentials)."""
-MIGRATIONS_FROM = (1, 2, 3)
+MIGRATIONS_FROM = (1, 2, 3, 4)
 """Older formats ``graspcap catalog migrate`` upgrades (``graspcap.catalog.migrate``)."""
+PLAIN_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}")
+"""Session ids used as folder names as they are: the contract's character set, 1-128
+characters, not starting with '.' (so never ``.``, ``..`` or a hidden name)."""
+
+
+def path_name(session_id: str) -> str:
+    """A file-system name for ``session_id``, which is data, never a path: an id matching
+    :data:`PLAIN_NAME` is its own name; any other (``a/b``, ``../x``, 300 characters, a
+    newline or NUL) is its safe characters (at most 40, '/' and the like as '_') then ``~``
+    and 24 hex digits of its sha256. ``~`` is outside :data:`PLAIN_NAME`, so an encoded name
+    never equals a plain one, and two ids share a name only if their hashes collide."""
+    if PLAIN_NAME.fullmatch(session_id):
+        return session_id
+    readable = re.sub(r"[^A-Za-z0-9._-]", "_", session_id)[:40].lstrip(".")
+    digest = hashlib.sha256(session_id.encode("utf-8", "surrogatepass")).hexdigest()[:24]
+    return f"{readable}~{digest}"
+
+
+def child_path(parent: Path, session_id: str) -> Path:
+    """``parent / path_name(session_id)``, checked to stay directly inside ``parent``."""
+    path = parent / path_name(session_id)
+    if path.parent != parent or path.name in ("", ".", ".."):
+        raise CatalogError(f"session id {session_id!r} maps to {path}, outside {parent}")
+    return path
 
 
 def parse_uri(uri: str | Path) -> tuple[Path | None, str | None]:
@@ -57,7 +83,9 @@ class CatalogLayout:
     ROOT/arrays/<digest[:2]>/<digest>.zarr         content-addressed Zarr v3 groups
     ROOT/arrays/.tmp/                              groups being written (renamed when complete)
     ROOT/.lock                                     writer lock (fcntl.flock)
-    ROOT/pictures/<session_id>/*.png               QA pictures (latest build; not versioned)
+    ROOT/published.json                            newest published version (recovery's evidence)
+    ROOT/vacuum.jsonl                              one line per vacuum: the versions it dropped
+    ROOT/pictures/<path_name(session_id)>/*.png    QA pictures (latest build; not versioned)
     ```
 
     Readers go through ``uri``-based paths and ``fs`` (fsspec), so the same code reads a local
@@ -126,6 +154,17 @@ class CatalogLayout:
         return self.root / ".lock"
 
     @property
+    def published_file(self) -> Path:
+        """The newest version a writer saw published, with its pins: written after each
+        ``versions`` row, so recovery can tell a lost row from a killed writer's orphans."""
+        return self.root / "published.json"
+
+    @property
+    def vacuum_log(self) -> Path:
+        """One JSON line per vacuum (time, kept and dropped versions)."""
+        return self.root / "vacuum.jsonl"
+
+    @property
     def arrays_dir(self) -> Path:
         return self.root / "arrays"
 
@@ -143,8 +182,9 @@ class CatalogLayout:
 
     def pictures_dir(self, session_id: str) -> Path:
         """A session's QA pictures (``keypoints.png``, ``contact.png``): written by every
-        build that runs the session's ``pictures`` stage, the latest wins; not versioned."""
-        return self.root / "pictures" / session_id
+        build that runs the session's ``pictures`` stage, the latest wins; not versioned.
+        The folder's name is :func:`path_name` of the id (the id itself when it is plain)."""
+        return child_path(self.root / "pictures", session_id)
 
 
 def write_format_file(layout: CatalogLayout, version: int = CATALOG_FORMAT_VERSION) -> None:
@@ -156,31 +196,50 @@ def write_format_file(layout: CatalogLayout, version: int = CATALOG_FORMAT_VERSI
         "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     tmp = layout.format_file.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(stamp, indent=2) + "\n")
-    os.replace(tmp, layout.format_file)
+    try:
+        with writing(layout.format_file):
+            tmp.write_text(json.dumps(stamp, indent=2) + "\n")
+            os.replace(tmp, layout.format_file)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+FORMAT_FILE_MAX_BYTES = 1 << 16
+FORMAT_REPAIR = ("write it again: " + json.dumps({"format": CATALOG_FORMAT_NAME,
+                                                  "format_version": CATALOG_FORMAT_VERSION})
+                 + " (with the format_version the catalog's versions table lists last)")
 
 
 def read_format(layout: CatalogLayout) -> dict:
     """The stamp in ``catalog.json``, or ``CatalogFormatError`` when it is missing or unreadable."""
     path = layout.fs_path("catalog.json")
     try:
-        text = layout.fs.cat_file(path).decode()
+        data = layout.fs.cat_file(path)
     except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
         raise CatalogFormatError(
             f"{layout.uri} is not a graspcap catalog (no catalog.json); "
             "`graspcap build ... --catalog` creates one there (in Python: "
             "graspcap.catalog.open(..., create=True))") from None
+    except OSError as exc:
+        raise CatalogFormatError(f"{path} cannot be read: {exc}") from None
+    if len(data) > FORMAT_FILE_MAX_BYTES:
+        raise CatalogFormatError(f"{path} is {len(data)} bytes, not a catalog stamp (a few "
+                                 f"hundred bytes of JSON): {FORMAT_REPAIR}")
     try:
-        stamp = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CatalogFormatError(f"{path} is not valid JSON: {exc}") from exc
+        stamp = json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise CatalogFormatError(f"{path} is not UTF-8 text (byte {exc.start}): "
+                                 f"{FORMAT_REPAIR}") from None
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise CatalogFormatError(f"{path} is not valid JSON ({exc}): {FORMAT_REPAIR}") from None
     if not isinstance(stamp, dict) or stamp.get("format") != CATALOG_FORMAT_NAME:
         found = stamp.get("format") if isinstance(stamp, dict) else stamp
         raise CatalogFormatError(
-            f"{path}: format is {found!r}, expected {CATALOG_FORMAT_NAME!r}")
-    if not isinstance(stamp.get("format_version"), int):
+            f"{path}: format is {str(found)[:100]!r}, expected {CATALOG_FORMAT_NAME!r}")
+    if type(stamp.get("format_version")) is not int:  # bool is an int too
         raise CatalogFormatError(
-            f"{path}: format_version is {stamp.get('format_version')!r}, expected an integer")
+            f"{path}: format_version is {str(stamp.get('format_version'))[:100]!r}, expected an "
+            "integer")
     return stamp
 
 

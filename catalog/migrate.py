@@ -14,6 +14,12 @@ them as null (``graspcap.catalog.delta.read_files``). Setting a property or addi
 is a Delta commit, and a catalog version pins Delta versions, so the migration of a catalog that has
 versions appends one more catalog version (``build_id`` ``migrate-<from>-to-<to>``, same rows)
 pinning the new Delta versions; every earlier version and tag still reads what it read before.
+Format 5 (object meshes per session, content-addressed; array integrity) changed no column
+but reworded the docs of ``sessions.object_id`` and ``object_mesh_digest`` (refreshed as above)
+and gave every Zarr group a manifest of its files' sha256 with every chunk written
+(``graspcap.catalog.arrays``): the upgrade checks each group on disk against its digest and
+adds both in place (``add_manifest``); a group that does not match its digest is left as it
+is and listed in the report (``graspcap catalog verify`` names the sessions using it).
 An empty catalog's tables are simply created again. ``catalog.json`` is restamped last, under
 the writer lock: a migration that dies half way leaves a catalog of the old format that
 ``migrate`` finishes (each change is idempotent).
@@ -21,6 +27,7 @@ the writer lock: a migration that dies half way leaves a catalog of the old form
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from dataclasses import dataclass
@@ -30,6 +37,7 @@ from pathlib import Path
 import pyarrow as pa
 from deltalake import DeltaTable, Field, write_deltalake
 
+from graspcap.catalog.arrays import add_manifest, all_digests, remove_temp_groups
 from graspcap.catalog.commit import last_version_row, recover, writer_lock
 from graspcap.catalog.delta import create_tables, delta_version
 from graspcap.catalog.errors import CatalogError, CatalogFormatError
@@ -58,6 +66,10 @@ class MigrationReport:
     to_format: int
     new_version: int | None
     """The catalog version the migration appended (None: nothing to pin, or already current)."""
+    arrays_upgraded: int = 0
+    """Array groups given their format-5 manifest."""
+    damaged_arrays: dict[str, str] = dataclasses.field(default_factory=dict)
+    """``{digest: problem}`` of groups that do not match their digest (left as they are)."""
 
 
 def add_missing_columns(dt: DeltaTable, schema: pa.Schema) -> list[str]:
@@ -152,9 +164,20 @@ def migrate_catalog(uri: str | Path, out: str | Path | None = None, *,
                             ignore=shutil.ignore_patterns(".lock", ".tmp"))
         layout = target
     new_version = None
+    upgraded, damaged = 0, {}
     with writer_lock(layout, lock_timeout_s):
         current = read_format(layout)["format_version"]
         if current < CATALOG_FORMAT_VERSION:
             new_version = _upgrade(layout, current)
+            remove_temp_groups(layout)
+            for digest in sorted(all_digests(layout)):
+                had = layout.array_group(digest) / "zarr.json"
+                before = had.read_bytes() if had.is_file() else b""
+                problem = add_manifest(layout, digest)
+                if problem is not None:
+                    damaged[digest] = problem
+                elif had.is_file() and had.read_bytes() != before:
+                    upgraded += 1
             write_format_file(layout, CATALOG_FORMAT_VERSION)
-    return MigrationReport(layout.root, found, CATALOG_FORMAT_VERSION, new_version)
+    return MigrationReport(layout.root, found, CATALOG_FORMAT_VERSION, new_version, upgraded,
+                           damaged)

@@ -19,18 +19,27 @@ import pyarrow.compute as pc
 from deltalake import write_deltalake
 
 from graspcap.catalog.arrays import read_group
-from graspcap.catalog.commit import BuildCommit, commit_build, writer_lock
+from graspcap.catalog.commit import (
+    REPAIR_VERSIONS,
+    BuildCommit,
+    check_versions,
+    commit_build,
+    writer_lock,
+)
 from graspcap.catalog.delta import (
+    REPAIR_LOG,
+    MissingFiles,
     create_tables,
+    log_problems,
     read_files,
     read_latest,
     table_files,
     table_versions_of,
 )
 from graspcap.catalog.diff import diff_sessions
-from graspcap.catalog.errors import CatalogError, VersionNotFound
+from graspcap.catalog.errors import CatalogDamaged, CatalogError, VersionNotFound, writing
 from graspcap.catalog.layout import CatalogLayout, check_format, write_format_file
-from graspcap.catalog.vacuum import VacuumReport, vacuum_catalog
+from graspcap.catalog.vacuum import VacuumReport, vacuum_catalog, vacuumed_versions
 from graspcap.catalog.validate import to_table
 from graspcap.schemas.tables import DATA_TABLES
 
@@ -48,9 +57,12 @@ def open(uri: str | Path, *, create: bool = False, lock_timeout_s: float = 60.0,
     """
     layout = CatalogLayout.from_uri(uri, storage_options)
     if create and layout.is_local and not layout.format_file.exists():
-        layout.root.mkdir(parents=True, exist_ok=True)
-        create_tables(layout)
-        write_format_file(layout)  # last: a half-created catalog has no stamp
+        with writing(layout.root):
+            layout.root.mkdir(parents=True, exist_ok=True)
+        with writer_lock(layout, lock_timeout_s):  # two creators at once: one creates
+            if not layout.format_file.exists():
+                create_tables(layout)
+                write_format_file(layout)  # last: a half-created catalog has no stamp
     check_format(layout)
     return Catalog(layout, lock_timeout_s=lock_timeout_s)
 
@@ -62,6 +74,8 @@ class Catalog:
         self.layout = layout
         self.lock_timeout_s = lock_timeout_s
         self._pins: dict[int, dict[str, int]] = {}
+        self._counts: dict[int, dict[str, int]] = {}
+        """Rows per data table of each version, as its ``versions`` row recorded them."""
         self._files: dict[tuple[str, int], list[str]] = {}
         self._tables: dict[tuple[str, int], pa.Table] = {}
         self._index: dict[int, dict[str, dict]] = {}
@@ -73,11 +87,12 @@ class Catalog:
         # pins and file lists are small and immutable: a worker that has them reads tables with
         # pyarrow alone (deltalake's tokio runtime panics in a fork of a process that used it)
         return {"layout": self.layout, "lock_timeout_s": self.lock_timeout_s,
-                "pins": self._pins, "files": self._files}
+                "pins": self._pins, "counts": self._counts, "files": self._files}
 
     def __setstate__(self, state: dict) -> None:
         self.__init__(state["layout"], lock_timeout_s=state["lock_timeout_s"])
         self._pins.update(state.get("pins", {}))
+        self._counts.update(state.get("counts", {}))
         self._files.update(state.get("files", {}))
 
     # versions and tags ------------------------------------------------------------------
@@ -126,7 +141,9 @@ class Catalog:
             if rows.num_rows == 0:
                 raise VersionNotFound(f"catalog {self.layout.uri} has no version {version} "
                                       f"(latest: {self.latest_version()})")
-            self._pins[version] = table_versions_of(rows.to_pylist()[0])
+            row = rows.to_pylist()[0]
+            self._counts[version] = {name: row[f"rows_{name}"] for name in DATA_TABLES}
+            self._pins[version] = table_versions_of(row)
         return self._pins[version]
 
     def tag(self, version: int, name: str) -> None:
@@ -136,8 +153,25 @@ class Catalog:
         self._pinned(int(version))
         row = {"tag": name, "version": int(version), "time_utc": datetime.now(UTC)}
         with writer_lock(self.layout, self.lock_timeout_s):
-            write_deltalake(str(self.layout.table("tags")), to_table("tags", [row]),
-                            mode="append")
+            _, problems = check_versions(self.layout)  # writers stop on a damaged catalog
+            if problems:
+                raise CatalogDamaged(self.layout.uri, problems, REPAIR_VERSIONS)
+            with writing(self.layout.table("tags")):
+                write_deltalake(str(self.layout.table("tags")), to_table("tags", [row]),
+                                mode="append")
+
+    def problems(self) -> list[str]:
+        """What a writer would stop on, one line per problem naming the file (empty for a
+        healthy catalog): lost or unreadable Delta log entries, lost versions rows, pins past a
+        table's log. Parquet files and arrays are not opened (``catalog verify`` does that)."""
+        if not self.layout.is_local:
+            return []
+        try:
+            return check_versions(self.layout)[1]
+        except CatalogDamaged as exc:
+            return exc.problems
+        except CatalogError as exc:  # a file the check needs is gone or unreadable
+            return [str(exc)]
 
     # tables -----------------------------------------------------------------------------
     def files(self, name: str, version: int | str | None = None) -> list[str]:
@@ -162,10 +196,30 @@ class Catalog:
         key = (name, v)
         if columns is None and key in self._tables:
             return self._tables[key]
-        table = read_files(name, self.files(name, v), columns, self.layout)
+        try:
+            table = read_files(name, self.files(name, v), columns, self.layout)
+        except MissingFiles as exc:
+            raise MissingFiles(name, exc.files, self._missing_cause(name, v)) from None
+        recorded = self._counts.get(v, {}).get(name)
+        if recorded is not None and table.num_rows != recorded:  # never read wrong
+            damage = log_problems(self.layout, name) if self.layout.is_local else []
+            raise CatalogDamaged(self.layout.uri, [
+                f"{self.layout.table_uri(name)}: table {name!r} at version {v} has "
+                f"{table.num_rows} rows, but version {v} was committed with {recorded}: a Delta "
+                "log entry or a data file of it was altered", *damage], REPAIR_LOG)
         if columns is None and name != "frames":
             self._tables[key] = table
         return table
+
+    def _missing_cause(self, name: str, version: int) -> str:
+        """Why files of ``name`` at ``version`` are gone: vacuumed, or deleted by hand."""
+        dropped = vacuumed_versions(self.layout)
+        if version in dropped:
+            return (f"version {version} was dropped by `catalog vacuum` at {dropped[version]} "
+                    "(read a kept version, see Catalog.versions())")
+        return (f"version {version} was never vacuumed, so the files were deleted outside "
+                "graspcap: put them back from a backup (`graspcap catalog verify` lists what "
+                "every version lacks)")
 
     def to_pandas(self, name: str, version: int | str | None = None) -> pd.DataFrame:
         """``table(name, version)`` as a DataFrame (list columns become numpy arrays)."""
@@ -217,15 +271,49 @@ class Catalog:
         digest = self._digest(session_id, version, "hand_mesh_digest")
         return read_group(self.layout, digest, ("joints",))["joints"]
 
-    def object_mesh(self, object_id: str, version: int | str | None = None
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """vertices : (n, 3) float32 (object frame, m); faces : (m, 3) int32."""
+    def object_meshes(self, object_id: str, version: int | str | None = None
+                      ) -> dict[str, list[str]]:
+        """``{mesh digest: [session ids]}``: the object meshes the sessions of ``object_id``
+        carry in ``version`` (one entry unless sessions of the object brought different
+        meshes; the contract gives every session its own)."""
         v = self.resolve(version)
-        for row in self._sessions_index(v).values():
+        out: dict[str, list[str]] = {}
+        for sid, row in sorted(self._sessions_index(v).items()):
             if row["object_id"] == object_id and row["object_mesh_digest"]:
-                g = read_group(self.layout, row["object_mesh_digest"], ("vertices", "faces"))
-                return g["vertices"], g["faces"]
-        raise KeyError(f"object {object_id!r} has no mesh in catalog version {v}")
+                out.setdefault(row["object_mesh_digest"], []).append(sid)
+        return out
+
+    def object_mesh(self, object_id: str | None = None, version: int | str | None = None, *,
+                    session_id: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """vertices : (n, 3) float32 (object frame, m); faces : (m, 3) int32.
+
+        ``session_id=``: that session's own mesh (the one its contact map indexes). An
+        ``object_id`` alone: its mesh when every session of the object in ``version`` has the
+        same one; where they differ this fails naming the sessions of each mesh (pass
+        ``session_id``; ``object_meshes(object_id)`` lists them).
+        """
+        v = self.resolve(version)
+        if session_id is not None:
+            row = self._session_row(session_id, v)
+            if object_id is not None and row["object_id"] != object_id:
+                raise KeyError(f"session {session_id!r} is of object {row['object_id']!r}, "
+                               f"not {object_id!r}")
+            digest = self._digest(session_id, v, "object_mesh_digest")
+        elif object_id is None:
+            raise TypeError("object_mesh() needs an object_id or session_id=")
+        else:
+            meshes = self.object_meshes(object_id, v)
+            if not meshes:
+                raise KeyError(f"object {object_id!r} has no mesh in catalog version {v}")
+            if len(meshes) > 1:
+                which = "; ".join(f"mesh {d[:12]}: {', '.join(s)}" for d, s in meshes.items())
+                raise CatalogError(
+                    f"object {object_id!r} has {len(meshes)} different meshes in catalog "
+                    f"version {v} ({which}); ask for one session's mesh with "
+                    f"object_mesh(session_id=...)")
+            digest = next(iter(meshes))
+        g = read_group(self.layout, digest, ("vertices", "faces"))
+        return g["vertices"], g["faces"]
 
     # writing ----------------------------------------------------------------------------
     def commit(self, build: BuildCommit) -> int:

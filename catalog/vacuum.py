@@ -11,14 +11,18 @@ that was not kept fails with a message saying it was vacuumed.
 
 from __future__ import annotations
 
+import json
 import shutil
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from graspcap.catalog.arrays import all_digests
+from graspcap.catalog.arrays import all_digests, remove_temp_groups
 from graspcap.catalog.commit import recover, writer_lock
 from graspcap.catalog.delta import delta_version, table_files
+from graspcap.catalog.errors import writing
+from graspcap.catalog.layout import CatalogLayout
 from graspcap.schemas.tables import DATA_TABLES, TABLE_SCHEMAS, ZARR_LAYOUT
 
 if TYPE_CHECKING:
@@ -83,8 +87,30 @@ def vacuum_catalog(catalog: Catalog, keep: int) -> VacuumReport:
             shutil.rmtree(group)
             removed_arrays += 1
         if layout.arrays_tmp.is_dir():
-            freed += _size(layout.arrays_tmp)
-            shutil.rmtree(layout.arrays_tmp)
+            before = _size(layout.arrays_tmp)
+            remove_temp_groups(layout)  # killed writers' (a live process's stays)
+            freed += before - _size(layout.arrays_tmp)
+        dropped = sorted(set(all_versions) - set(kept))
+        line = json.dumps({"time_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+                           "kept": kept, "dropped": dropped}) + "\n"
+        with writing(layout.vacuum_log), open(layout.vacuum_log, "a") as fh:
+            fh.write(line)
     catalog._tables.clear()
-    return VacuumReport(kept, sorted(set(all_versions) - set(kept)), removed_files,
-                        removed_arrays, freed)
+    return VacuumReport(kept, dropped, removed_files, removed_arrays, freed)
+
+
+def vacuumed_versions(layout: CatalogLayout) -> dict[int, str]:
+    """``{version: time (UTC) of the vacuum that dropped it}`` from ``vacuum.jsonl``."""
+    out: dict[int, str] = {}
+    try:
+        lines = layout.vacuum_log.read_text().splitlines()
+    except (OSError, UnicodeDecodeError):
+        return out
+    for line in lines:
+        try:
+            record = json.loads(line)
+            for v in record["dropped"]:
+                out.setdefault(int(v), str(record["time_utc"]))
+        except (ValueError, KeyError, TypeError, RecursionError):
+            continue  # a torn last line of a vacuum that was killed
+    return out

@@ -182,3 +182,13 @@ def _check_unique(name: str, table: pa.Table) -> None:
         first = {k: dup[k][0].as_py() for k in key}
         sessions = [str(first["session_id"])] if "session_id" in first else []
         raise CatalogSchemaError(name, ",".join(key), sessions, f"duplicate key {first}")
+
+
+def check_commit(commit: Any) -> None:
+    """Every check ``Catalog.commit`` runs on a ``BuildCommit`` (rows, frames, arrays and
+    meshes), without writing anything; raises the same ``CatalogSchemaError``. The build runs
+    it per session before its commit, so a session that would make the commit raise fails on
+    its own (``flows/build.py``)."""
+    from graspcap.catalog.commit import _prepare  # commit imports this module
+
+    _prepare(commit)

@@ -14,7 +14,13 @@
    ``builds`` table; with nothing to commit there is no new version, and the report says so.
 
 A session that fails keeps its previous good rows (the failure is in the build record);
-without previous good rows it gets a ``status="failed"`` row with the reason.
+without previous good rows it gets a ``status="failed"`` row with the reason. Nothing that
+happens to one session loses the others: a failure assembling its rows, or rows the catalog
+would refuse (its checks run per session before the commit), fails that session alone;
+pictures that cannot be written are a note. A folder reusing another's ``session_id`` (sorted:
+the first is built) is failed in the build record only. A failure of the build as a whole
+(the catalog's lock, the disk) raises :class:`BuildFailed`; the work area keeps every stage
+result for the next build. See ``docs/architecture.md``, "Build".
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import logging
 import os
 import subprocess
 import time
@@ -36,19 +43,21 @@ from prefect.futures import as_completed
 
 import graspcap
 import graspcap.catalog as gc
+from graspcap.catalog.layout import CatalogLayout
+from graspcap.catalog.validate import check_commit
 from graspcap.flows.cached import reads_digest, session_files, session_id_of
 from graspcap.flows.progress import ProgressFn, Tracker, reporting_to
-from graspcap.flows.report import BuildReport, Outcome, SessionReport
+from graspcap.flows.report import BuildFailed, BuildReport, Outcome, SessionReport
 from graspcap.flows.rows import NEWEST_COLUMNS, failed_row, predates_columns, session_rows
 from graspcap.flows.runtime import build_settings, task_runner, worker_api
 from graspcap.flows.session import InSession, Settled, failure_text, submit_session
-from graspcap.flows.workarea import WorkArea
+from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.schemas.tables import Status
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.session.load_session import discover_sessions
 
 BUILDS_LOG = "builds.jsonl"
-__all__ = ["ProgressFn", "build_dataset", "build_flow"]
+__all__ = ["BuildFailed", "ProgressFn", "build_dataset", "build_flow"]
 
 
 @functools.cache
@@ -88,12 +97,16 @@ def configs_digest(configs: Mapping[str, StageConfig]) -> str:
 
 
 def last_build_failures(cat: gc.Catalog, work: WorkArea) -> set[str]:
-    """Sessions that failed in the last build (the work area's log, else the catalog)."""
+    """Sessions that failed in the last build (the work area's log, else the catalog); after a
+    build that failed as a whole (nothing committed), every session of it."""
     log = work.root / BUILDS_LOG
     if log.exists():
         lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
         if lines:
-            return set(json.loads(lines[-1])["summary"]["failed"])
+            last = json.loads(lines[-1])
+            if last.get("error"):
+                return {s["session_id"] for s in last["sessions"]}
+            return set(last["summary"]["failed"])
     if cat.latest_version() is None:
         return set()
     builds = cat.table("builds").sort_by("catalog_version").to_pylist()
@@ -214,7 +227,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     cdigest = configs_digest(configs)
     version = code_version()
     dirs = discover_sessions([Path(r) for r in roots])
-    ids = [session_id_of(d) for d in dirs]
+    ids = [_session_id(d) for d in dirs]
     if retry_failed:
         wanted = last_build_failures(cat, work)
         keep = [i for i, sid in enumerate(ids) if sid in wanted]
@@ -223,7 +236,9 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     duplicate: dict[str, str] = {}
     for d, sid in zip(dirs, ids, strict=True):
         if sid in seen:
-            duplicate[str(d)] = f"session_id {sid!r} is also used by {seen[sid]}"
+            duplicate[str(d)] = (
+                f"session_id {sid!r} of {d} is also the id of {seen[sid]}, which comes first "
+                "(sorted) and is the one built; session ids must be unique: rename one")
         seen.setdefault(sid, d)
     t_discover = time.perf_counter()
 
@@ -247,57 +262,100 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     for rec in work.executions(build_id):
         k = (rec["session_id"], rec["stage"])
         attempts[k] = attempts.get(k, 0) + 1
-    reports, rows, frames, arrays, meshes = [], [], [], {}, {}
+    by_index: dict[int, SessionReport] = {}  # reports in the order of dirs
+    rows, frames, arrays, meshes = [], [], {}, {}
     recorded: dict[str, str] | None = None
     new_failures = False
-    for d, sid in zip(dirs, ids, strict=True):
-        common = {"input_digest": _input_digest(work, d), "code_version": version,
-                  "build_id": build_id, "config_digest": cdigest}
+    built = []  # sessions with rows, checked against the catalog's rules below
+
+    def fail(i: int, d: Path, sid: str, error: str, stage: str | None, info: dict,
+             common: dict, prev: dict | None, good_prev: bool, attempted: bool,
+             own_row: bool = True) -> None:
+        """Report session ``i`` failed; give it a failed row unless it keeps its previous good
+        rows, the catalog's latest build already records this failure (replayed), or the id's
+        row is not its own (``own_row=False``: a duplicated id)."""
+        nonlocal recorded, new_failures
+        row = None
+        if own_row and not good_prev:
+            try:  # the failed row must not take the commit down either
+                row = failed_row(d, sid, error, **common)
+                check_commit(gc.BuildCommit(build=info_commit, sessions=[row], frames=[]))
+            except Exception as exc:  # noqa: BLE001 - the reason goes into the report
+                error, row = f"{error} (no failed row written: {exc})", None
+        # a failure replayed from the work area (no stage body ran) that the catalog's
+        # latest build already records needs no new version
+        if recorded is None:
+            recorded = recorded_failures(cat) if previous is not None else {}
+        replayed = (not attempted and recorded.get(sid) == error
+                    and (good_prev or row is None or (prev is not None and prev["input_digest"]
+                                                      == common["input_digest"]
+                                                      and prev["config_digest"] == cdigest)))
+        new_failures |= not replayed
+        if row is not None and not replayed:
+            rows.append(row)
+        by_index[i] = SessionReport(outcome=Outcome.FAILED, status=Status.FAILED.value,
+                                   error=error, failed_stage=stage,
+                                   kept_previous=good_prev, **info)
+
+    info_commit = gc.BuildInfo(build_id, version, cdigest)
+    for i, (d, sid) in enumerate(zip(dirs, ids, strict=True)):
+        common = {"input_digest": hashlib.sha256(b"unreadable session").hexdigest(),
+                  "code_version": version, "build_id": build_id, "config_digest": cdigest}
+        if str(d) in duplicate:  # the id's row is the first folder's: a report, no row
+            info = dict(session_id=sid, session_dir=str(d), not_run=tuple(STAGES))
+            fail(i, d, sid, duplicate[str(d)], None, info, common, prev_rows.get(sid), False,
+                 attempted=False, own_row=False)
+            continue
         prev = prev_rows.get(sid)
         # previous rows with results (ok, flagged, or failed by QA), not a failed build's row
         good_prev = prev is not None and (prev["status"] != Status.FAILED
                                           or prev["steady_from"] is not None)
-        if str(d) in duplicate:
-            refs, ran, cached, not_run, error, stage, notes = {}, [], [], list(STAGES), \
-                duplicate[str(d)], None, ()
-        else:
-            refs, ran, cached, not_run, error, stage, notes = outcomes[str(d)]
-        if "pictures" in refs:
-            _write_pictures(cat.layout.pictures_dir(sid), WorkArea.load(refs["pictures"]))
+        refs, ran, cached, not_run, error, stage, notes = outcomes[str(d)]
         retries = {st: n - 1 for (s, st), n in attempts.items() if s == sid and n > 1}
         info = dict(session_id=sid, session_dir=str(d), ran=tuple(ran), cached=tuple(cached),
                     not_run=tuple(not_run), retries=retries, notes=notes)
-        if error is not None:
-            # a failure replayed from the work area (no stage body ran) that the catalog's
-            # latest build already records needs no new version
-            if recorded is None:
-                recorded = recorded_failures(cat) if previous is not None else {}
-            replayed = (not any(s == sid for s, _ in attempts) and recorded.get(sid) == error
-                        and (good_prev or (prev is not None and prev["input_digest"]
-                                           == common["input_digest"]
-                                           and prev["config_digest"] == cdigest)))
-            new_failures |= not replayed
-            if not good_prev and not replayed:
-                rows.append(failed_row(d, sid, error, **common))
-            reports.append(SessionReport(outcome=Outcome.FAILED, status=Status.FAILED.value,
-                                         error=error, failed_stage=stage,
-                                         kept_previous=good_prev, **info))
+        attempted = any(s == sid for s, _ in attempts)
+        try:
+            common["input_digest"] = _input_digest(work, d)
+            if "pictures" in refs:
+                info["notes"] += _pictures_note(cat.layout, sid, refs["pictures"])
+            if error is not None:
+                fail(i, d, sid, error, stage, info, common, prev, good_prev, attempted)
+                continue
+            # a row from before a column existed (a migrated catalog's) is rewritten from
+            # cached results
+            if (not ran and good_prev and prev["input_digest"] == common["input_digest"]
+                    and prev["config_digest"] == cdigest and not predates_columns(prev)):
+                by_index[i] = SessionReport(outcome=Outcome.UNCHANGED,
+                                            status=prev["status"], **info)
+                continue
+            sr = session_rows({k: WorkArea.load(r) for k, r in refs.items()}, **common)
+            if sr.session["session_id"] != sid:
+                raise ValueError(f"its rows are for session_id {sr.session['session_id']!r}")
+        except Exception as exc:  # noqa: BLE001 - one session's bug never loses the build
+            fail(i, d, sid, f"assembling the catalog rows: {type(exc).__name__}: {exc}",
+                 None, info, common, prev, good_prev, attempted)
             continue
-        # a row from before a column existed (a migrated catalog's) is rewritten from cached
-        # results
-        if (not ran and good_prev and prev["input_digest"] == common["input_digest"]
-                and prev["config_digest"] == cdigest and not predates_columns(prev)):
-            reports.append(SessionReport(outcome=Outcome.UNCHANGED, status=prev["status"],
-                                         **info))
+        built.append((i, d, sid, sr, info, common, prev, good_prev, attempted))
+        meshes[sid] = sr.object_mesh  # the session's own mesh (content-addressed)
+    # the checks the commit runs, per session: one whose rows, frames or arrays would make it
+    # raise fails alone, with the reason, and the others are committed
+    for i, d, sid, sr, info, common, prev, good_prev, attempted in built:
+        try:
+            check_commit(gc.BuildCommit(build=info_commit, sessions=[sr.session],
+                                        frames=sr.frames, session_arrays={sid: sr.arrays},
+                                        object_meshes=meshes))
+        except Exception as exc:  # noqa: BLE001 - CatalogSchemaError, or a bug in a check
+            fail(i, d, sid, f"the catalog refused its rows: {exc}", None, info, common, prev,
+                 good_prev, attempted)
             continue
-        sr = session_rows({k: WorkArea.load(r) for k, r in refs.items()}, **common)
         rows.append(sr.session)
         frames.extend(sr.frames)
         arrays[sid] = sr.arrays
-        meshes[sr.object_id] = sr.object_mesh
-        reports.append(SessionReport(outcome=Outcome.CHANGED if prev else Outcome.ADDED,
-                                     status=sr.session["status"],
-                                     error=sr.session["error"], **info))
+        by_index[i] = SessionReport(outcome=Outcome.CHANGED if prev else Outcome.ADDED,
+                                   status=sr.session["status"], error=sr.session["error"],
+                                   **info)
+    reports = [by_index[i] for i in sorted(by_index)]
     t_rows = time.perf_counter()
 
     params = {"roots": [str(r) for r in roots], "catalog": str(cat.layout.root),
@@ -307,18 +365,47 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     draft = BuildReport(build_id, None, previous, tuple(reports), seconds, params)
     new_version = None
     if rows or new_failures:
-        new_version = cat.commit(gc.BuildCommit(
-            build=gc.BuildInfo(build_id, version, cdigest,
-                               parameters={**params, "report": draft.record()},
-                               sessions_unchanged=tuple(draft.unchanged)),
-            sessions=rows, frames=frames, session_arrays=arrays, object_meshes=meshes))
+        try:
+            new_version = cat.commit(gc.BuildCommit(
+                build=gc.BuildInfo(build_id, version, cdigest,
+                                   parameters={**params, "report": draft.record()},
+                                   sessions_unchanged=tuple(draft.unchanged)),
+                sessions=rows, frames=frames, session_arrays=arrays, object_meshes=meshes))
+        except Exception as exc:
+            seconds["total"] = time.perf_counter() - t0
+            kept = sum(len(s.ran) + len(s.cached) for s in reports)
+            failed = BuildFailed(
+                f"build {build_id} committed nothing: {type(exc).__name__}: {exc}. The "
+                f"{kept} completed stage result(s) stay in the work area {work.root}; the next "
+                "build commits them without running those stages again")
+            _log_build(work, {**draft.record(), "error": str(failed)})
+            raise failed from exc
     seconds["commit"] = time.perf_counter() - t_rows
     seconds["total"] = time.perf_counter() - t0
     report = BuildReport(build_id, new_version, previous, tuple(reports), seconds, params)
-    with open(work.root / BUILDS_LOG, "a") as log:
-        log.write(json.dumps(report.record(), sort_keys=True) + "\n")
+    _log_build(work, report.record())
     _qa_artifact(report, rows)
     return report
+
+
+def _session_id(session_dir: Path) -> str:
+    """``session_id_of``, or the folder's name when even that fails: the session then fails
+    in ``load_session`` with the reason, on its own."""
+    try:
+        return session_id_of(session_dir)
+    except Exception:  # noqa: BLE001 - e.g. a RecursionError of a pathological manifest
+        return session_dir.name
+
+
+def _log_build(work: WorkArea, record: dict) -> None:
+    """Append a build's record to the work area's ``builds.jsonl`` (``graspcap status``); a
+    record that cannot be written (disk full) is a warning: the catalog has the build."""
+    try:
+        with open(work.root / BUILDS_LOG, "a") as log:
+            log.write(json.dumps(record, sort_keys=True) + "\n")
+    except OSError as exc:
+        logging.getLogger(__name__).warning("build record not written to %s: %s",
+                                            work.root / BUILDS_LOG, exc)
 
 
 def _write_pictures(folder: Path, pictures: Any) -> None:
@@ -329,8 +416,28 @@ def _write_pictures(folder: Path, pictures: Any) -> None:
                        ("contact.png", pictures.contact_png)):
         if data is not None:
             tmp = folder / f".{name}.tmp"
-            tmp.write_bytes(data)
-            os.replace(tmp, folder / name)
+            try:
+                tmp.write_bytes(data)
+                os.replace(tmp, folder / name)
+            except BaseException:
+                tmp.unlink(missing_ok=True)
+                raise
+
+
+def _pictures_note(layout: CatalogLayout, session_id: str, ref: ResultRef) -> tuple[str, ...]:
+    """Write a session's pictures under the catalog's ``pictures/`` (its folder named from the
+    id, never the id as a path: ``layout.pictures_dir``); () when written, else a note naming
+    the folder and the error (disk full, name too long, permission): pictures are a QA aid and
+    never fail a session or the build."""
+    folder = layout.root / "pictures"
+    try:
+        folder = layout.pictures_dir(session_id)
+        _write_pictures(folder, WorkArea.load(ref))
+    except Exception as exc:  # noqa: BLE001 - OSError above all; never fails the build
+        where = getattr(exc, "filename", None) or folder
+        return (f"pictures not written to {where}: {type(exc).__name__}: {exc} "
+                "(a QA aid: the session is committed without them)",)
+    return ()
 
 
 def _qa_artifact(report: BuildReport, rows: list[dict]) -> None:

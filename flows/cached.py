@@ -18,9 +18,11 @@ failed session runs nothing). ``replay_failures=False`` (``--retry-failed``) run
 
 from __future__ import annotations
 
+import errno
 import hashlib
-import json
 import os
+import re
+import stat
 import threading
 import time
 from collections import OrderedDict
@@ -28,9 +30,10 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from graspcap.flows.workarea import ResultRef, WorkArea
-from graspcap.schemas.session import SessionManifest
+from graspcap.schemas.session import DEFAULT_LIMITS, SESSION_ID_RE, SessionManifest
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.session.files import JsonSyntaxError, load_json
 from graspcap.tasks.session.load_session import MANIFEST, Session
 
 _FILES: OrderedDict[str, dict[str, list[Path]]] = OrderedDict()
@@ -62,9 +65,11 @@ def session_files(session_dir: Path) -> dict[str, list[Path]] | None:
     Remembered by the manifest's (path, size, mtime_ns, inode)."""
 
     def make():
-        try:
-            raw = (Path(session_dir) / MANIFEST).read_text()
-            manifest = SessionManifest.model_validate_json(raw)
+        raw = _manifest(Path(session_dir))
+        if not isinstance(raw, dict):
+            return None
+        try:  # the model bounds count and views, so listing the files is bounded too
+            manifest = SessionManifest.model_validate(raw)
             return Session(Path(session_dir).resolve(), manifest).input_files()
         except Exception:  # noqa: BLE001 - anything wrong here is load_session's to report
             return None
@@ -82,14 +87,22 @@ def loaded_session_files(ref: ResultRef) -> dict[str, list[Path]]:
     return _remembered(f"r|{ref.digest}", lambda: WorkArea.load(ref).input_files())
 
 
+def _manifest(session_dir: Path) -> object | JsonSyntaxError:
+    """The parsed ``session.json`` of a session, read as the validator reads it: a regular
+    file only (never a FIFO), within the size and nesting limits; never raises."""
+    return load_json(Path(session_dir) / MANIFEST, DEFAULT_LIMITS.max_manifest_bytes,
+                     DEFAULT_LIMITS.max_json_depth)
+
+
 def session_id_of(session_dir: Path) -> str:
-    """The manifest's ``session_id``, or the folder name when the manifest cannot be read."""
-    try:
-        sid = json.loads((Path(session_dir) / MANIFEST).read_text()).get("session_id")
-        if isinstance(sid, str) and sid:
-            return sid
-    except (OSError, ValueError, AttributeError):
-        pass
+    """The manifest's ``session_id`` when it is a valid id (the contract's character set and
+    length), else the folder name: a manifest that cannot be read (not a regular file, too
+    large, nested too deep, bad JSON) or an invalid id never raises here, and never reaches a
+    path; ``load_session`` then fails that session naming the file and field. Never raises."""
+    raw = _manifest(Path(session_dir))
+    sid = raw.get("session_id") if isinstance(raw, dict) else None
+    if isinstance(sid, str) and re.search(SESSION_ID_RE, sid):
+        return sid
     return Path(session_dir).name
 
 
@@ -105,15 +118,32 @@ def stage_key(version: str, config: StageConfig, reads_digest: str,
     return h.hexdigest()
 
 
+class NotARegularFile(OSError):
+    """A session file that is a directory, FIFO, device or socket: never opened for a digest
+    (a FIFO would block the read forever); ``load_session`` reports it."""
+
+
+def _regular(paths: list[Path]) -> list[Path]:
+    """``paths``, after an ``os.stat`` of each shows a regular file; raises
+    :class:`NotARegularFile` (or the stat's ``OSError``) otherwise."""
+    for path in paths:
+        mode = os.stat(path).st_mode
+        if not stat.S_ISREG(mode):
+            code = errno.EISDIR if stat.S_ISDIR(mode) else errno.EINVAL
+            raise NotARegularFile(code, "not a regular file", str(path))
+    return paths
+
+
 def reads_digest(work: WorkArea, files: Mapping[str, list[Path]], roles: tuple[str, ...],
                  role_digests: dict[str, str] | None = None) -> str:
     """Digest of the bytes of every file of ``roles`` (role names and file order kept);
     ``role_digests`` (role -> digest) is filled and reused when given (one session's stages
-    share their roles within one planning pass)."""
+    share their roles within one planning pass). Raises ``OSError`` (never blocks) when a
+    file is missing or not a regular file."""
     h = hashlib.sha256()
     for role in roles:
         if role_digests is None or role not in role_digests:
-            digest = work.files_digest(list(files.get(role, [])))
+            digest = work.files_digest(_regular(list(files.get(role, []))))
             if role_digests is not None:
                 role_digests[role] = digest
         else:
@@ -141,7 +171,7 @@ def cache_key(stage_name: str, session_dir: Path | str, config: StageConfig,
         return stage_key(stage.version, config,
                          reads_digest(work, files, stage.reads, role_digests),
                          {k: upstream[k] for k in stage.upstream})
-    except (FileNotFoundError, NotADirectoryError):
+    except OSError:  # missing, not a regular file, a symlink loop: load_session says which
         return None
 
 

@@ -7,35 +7,86 @@ the functions here import them lazily for that reason.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import sys
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
 
 from graspcap.flows.runtime import configure
 
+EXIT_OK = 0
+"""``graspcap build``: every session built (or unchanged)."""
+EXIT_SESSIONS_FAILED = 1
+"""Some sessions failed; the others are committed (or were already), the failures recorded."""
+EXIT_USAGE = 2
+"""A usage error: bad arguments (argparse's code), or no session under the roots."""
+EXIT_BUILD_FAILED = 3
+"""The build failed as a whole and committed nothing (the catalog's lock, the disk, the
+commit); completed stage results stay in the work area for the next build."""
+
+
+class _NoTraceback(logging.Filter):
+    """Drops the traceback from Prefect's "Encountered exception during execution" line for
+    an expected failure (``graspcap build`` prints its reason once, without a traceback)."""
+
+    def __init__(self, types: tuple[type[BaseException], ...]):
+        super().__init__()
+        self.types = types
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and isinstance(record.exc_info[1], self.types):
+            record.exc_info = record.exc_text = None
+        return True
+
 
 def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
               dask: str | None = None, retry_failed: bool = False,
               settings: Sequence[str] = ()) -> int:
-    """``graspcap build``: exit status 0, 1 when a session failed, 2 when a ``--set`` is
-    wrong (the message names it)."""
+    """``graspcap build``: :data:`EXIT_OK`, :data:`EXIT_SESSIONS_FAILED`, :data:`EXIT_USAGE`
+    or :data:`EXIT_BUILD_FAILED` (its reason on stderr, a traceback only for a bug); a wrong
+    ``--set`` is :data:`EXIT_USAGE` (the message names it)."""
+    from graspcap.catalog.errors import CatalogError
+    from graspcap.flows.report import BuildFailed
     from graspcap.tasks.pipeline import settings_overrides
+    from graspcap.tasks.session.load_session import discover_sessions
 
     try:
         overrides = settings_overrides(list(settings), preset)
     except ValueError as exc:
         print(f"graspcap build: {exc}", file=sys.stderr)
-        return 2
-    configure(Path(catalog) / "work")
-    from graspcap.flows.build import build_dataset
-    from graspcap.flows.progress import ConsoleProgress
+        return EXIT_USAGE
+    if not discover_sessions(list(roots)):
+        print(f"no session.json found under {' '.join(map(str, roots))}", file=sys.stderr)
+        return EXIT_USAGE
+    expected = (BuildFailed, CatalogError, KeyError, OSError)
+    quiet = _NoTraceback(expected)
+    flow_log = logging.getLogger("prefect.flow_runs")
+    flow_log.addFilter(quiet)
+    try:
+        import graspcap.catalog as gc
 
-    with ConsoleProgress(sys.stdout) as progress:
-        report = build_dataset(roots, catalog, preset, dask=dask, retry_failed=retry_failed,
-                               progress=progress, overrides=overrides or None)
+        gc.open(catalog, create=True)  # a catalog it cannot open fails before Prefect starts
+        configure(Path(catalog) / "work")
+        from graspcap.flows.build import build_dataset
+        from graspcap.flows.progress import ConsoleProgress
+
+        with ConsoleProgress(sys.stdout) as progress:
+            report = build_dataset(roots, catalog, preset, dask=dask,
+                                   retry_failed=retry_failed, progress=progress,
+                                   overrides=overrides or None)
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any error here means nothing was committed
+        if not isinstance(exc, expected):
+            traceback.print_exc()  # a bug: its traceback helps
+        print(f"graspcap build: the build failed, nothing committed: {exc}", file=sys.stderr)
+        return EXIT_BUILD_FAILED
+    finally:
+        flow_log.removeFilter(quiet)
     print(report.summary())
-    return 1 if report.failed else 0
+    return EXIT_SESSIONS_FAILED if report.failed else EXIT_OK
 
 
 def status_text(catalog: Path, limit: int = 5) -> str:
@@ -45,8 +96,7 @@ def status_text(catalog: Path, limit: int = 5) -> str:
     cat = gc.open(catalog)
     out = []
     log = cat.layout.root / "work" / "builds.jsonl"
-    records = [json.loads(x) for x in log.read_text().splitlines() if x.strip()] \
-        if log.exists() else []
+    records, torn = _build_records(log)
     committed = {}
     if cat.latest_version() is not None:
         for row in cat.table("builds").sort_by("catalog_version").to_pylist():
@@ -54,19 +104,25 @@ def status_text(catalog: Path, limit: int = 5) -> str:
             rec = json.loads(row["parameters_json"]).get("report")
             if rec and rec["build_id"] not in {r["build_id"] for r in records}:
                 records.append(rec)
+    if torn:
+        out.append(f"note: {log}: line(s) {torn} are not build records (a build killed while "
+                   "writing one?); skipped")
     if not records:
-        return f"catalog {cat.layout.root}: no builds yet"
-    out.append(f"catalog {cat.layout.root}: latest version {cat.latest_version()}")
+        return "\n".join([f"catalog {cat.layout.root}: no builds yet", *out])
+    out.insert(0, f"catalog {cat.layout.root}: latest version {cat.latest_version()}")
     for rec in records[::-1][:limit]:
         s = rec["summary"]
         version = rec.get("catalog_version")
-        where = f"version {version}" if version is not None else "no new version"
+        where = (f"version {version}" if version is not None
+                 else "FAILED, nothing committed" if rec.get("error") else "no new version")
         ran = sum(len(x["ran"]) for x in rec["sessions"])
         hit = sum(len(x["cached"]) for x in rec["sessions"])
         out.append(f"build {rec['build_id']} ({where}): {len(s['added'])} added, "
                    f"{len(s['changed'])} changed, {len(s['unchanged'])} unchanged, "
                    f"{len(s['failed'])} failed; {ran} stage run(s), {hit} cache hit(s), "
                    f"{rec['seconds'].get('total', 0):.1f} s")
+        if rec.get("error"):
+            out.append(f"    ERROR: {rec['error']}")
         for x in rec["sessions"]:
             line = f"    {x['session_id']:<32} {x['outcome']:<9}"
             if x["ran"]:
@@ -82,6 +138,30 @@ def status_text(catalog: Path, limit: int = 5) -> str:
                 line += f"\n{' ' * 46}{x['status']}; pictures: {pictures}"
             out.append(line)
     return "\n".join(out)
+
+
+BUILD_RECORD_KEYS = frozenset({"build_id", "summary", "sessions", "seconds"})
+
+
+def _build_records(log: Path) -> tuple[list[dict], list[int]]:
+    """The build records of ``builds.jsonl`` and the numbers of its lines that are none."""
+    records, torn = [], []
+    try:
+        lines = log.read_text(errors="replace").splitlines()
+    except FileNotFoundError:
+        return [], []
+    for i, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except (ValueError, RecursionError):
+            record = None
+        if isinstance(record, dict) and BUILD_RECORD_KEYS <= record.keys():
+            records.append(record)
+        else:
+            torn.append(i)
+    return records, torn
 
 
 def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,

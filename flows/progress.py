@@ -16,6 +16,7 @@ over stage tasks on a terminal; one plain log line per finished session otherwis
 from __future__ import annotations
 
 import contextlib
+import logging
 import sys
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -77,7 +78,13 @@ class Tracker:
         event = StageEvent(session_id, stage, state, self.done, self.total, session_done,
                            self.sessions_done, len(self.left))
         if self.sink is not None:
-            self.sink(event)
+            try:
+                self.sink(event)
+            except Exception as exc:  # noqa: BLE001 - feedback never fails a build
+                logging.getLogger(__name__).warning(
+                    "build progress callback %r failed (%s: %s); no more progress is reported",
+                    self.sink, type(exc).__name__, exc)
+                self.sink = None
         return event
 
 

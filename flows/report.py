@@ -7,6 +7,12 @@ from dataclasses import asdict, dataclass, field
 from enum import StrEnum
 
 
+class BuildFailed(RuntimeError):
+    """The build committed nothing (the catalog's lock, the disk, the commit itself): not one
+    session's fault. Every completed stage result stays in the work area for the next build,
+    and the build's record (with ``error``) is in the work area's ``builds.jsonl``."""
+
+
 class Outcome(StrEnum):
     """What a build did to a session's rows in the catalog."""
 

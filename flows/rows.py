@@ -10,6 +10,8 @@ See ``docs/architecture.md``, "Orchestration".
 from __future__ import annotations
 
 import json
+import os
+import stat
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +25,8 @@ from graspcap.schemas.tables import Status
 from graspcap.tasks.core.geometry import inv_T, transform_points
 from graspcap.tasks.outputs.qa_metrics import QaReport, qa_metrics
 
+MANIFEST_MAX_BYTES = 1 << 20
+"""A failed row reads its identity columns from a ``session.json`` up to this size."""
 IDENTITY_COLUMNS = ("participant", "object_id", "intent", "hand")
 QA_COLUMNS = tuple(m.name for m in qa_columns())
 """``qa_<name>`` columns of ``sessions``, filled from ``QaReport.metrics[<name>]``."""
@@ -137,11 +141,15 @@ def failed_row(session_dir: Path, session_id: str, error: str, *, input_digest: 
     can be read, every result column null, ``error`` the reason. ``qa_flags`` and ``qa_notes``
     are null too: ``qa_metrics`` needs every data stage, so it never ran on such a session (a
     session QA failed gets :func:`session_rows`, with its flags and notes)."""
-    try:
-        raw = json.loads((Path(session_dir) / "session.json").read_text())
-        raw = raw if isinstance(raw, dict) else {}
-    except (OSError, ValueError):
+    raw: Any = {}
+    path = Path(session_dir) / "session.json"
+    try:  # a regular file of a sane size only: never a FIFO, a device, a 10 GB file
+        st = os.stat(path)
+        if stat.S_ISREG(st.st_mode) and st.st_size <= MANIFEST_MAX_BYTES:
+            raw = json.loads(path.read_bytes())
+    except (OSError, ValueError, RecursionError):
         raw = {}
+    raw = raw if isinstance(raw, dict) else {}
     from graspcap.schemas.tables import SESSIONS_SCHEMA
 
     row: dict[str, Any] = {name: None for name in SESSIONS_SCHEMA.names}

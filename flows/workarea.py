@@ -5,11 +5,14 @@ result store: a stage's result is pickled (protocol 5, numpy buffers written
 as they are) into ``<root>/results/<stage>/<key>.pkl`` and tasks hand each
 other a small :class:`ResultRef` (path + content digest). Writes are atomic
 (temporary file, then rename) and the result's small JSON record
-(``<key>.json``: digest, build, seconds) is written after the pickle, so a
-killed build never leaves a half result that a later lookup would trust. The record lists the
+(``<key>.json``: digest, size, build, seconds, modules) is written after the pickle, so a
+killed build never leaves a half result that a later lookup would trust (a lookup also
+takes a result only when its pickle has the size its record names). The record lists the
 modules the pickle names (classes, functions); a result whose modules cannot be imported any
 more (a module moved, as in the ``tasks/`` sub-package layout) is a cache miss, not a crash,
-and so is a record from before the list.
+and so is a record from before the list. Temporary
+files are named ``.tmp-<host>-<pid>-*``; those of a writer that is gone (same host, pid not
+running, or older than ``STALE_TEMP_S``) are removed when a process first opens the area.
 
 A deterministic failure (a ``StageError``) is remembered too, as ``<key>.failed.json`` (its
 reason): running the same stage version and config on the same bytes fails the same way, so an
@@ -28,6 +31,7 @@ import io
 import json
 import os
 import pickle
+import socket
 import tempfile
 import threading
 import time
@@ -37,12 +41,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from graspcap.catalog.errors import writing
+
 _CHUNK = 1 << 20
 EXECUTIONS = "executions.jsonl"
 RACY_S = 2.0
 """A file modified less than this long before it is hashed may change again within the same
 mtime tick (a coarse file-system clock): its digest is used but not remembered (git's
 "racily clean" rule)."""
+STALE_TEMP_S = 6 * 3600.0
+"""A temporary file this old is a killed writer's, whatever host wrote it."""
+TEMP_PREFIX = ".tmp-"
 MEMO_MIN_BYTES = 1 << 20
 """Digests of files at least this big are also remembered on disk (``<root>/digests/``), for the
 next process; a smaller file is hashed as fast as its memo file would be read (~1 GB/s)."""
@@ -87,12 +96,41 @@ class WorkArea:
     _memo: dict[str, str] = {}
     """File digests by (path, size, mtime_ns, inode), for every work area of this process."""
     _MEMO_MAX = 200_000
+    _swept: set[Path] = set()
+    """Roots whose stale temporary files this process has removed."""
 
     def __init__(self, root: Path | str):
         self.root = Path(root).expanduser().resolve()
-        (self.root / "results").mkdir(parents=True, exist_ok=True)
-        self._digest_index = self.root / "digests"
-        self._digest_index.mkdir(exist_ok=True)
+        with writing(self.root):
+            (self.root / "results").mkdir(parents=True, exist_ok=True)
+            self._digest_index = self.root / "digests"
+            self._digest_index.mkdir(exist_ok=True)
+        if self.root not in self._swept:
+            self._swept.add(self.root)
+            self.remove_stale_temp()
+
+    def remove_stale_temp(self) -> list[Path]:
+        """Delete the temporary files of writers that are gone (killed builds); return them."""
+        removed = []
+        folders = [self._digest_index, *(p for p in (self.root / "results").iterdir()
+                                         if p.is_dir())]
+        now = time.time()
+        for folder in folders:
+            try:
+                entries = list(os.scandir(folder))
+            except OSError:
+                continue
+            for entry in entries:
+                if not entry.name.startswith(TEMP_PREFIX):
+                    continue
+                try:
+                    age = now - entry.stat(follow_symlinks=False).st_mtime
+                except FileNotFoundError:
+                    continue
+                if age > STALE_TEMP_S or not _writer_alive(entry.name):
+                    Path(entry.path).unlink(missing_ok=True)
+                    removed.append(Path(entry.path))
+        return removed
 
     def __getstate__(self) -> dict:
         return {"root": str(self.root)}
@@ -154,23 +192,31 @@ class WorkArea:
         _atomic_write(path, data)
         ref = ResultRef(stage, key, str(path), hashlib.sha256(data).hexdigest(), build_id,
                         cached=False, seconds=seconds)
-        record = {"digest": ref.digest, "build_id": build_id, "seconds": seconds,
-                  "modules": modules}
+        record = {"digest": ref.digest, "bytes": len(data), "build_id": build_id,
+                  "seconds": seconds, "modules": modules}
         _atomic_write(path.with_suffix(".json"), canonical_json(record).encode())
         self._remember(ref.digest, result)
         return ref
 
     def lookup(self, stage: str, key: str) -> ResultRef | None:
-        """The stored result of ``(stage, key)`` as a cached ref, or None."""
+        """The stored result of ``(stage, key)`` as a cached ref, or None: also when the
+        record is unreadable, or the pickle has another size than it records (a build was
+        killed between replacing the pickle and its record)."""
         path = self.result_path(stage, key)
+        record_path = path.with_suffix(".json")
         try:
-            record = json.loads(path.with_suffix(".json").read_text())
-        except (FileNotFoundError, json.JSONDecodeError):
+            record = json.loads(record_path.read_bytes())
+            ref = ResultRef(stage, key, str(path), str(record["digest"]),
+                            str(record["build_id"]), cached=True,
+                            seconds=float(record.get("seconds", 0.0)))
+            pickled = path.stat()
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
             return None
-        if not path.exists() or not _importable(record.get("modules")):
+        if "bytes" in record and record["bytes"] != pickled.st_size:
+            return None
+        if not _importable(record.get("modules")):
             return None  # a result the code cannot unpickle (a module moved) is a miss
-        return ResultRef(stage, key, str(path), record["digest"], record["build_id"],
-                         cached=True, seconds=float(record.get("seconds", 0.0)))
+        return ref
 
     @classmethod
     def load(cls, ref: ResultRef) -> Any:
@@ -285,15 +331,37 @@ def _importable(modules: list[str] | None) -> bool:
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
+    """Write ``data`` to a temporary file beside ``path``, then rename it; ENOSPC raises
+    ``CatalogDiskFull`` naming ``path``."""
+    with writing(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=_temp_prefix())
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+
+
+def _temp_prefix() -> str:
+    return f"{TEMP_PREFIX}{socket.gethostname()}-{os.getpid()}-"
+
+
+def _writer_alive(name: str) -> bool:
+    """Whether the writer of temporary file ``name`` may still be writing it: True unless
+    it was written on this host by a process that no longer runs."""
+    host, sep, rest = name[len(TEMP_PREFIX):].rpartition("-")[0].rpartition("-")
+    if not sep or host != socket.gethostname() or not rest.isdigit():
+        return True
     try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        os.kill(int(rest), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def canonical_json(obj: Any) -> str:

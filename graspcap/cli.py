@@ -37,24 +37,42 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from graspcap.tasks.session.load_session import discover_sessions, validate_session
+    from graspcap.tasks.session.load_session import NOT_A_SESSION, discover, validate_session
 
-    sessions = discover_sessions(args.dirs)
-    if not sessions:
+    found = discover(args.dirs)
+    for folder in found.not_sessions:
+        print(f"SKIP {_shown_path(folder)}: {NOT_A_SESSION}")
+    if not found.sessions:
         print(f"no session.json found under {' '.join(map(str, args.dirs))}", file=sys.stderr)
         return 2
     failed = 0
-    for directory in sessions:
-        problems = validate_session(directory, check_images=not args.no_images)
+    for directory in found.sessions:
+        try:
+            problems = validate_session(directory, check_images=not args.no_images)
+        except Exception as exc:  # noqa: BLE001 - a validator bug must not stop the others
+            failed += 1
+            why = f"{type(exc).__name__}: {str(exc)[:200]}"
+            print(f"FAIL {_shown_path(directory)}: the validator failed on it ({why}); "
+                  "please report this as a bug")
+            continue
         if any(p.severity == "error" for p in problems):  # frame-level ones do not fail it
             failed += 1
-            print(f"FAIL {directory}: {len(problems)} problem(s)")
+            print(f"FAIL {_shown_path(directory)}: {len(problems)} problem(s)")
         else:
-            print(f"OK   {directory}" + (f" ({len(problems)} frame(s) skipped)" * bool(problems)))
+            print(f"OK   {_shown_path(directory)}"
+                  + (f" ({len(problems)} frame(s) skipped)" * bool(problems)))
         for p in problems:
             print(f"  - {p}")
-    print(f"{len(sessions) - failed} ok, {failed} failed")
+    skipped = f", {len(found.not_sessions)} not a session" * bool(found.not_sessions)
+    print(f"{len(found.sessions) - failed} ok, {failed} failed{skipped}")
     return 1 if failed else 0
+
+
+def _shown_path(path: Path) -> str:
+    """A folder for one output line: as is, or its repr when its name holds a control
+    character (a newline in a folder name must not split the line)."""
+    text = str(path)
+    return text if text.isprintable() else repr(text)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -62,6 +80,16 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     options = {k: getattr(args, k) for k in ("sessions", "frames", "seed")}
     return run_demo(args.out, **{k: v for k, v in options.items() if v is not None})
+
+
+BUILD_EXIT_CODES = """exit status:
+  0  every session built (or unchanged)
+  1  some sessions failed: the others are committed in the new version (or were
+     already); every failure is in the build record with its reason
+  2  usage error: bad arguments, or no session.json under the roots
+  3  the build failed as a whole (catalog lock, disk, commit) and committed
+     nothing; completed stage results stay in the work area and the next build
+     commits them without running those stages again"""
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
@@ -72,10 +100,20 @@ def _cmd_build(args: argparse.Namespace) -> int:
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
+    from deltalake.exceptions import DeltaError
+
+    import graspcap.catalog as gc
+    from graspcap.catalog.cli import problem_lines, report_problems
     from graspcap.flows.commands import status_text
 
-    print(status_text(args.catalog, limit=args.limit))
-    return 0
+    try:
+        text = status_text(args.catalog, limit=args.limit)
+        print(text)
+        return report_problems(gc.open(args.catalog), "graspcap status")
+    except (gc.CatalogError, ValueError, OSError, DeltaError) as exc:  # one line per problem
+        for line in problem_lines(exc):
+            print(f"graspcap status: {line}", file=sys.stderr)
+        return 2
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -115,7 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, help="grasp-video frames per session")
     p.add_argument("--seed", type=int, help="random seed")
     p.set_defaults(func=_cmd_demo)
-    p = sub.add_parser("build", help="build or update the catalog from capture sessions")
+    p = sub.add_parser(
+        "build", help="build or update the catalog from capture sessions",
+        formatter_class=argparse.RawDescriptionHelpFormatter, epilog=BUILD_EXIT_CODES)
     p.add_argument("roots", type=Path, nargs="+", help="session folders or roots holding many")
     p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
     p.add_argument("--preset", default="default", choices=list(PIPELINE_PRESETS),

@@ -3,10 +3,13 @@
 Typed, frozen models that mirror ``/work/shared/design/session-format.md`` and the JSON
 Schema beside this file (``session.schema.json``, for rig builders). Unknown keys are
 rejected at every level. The models add the checks JSON Schema cannot express: a valid
-intrinsic matrix (finite, principal point inside the image), rigid ``T_*`` transforms,
-frame patterns that format with ``index`` alone, and ``steady_from < count``.
+intrinsic matrix (finite, principal point inside the image, a field of view a lens can
+have), bounded distortion coefficients, rigid ``T_*`` transforms, frame patterns made of
+literal text and ``{index}`` fields with an integer format spec, ``steady_from < count``,
+and the size limits of :class:`SessionLimits` (frames, scan views, formatted path length).
 
-Load a manifest with ``SessionManifest.model_validate(json.loads(text))``; the session
+Load a manifest with ``SessionManifest.model_validate(json.loads(text))`` (pass
+``context={"limits": SessionLimits(...)}`` for other limits than the defaults); the session
 loader (``graspcap.tasks.session.load_session``) adds the file checks and readers.
 """
 
@@ -15,6 +18,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import string
 from enum import StrEnum
 from importlib import resources
 from typing import Annotated, Any, Literal
@@ -39,20 +43,95 @@ FORMAT = "grasp-capture-session/1"
 
 SCHEMA_RESOURCE = "session.schema.json"
 
-RELATIVE_PATH_RE = r"^(?!/)(?!.*(?:^|/)\.\.(?:/|$)).+$"
-"""A non-empty relative POSIX path without a ``..`` component (same regex in the JSON Schema)."""
+RELATIVE_PATH_RE = r"^(?!/)(?!.*(?:^|/)\.\.(?:/|$))[^\x00-\x1f\x7f]+(?![\s\S])"
+r"""A non-empty relative POSIX path without a ``..`` component or a control character (same
+regex in the JSON Schema; ``(?![\s\S])`` ends the string, where ``$`` would let a trailing
+newline through in Python)."""
 
-MESH_PATH_RE = r"^(?!/)(?!.*(?:^|/)\.\.(?:/|$)).+\.([Pp][Ll][Yy]|[Oo][Bb][Jj]|[Ss][Tt][Ll])$"
+MESH_PATH_RE = (
+    r"^(?!/)(?!.*(?:^|/)\.\.(?:/|$))[^\x00-\x1f\x7f]+\.("
+    r"[Pp][Ll][Yy]|[Oo][Bb][Jj]|[Ss][Tt][Ll])(?![\s\S])"
+)
 """A relative path (as above) to a PLY, OBJ or STL mesh (any letter case)."""
 
 INDEX_FIELD_RE = r"\{index[^{}]*\}"
 """A frame pattern holds at least one ``{index...}`` replacement field."""
+
+INDEX_SPEC_RE = r"^(?:[^{}]?[<>=^])?0?(?P<width>[0-9]*)d?$"
+"""The format spec an ``{index}`` field may carry: optional fill/align, zero padding, a
+width and the ``d`` type (``{index}``, ``{index:06d}``, ``{index:>4}``)."""
+
+SESSION_ID_RE = r"^(?!\.)[A-Za-z0-9._-]{1,128}(?![\s\S])"
+r"""A session id: 1-128 characters from ``A-Z a-z 0-9 . _ -``, not starting with ``.``
+(``(?![\s\S])`` ends the string in both ECMA and Python regexes; ``$`` would let a
+trailing newline through in Python). The same regex is in the JSON Schema."""
+
+SESSION_ID_RULE = "1-128 characters from A-Z a-z 0-9 . _ -, not starting with '.'"
 
 DIST_LENGTHS = (4, 5, 8, 12, 14)
 """Lengths of OpenCV distortion vectors (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tx ty]]]])."""
 
 SKEW_TOL = 1e-2
 """Largest accepted ``|K[0][1]| / fx`` (a small skew is tolerated, a large one is a typo)."""
+
+FOV_DEG = (10.0, 170.0)
+"""Accepted horizontal field of view ``2 atan(width / (2 fx))``, degrees: a telephoto of
+10 degrees to a fisheye-like 170; outside it the focal length is a typo or in other units."""
+
+ASPECT_MAX = 4.0
+"""Largest accepted ``fy / fx`` or ``fx / fy`` (pixels are near square on real sensors)."""
+
+DIST_MAX = 1000.0
+"""Largest accepted ``|coefficient|`` of the distortion vector. Real calibrations stay far
+below (a Kinect or webcam: ``|k1|, |k2|`` under 1; OpenCV's rational model: tens)."""
+
+DEPTH_SCALE_RANGE = (1e-6, 0.1)
+"""Accepted ``depth_scale_m``: from a micrometre to 10 cm per depth unit (millimetres are 1e-3)."""
+
+
+class SessionLimits(BaseModel):
+    """Bounds on what one session may hold, so that a malformed manifest or file fails with
+    the limit named instead of exhausting time or memory. Real captures stay far below the
+    defaults; raise one (``LoadSessionConfig.limits``) for a capture that legitimately needs
+    more. Documented in ``docs/session-limits.md``."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+    max_frames: int = Field(100_000, ge=1)
+    """Largest ``grasp.count`` (100,000 frames is 55 minutes at 30 fps)."""
+    max_scan_views: int = Field(720, ge=1)
+    """Most ``scan.views`` (720 is one view every half degree)."""
+    max_path_chars: int = Field(1024, ge=16)
+    """Longest path, in characters, that a frame pattern may format to (checked from the
+    pattern before formatting it)."""
+    max_manifest_bytes: int = Field(4 * 2**20, ge=1024)
+    """Largest ``session.json``, bytes."""
+    max_keypoint_bytes: int = Field(8 * 2**20, ge=1024)
+    """Largest OpenPose keypoint JSON file, bytes (a real one is a few kilobytes)."""
+    max_json_depth: int = Field(64, ge=8)
+    """Deepest nesting of arrays and objects in ``session.json`` or a keypoint file (both
+    need under 10 levels)."""
+    max_image_pixels: int = Field(40_000_000, ge=1)
+    """Most pixels (width x height) of a camera and of any image, as its header claims
+    (checked before decoding; 8K video is 33 million)."""
+    max_mesh_faces: int = Field(1_000_000, ge=1)
+    """Most faces of the object mesh (the largest real scans in ``shared/data``, ContactDB's
+    controller and apple, have 75,788 and 59,354)."""
+    max_mesh_vertices: int = Field(1_000_000, ge=1)
+    """Most vertices of the object mesh (the same scans: 37,313 and 29,681)."""
+    max_mesh_bytes: int = Field(512 * 2**20, ge=1024)
+    """Largest object mesh file, bytes."""
+
+
+DEFAULT_LIMITS = SessionLimits()
+"""The limits every check uses unless given others."""
+
+
+def limits_of(info: ValidationInfo | None) -> SessionLimits:
+    """The :class:`SessionLimits` in a validation context, else :data:`DEFAULT_LIMITS`."""
+    context = getattr(info, "context", None)
+    limits = context.get("limits") if isinstance(context, dict) else None
+    return limits if isinstance(limits, SessionLimits) else DEFAULT_LIMITS
 
 
 def _integral_float_to_int(value: Any) -> Any:
@@ -124,6 +203,15 @@ class Camera(_Model):
         if k10 != 0 or tuple(last) != (0, 0, 1):
             problems.append("K[1][0] must be 0 and the last row [0, 0, 1]")
         width, height = info.data.get("width"), info.data.get("height")
+        if width is not None and fx > 0 and fy > 0:
+            fov = math.degrees(2 * math.atan(width / (2 * fx)))
+            if not FOV_DEG[0] <= fov <= FOV_DEG[1]:
+                problems.append(
+                    f"fx={fx:.6g} gives a horizontal field of view of {fov:.3g} degrees over "
+                    f"{width} pixels; a lens has {FOV_DEG[0]:g} to {FOV_DEG[1]:g} (focal length "
+                    "in pixels, not mm?)")
+            elif not 1 / ASPECT_MAX <= fy / fx <= ASPECT_MAX:
+                problems.append(f"fy/fx = {fy / fx:.3g}, pixels are not that far from square")
         if width is not None and not 0 <= cx <= width:
             problems.append(f"principal point cx={cx} outside the image width {width}")
         if height is not None and not 0 <= cy <= height:
@@ -137,7 +225,21 @@ class Camera(_Model):
     def _dist_length(cls, dist: tuple[float, ...]) -> tuple[float, ...]:
         if len(dist) not in DIST_LENGTHS:
             raise ValueError(f"{len(dist)} coefficients; OpenCV takes {DIST_LENGTHS}")
+        big = [(i, v) for i, v in enumerate(dist) if abs(v) > DIST_MAX]
+        if big:
+            i, v = big[0]
+            raise ValueError(f"coefficient [{i}] = {v:.3g} is beyond +-{DIST_MAX:g}; real "
+                             "lens distortion stays far below (k1, k2 of a webcam are under 1)")
         return dist
+
+    @field_validator("height")
+    @classmethod
+    def _pixels(cls, height: int, info: ValidationInfo) -> int:
+        width, limit = info.data.get("width"), limits_of(info).max_image_pixels
+        if width is not None and width * height > limit:
+            raise ValueError(f"{width}x{height} is more than the {limit} pixels of "
+                             "SessionLimits.max_image_pixels")
+        return height
 
     def K_array(self) -> np.ndarray:
         """The intrinsic matrix, ``(3, 3) float64``."""
@@ -192,15 +294,52 @@ class Stage1(_Model):
     """Optional colour image (8-bit, 3 channels, colour camera size), relative path."""
 
 
-def _check_frame_pattern(pattern: str | None) -> str | None:
+def pattern_problem(pattern: str, count: int | None, max_chars: int) -> str | None:
+    """Why ``pattern`` is not a frame pattern, found without formatting it, or None.
+
+    Allowed: literal text and ``{index}`` fields whose format spec matches
+    :data:`INDEX_SPEC_RE`, formatting (for frames below ``count``) to at most
+    ``max_chars`` characters.
+    """
+    try:
+        parts = list(string.Formatter().parse(pattern))
+    except ValueError as exc:
+        return f"is not a format pattern ({exc}; write a literal brace as {{{{ or }}}})"
+    fields, length = 0, 0
+    digits = len(str(max(count - 1, 0))) if count is not None else 20
+    for literal, name, spec, conversion in parts:
+        length += len(literal)
+        if name is None:
+            continue
+        if name != "index" or conversion is not None:
+            field = "{" + name + ("!" + conversion if conversion else "") + "}"
+            return (f"field {field[:60]} is not allowed: a frame pattern holds only "
+                    "{index} fields, e.g. {index:06d}")
+        match = re.fullmatch(INDEX_SPEC_RE, spec or "")
+        if match is None:
+            return (f"format spec {spec[:60]!r} of {{index}} is not an integer format "
+                    "(e.g. 06d)")
+        width = int(match["width"] or 0) if len(match["width"]) <= 9 else max_chars + 1
+        fields += 1
+        length += max(width, digits + 1)
+        if length > max_chars:
+            break
+    if not fields:
+        return "a frame pattern needs an {index...} field, e.g. {index:06d}"
+    if length > max_chars:
+        return (f"formats to paths longer than {max_chars} characters "
+                "(SessionLimits.max_path_chars)")
+    return None
+
+
+def _check_frame_pattern(pattern: str | None, info: ValidationInfo) -> str | None:
     if pattern is None:
         return None
-    if not re.search(INDEX_FIELD_RE, pattern):
-        raise ValueError("a frame pattern needs an {index...} field, e.g. {index:06d}")
-    try:
-        first, second = pattern.format(index=0), pattern.format(index=1)
-    except (KeyError, IndexError, ValueError) as exc:
-        raise ValueError(f"does not format with index alone: {exc!r}") from None
+    count = info.data.get("count")
+    problem = pattern_problem(pattern, count, limits_of(info).max_path_chars)
+    if problem:
+        raise ValueError(problem)
+    first, second = pattern.format(index=0), pattern.format(index=1)
     if first == second:
         raise ValueError("gives the same path for every frame")
     if not re.search(RELATIVE_PATH_RE, first):
@@ -218,7 +357,8 @@ class Grasp(_Model):
     fps: Annotated[Number, Field(gt=0)]
     """Frame rate of the video, frames per second."""
     count: Annotated[Int, Field(ge=1)]
-    """Number of frames; the frame index runs over 0 .. count-1."""
+    """Number of frames; the frame index runs over 0 .. count-1 (at most
+    ``SessionLimits.max_frames``)."""
     depth: FramePattern
     """Pattern of the aligned depth PNGs (uint16 mm), e.g. ``grasp/depth/{index:06d}.png``."""
     color: FramePattern | None = None
@@ -229,6 +369,15 @@ class Grasp(_Model):
     """First frame after grasp adjustment (hand held still); null means detect it."""
 
     _patterns = field_validator("depth", "color", "keypoints")(_check_frame_pattern)
+
+    @field_validator("count")
+    @classmethod
+    def _count_limit(cls, count: int, info: ValidationInfo) -> int:
+        limit = limits_of(info).max_frames
+        if count > limit:
+            raise ValueError(f"{count} frames is more than the {limit} of "
+                             "SessionLimits.max_frames")
+        return count
 
     @field_validator("steady_from")
     @classmethod
@@ -271,10 +420,15 @@ class Scan(_Model):
 
     @field_validator("views")
     @classmethod
-    def _at_least_one(cls, views: tuple[ScanView, ...]) -> tuple[ScanView, ...]:
+    def _at_least_one(cls, views: tuple[ScanView, ...],
+                      info: ValidationInfo) -> tuple[ScanView, ...]:
         # Not Field(min_length=1): pydantic would add a bogus "0 items" error to item errors.
         if not views:
             raise ValueError("needs at least one view")
+        limit = limits_of(info).max_scan_views
+        if len(views) > limit:
+            raise ValueError(f"{len(views)} views is more than the {limit} of "
+                             "SessionLimits.max_scan_views")
         return views
 
     def angles_rad(self) -> np.ndarray:
@@ -287,8 +441,9 @@ class SessionManifest(_Model):
 
     format: Literal["grasp-capture-session/1"]
     """Format and version of this manifest; exactly ``grasp-capture-session/1``."""
-    session_id: Text
-    """Identifier of the session, unique in a dataset (e.g. ``p03-mug-use-01``)."""
+    session_id: Annotated[str, Strict(), Field(pattern=SESSION_ID_RE)]
+    """Identifier of the session, unique in a dataset (e.g. ``p03-mug-use-01``): 1-128
+    characters from ``A-Z a-z 0-9 . _ -``, not starting with ``.``; data, never a path."""
     participant: Text
     """Identifier of the participant (e.g. ``p03``)."""
     object_id: Text
@@ -302,7 +457,16 @@ class SessionManifest(_Model):
     color_camera: ColorCamera
     """The RGB-D camera (world frame)."""
     depth_scale_m: Annotated[Number, Field(gt=0)]
-    """Metres per depth-PNG unit (0.001 for millimetres)."""
+    """Metres per depth-PNG unit (0.001 for millimetres; 1e-6 .. 0.1 accepted)."""
+
+    @field_validator("depth_scale_m")
+    @classmethod
+    def _plausible_scale(cls, scale: float) -> float:
+        low, high = DEPTH_SCALE_RANGE
+        if not low <= scale <= high:
+            raise ValueError(f"{scale:.3g} m per depth unit is outside {low:g} .. {high:g} "
+                             "(0.001 for millimetres)")
+        return scale
     thermal_camera: ThermalCamera
     """The thermal camera and its pose relative to the colour camera."""
     turntable: Turntable

@@ -28,7 +28,7 @@ import pyarrow as pa
 
 from graspcap.schemas.qa import qa_columns
 
-CATALOG_FORMAT_VERSION = 4
+CATALOG_FORMAT_VERSION = 5
 """Bumped on any change of the tables' columns, their encodings, their Delta table properties or
 the Zarr layout (``docs/data_changelog.md``)."""
 
@@ -84,7 +84,8 @@ def _qa(name: str, doc: str, unit: str) -> pa.Field:
 SESSIONS_SCHEMA = pa.schema([
     _f("session_id", _STR, "Capture session id, unique within a catalog version."),
     _f("participant", _STR, "Participant id."),
-    _f("object_id", _STR, "Object id; its mesh is the group `object_mesh_digest`."),
+    _f("object_id", _STR, "Object id, a label: sessions of one object may carry different "
+       "meshes (each session's own is the group `object_mesh_digest`)."),
     _f("intent", _STR, "Grasp intent (e.g. use, handoff)."),
     _f("hand", _STR, "right or left."),
     _f("status", _STR, "ok, flagged or failed."),
@@ -124,7 +125,9 @@ SESSIONS_SCHEMA = pa.schema([
     _f("config_digest", _STR, "sha256 of the canonical configs of every stage."),
     _result(_f("contact_digest", _STR, "Zarr group `contact` (values, observed).")),
     _result(_f("hand_mesh_digest", _STR, "Zarr group `hand_mesh` (vertices, faces, joints).")),
-    _result(_f("object_mesh_digest", _STR, "Zarr group `object_mesh` (vertices, faces).")),
+    _result(_f("object_mesh_digest", _STR, "Zarr group `object_mesh` (vertices, faces): the "
+               "session's own object mesh, which its contact map indexes; content-addressed, "
+               "so sessions with the same mesh share one group.")),
 ], metadata={"table": "sessions", "key": "session_id"})
 
 FRAMES_SCHEMA = pa.schema([
@@ -241,7 +244,8 @@ ZARR_LAYOUT: dict[str, ZarrGroupSpec] = {
                                   "Object mesh vertices, object frame, file order."),
         "faces": ZarrArraySpec(np.dtype("int32"), ("m", 3), _ROWS, "",
                                "Triangles, indices into vertices."),
-    }, "Per object: its mesh."),
+    }, "Per session: its object's mesh (content-addressed: sessions with the same mesh share "
+       "one group, sessions of one object_id may have different ones)."),
 }
 """Array groups by kind. Group path: ``arrays/<digest[:2]>/<digest>.zarr``."""
 

@@ -68,6 +68,11 @@ def read_mesh(session: Session) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64)
 
 
+def mesh_name(session: Session) -> str:
+    """The object mesh as messages name it: ``object_mesh <file>``."""
+    return f"object_mesh {session.manifest.object_mesh}"
+
+
 def _K(session: Session) -> np.ndarray:
     return np.asarray(session.manifest.color_camera.K, dtype=float)
 
@@ -91,14 +96,16 @@ def depth_lookup(session: Session, window_px: int = 2, read: Callable | None = N
 
 
 def _load(session_dir: Path | str, config) -> Session:
-    return load_session.load_session(Path(session_dir), check_images=config.check_images)
+    return load_session.load_session(Path(session_dir), check_images=config.check_images,
+                                     limits=config.limits)
 
 
 def _register_object(session, config, **_):
     depth = session.read_depth_m(session.manifest.stage1.depth)
     V, F = read_mesh(session)
     return register_object.register_object(
-        depth, _K(session), _T_color_turntable(session), V, F, config
+        depth, _K(session), _T_color_turntable(session), V, F, config,
+        depth_name=f"stage1.depth {session.manifest.stage1.depth}", mesh_name=mesh_name(session),
     )
 
 
@@ -108,8 +115,15 @@ def _detect_keypoints(session, config, **_):
 
 def _select_steady(session, config, detect_keypoints, **_):
     return select_steady.select_steady(
-        detect_keypoints.keypoints, _K(session), session.manifest.grasp.steady_from, config
+        detect_keypoints.keypoints, _K(session), session.manifest.grasp.steady_from, config,
+        why_missing=_why_missing(detect_keypoints),
     )
+
+
+def _why_missing(keypoints: Any) -> str:
+    """``Keypoints2D.missing_summary()``; empty for a result cached before it had one."""
+    summary = getattr(keypoints, "missing_summary", None)
+    return summary() if summary is not None else ""
 
 
 def _reconstruct_hand(session, config, detect_keypoints, select_steady, **_):
@@ -123,6 +137,7 @@ def _reconstruct_hand(session, config, detect_keypoints, select_steady, **_):
         config,
         depth_frame=read,
         T_color_turntable=_T_color_turntable(session),
+        why_missing=_why_missing(detect_keypoints),
     )
 
 
@@ -159,7 +174,8 @@ def _register_scan(session, config, **_):
     ]
     V, F = read_mesh(session)
     return register_scan.register_scan(
-        views, _K(session), _T_color_turntable(session), V, F, config
+        views, _K(session), _T_color_turntable(session), V, F, config,
+        view_names=[v.depth for v in session.manifest.scan.views], mesh_name=mesh_name(session),
     )
 
 
@@ -171,7 +187,8 @@ def _build_contactmap(session, config, register_scan, **_):
     return build_contactmap.build_contactmap(
         V, F, views, np.asarray(cam.K, dtype=float), np.asarray(cam.T_color_thermal, dtype=float),
         _T_color_turntable(session), register_scan.T_turntable_o_scan, config,
-        image_size=(cam.width, cam.height),
+        image_size=(cam.width, cam.height), view_names=[v.thermal for v in m.scan.views],
+        mesh_name=mesh_name(session),
     )
 
 
@@ -292,9 +309,10 @@ STAGES: dict[str, Stage] = {
                "fit_hand", "register_object", "estimate_adjustment") + _REFINE,
               ("manifest",), _propagate_poses),
         Stage("qa_metrics", qa_metrics.STAGE_VERSION, qa_metrics.PRESETS,
-              ("load_session", "reconstruct_hand", "crosscheck_sfm", "fit_hand",
-               "register_object", "estimate_adjustment", "register_scan", "build_contactmap",
-               "propagate_poses") + _REFINE, ("manifest", "object_mesh"), _qa_metrics),
+              ("load_session", "detect_keypoints", "reconstruct_hand", "crosscheck_sfm",
+               "fit_hand", "register_object", "estimate_adjustment", "register_scan",
+               "build_contactmap", "propagate_poses") + _REFINE, ("manifest", "object_mesh"),
+              _qa_metrics),
         Stage("pictures", pictures.STAGE_VERSION, pictures.PRESETS,
               ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
                "fit_hand", "estimate_adjustment", "register_scan", "build_contactmap",

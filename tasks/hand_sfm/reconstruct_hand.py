@@ -194,6 +194,7 @@ def reconstruct_hand(
     *,
     depth_frame: DepthFrame | None = None,
     T_color_turntable: np.ndarray | None = None,
+    why_missing: str = "",
 ) -> HandReconstruction:
     """Structure from motion of the hand from ``steady_from`` on.
 
@@ -217,6 +218,8 @@ def reconstruct_hand(
     T_color_turntable : (4, 4) turntable pose in the colour camera: the platter and table
         below its top plane are cut from the depth links' surfaces; without it there are no
         depth links.
+    why_missing : why frames lack detections (``Keypoints2D.missing_summary``), added to the
+        error when too few frames have enough joints.
     """
     if not callable(depth_at):
         frames_m = np.asarray(depth_at)
@@ -226,6 +229,9 @@ def reconstruct_hand(
     K = np.asarray(K, dtype=float)
     kp = np.asarray(keypoints, dtype=float)[steady_from:]
     ok = (kp[..., 2] >= cfg.min_confidence) & np.all(np.isfinite(kp), axis=2)
+    shortage = _too_few(ok, steady_from, cfg)
+    if shortage:
+        raise StageError(STAGE, shortage + (f"; {why_missing}" if why_missing else ""))
     confident = ok & (kp[..., 2] >= cfg.depth_min_confidence)
     link_cfg = cfg.depth_links
     use_links = (  # without the turntable the static scene would be registered too
@@ -279,6 +285,20 @@ def reconstruct_hand(
         )
 
 
+def _too_few(ok: np.ndarray, steady_from: int, cfg: ReconstructConfig) -> str | None:
+    """Why the detections ``ok (m, 21)`` from ``steady_from`` on are too few to solve; None
+    when they are not."""
+    m = len(ok)
+    if not ok.any():
+        return (f"no keypoint detected with confidence >= {cfg.min_confidence} "
+                f"in frames {steady_from}..{steady_from + m - 1}")
+    usable = int((ok.sum(1) >= cfg.min_points_per_frame).sum())
+    if usable < cfg.min_frames:
+        return (f"too few usable frames: {usable} of {m} frames from {steady_from} on have "
+                f">= {cfg.min_points_per_frame} detected joints, need {cfg.min_frames}")
+    return None
+
+
 def _reconstruct(
     keypoints: np.ndarray,
     K: np.ndarray,
@@ -301,19 +321,9 @@ def _reconstruct(
     m = len(kp)
     uv, conf = kp[..., :2], kp[..., 2]
     ok = (conf >= cfg.min_confidence) & np.all(np.isfinite(kp), axis=2)
-    if not ok.any():
-        raise StageError(
-            STAGE,
-            f"no keypoint detected with confidence >= {cfg.min_confidence} "
-            f"in frames {steady_from}..{steady_from + m - 1}",
-        )
-    usable = int((ok.sum(1) >= cfg.min_points_per_frame).sum())
-    if usable < cfg.min_frames:
-        raise StageError(
-            STAGE,
-            f"too few usable frames: {usable} of {m} frames from {steady_from} on have "
-            f">= {cfg.min_points_per_frame} detected joints, need {cfg.min_frames}",
-        )
+    shortage = _too_few(ok, steady_from, cfg)
+    if shortage:
+        raise StageError(STAGE, shortage)
     init, best_parallax = (initialisation, 0.0) if initialisation is not None else initialise(
         uv,
         ok,

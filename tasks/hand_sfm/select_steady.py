@@ -345,6 +345,8 @@ def select_steady(
     K: np.ndarray,
     steady_from: int | None,
     config: SelectSteadyConfig = PRESETS["default"],
+    *,
+    why_missing: str = "",
 ) -> SteadySelection:
     """The first steady frame: the manifest's ``steady_from`` when given, else detected.
 
@@ -354,6 +356,8 @@ def select_steady(
         a detection has confidence 0 everywhere).
     K : (3, 3) colour intrinsics.
     steady_from : the manifest's value, or None to detect it.
+    why_missing : why frames lack detections (``Keypoints2D.missing_summary``), added to the
+        error when too few frames have enough joints.
     """
     cfg = config
     kp = np.asarray(keypoints, dtype=float)
@@ -371,7 +375,7 @@ def select_steady(
         raise StageError(
             STAGE,
             f"cannot detect the steady phase: fewer than 5 frames have >= "
-            f"{cfg.min_points} detected joints",
+            f"{cfg.min_points} detected joints" + (f"; {why_missing}" if why_missing else ""),
         )
     coarse, scores, threshold, matched, model = _detect(uv, ok, K, cfg)
     if matched is None:  # nothing moved before the coarse onset: it stands

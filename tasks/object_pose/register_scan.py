@@ -14,18 +14,25 @@ against the true pose's 0.998, and RANSAC found the flipped basin 7 times in 8):
 surface where the views saw empty space is what gives it away. While the best pose still
 leaves more than ``grid_above`` of the mesh in seen-empty space, the probes also try every
 rotation of a point group (the mug's flip axis lies between its principal axes).
+
+Views at the same platter angle (a view captured twice) are all used: they are more data of
+the same side. ``notes`` names them with each one's fitness under the final pose, so a view
+whose ``angle_deg`` is wrong (it does not fit where its twin does) can be found.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.config import StageConfig
-from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.errors import StageError, check_mesh
 from graspcap.tasks.core.geometry import inv_T, rot_z, transform_points
+from graspcap.tasks.core.mesh_proxy import PROXY_FACES, mesh_proxy
 from graspcap.tasks.object_pose.registration.engine import (
     Candidate,
     RegistrationConfig,
@@ -45,7 +52,7 @@ from graspcap.tasks.object_pose.registration.point_clouds import (
 from graspcap.tasks.object_pose.registration.symmetry import distinct_from, probe_symmetry
 from graspcap.tasks.object_pose.scan_free_space import free_space_violation, prepare_views
 
-STAGE_VERSION = "register_scan/3"
+STAGE_VERSION = "register_scan/4"
 STAGE = "register_scan"
 
 
@@ -81,6 +88,8 @@ class RegisterScanConfig(StageConfig):
     ambiguous_violation: float = 0.01
     """A distinct pose is as good only if its free-space violation exceeds the best's by at
     most this much (on top of the fitness and RMSE tolerances of ``registration``)."""
+    proxy_faces: int = Field(PROXY_FACES, ge=1000)
+    """A mesh with more faces is registered as a proxy of about this many (:mod:`mesh_proxy`)."""
     registration: RegistrationConfig = RegistrationConfig()
     """Global registration and ICP settings."""
 
@@ -122,6 +131,8 @@ class ScanRegistration:
         Its fitness and free-space violation (NaN when there is none).
     note : str
         Why the pose may be wrong (ambiguous, or contradicted by the views); empty when none.
+    notes : tuple of str
+        What changes no verdict: views at the same platter angle, views skipped.
     """
 
     T_turntable_o_scan: np.ndarray
@@ -137,6 +148,7 @@ class ScanRegistration:
     runner_up_fitness: float
     runner_up_free_space_violation: float
     note: str
+    notes: tuple[str, ...] = ()
 
 
 def register_scan(
@@ -146,6 +158,9 @@ def register_scan(
     mesh_vertices: np.ndarray,
     mesh_faces: np.ndarray,
     config: RegisterScanConfig = PRESETS["default"],
+    *,
+    view_names: Sequence[str] | None = None,
+    mesh_name: str = "the object mesh",
 ) -> ScanRegistration:
     """Register the mesh against all scan views fused in the turntable frame.
 
@@ -159,8 +174,21 @@ def register_scan(
         Turntable frame in the colour frame.
     mesh_vertices, mesh_faces : (n, 3) float, (m, 3) int
         Object mesh, object frame, metres.
+    view_names, mesh_name : optional
+        The views' depth files and the mesh file, for messages and notes.
     """
     cfg = config.registration
+    names = [f"view {k}" for k in range(len(views))] if view_names is None else [
+        f"view {k} ({n})" for k, n in enumerate(view_names)]
+    if len(names) != len(views):
+        raise ValueError(f"{len(names)} view names for {len(views)} views")
+    check_mesh(STAGE, mesh_vertices, mesh_faces, name=mesh_name)
+    proxy = mesh_proxy(mesh_vertices, mesh_faces, config.proxy_faces)
+    proxy_notes = [] if proxy.is_original else [proxy.note(len(mesh_faces), "registered")]
+    mesh_vertices, mesh_faces = proxy.vertices, proxy.faces
+    for name, (depth_m, _) in zip(names, views, strict=True):
+        if np.ndim(depth_m) != 2:
+            raise StageError(STAGE, f"{name} depth has shape {np.shape(depth_m)}, expected (h, w)")
     T_turntable_color = inv_T(np.asarray(T_color_turntable, float))
     per_view, counts, pts_all, nrm_all = [], [], [], []
     for depth_m, angle in views:
@@ -180,7 +208,8 @@ def register_scan(
         raise StageError(
             STAGE,
             f"no valid view: none of the {len(views)} views has {config.min_view_points} depth "
-            "points over the platter (empty platter, bad depth or turntable calibration)",
+            "points over the platter (empty platter, bad depth or turntable calibration; "
+            f"points per view: {counts})",
         )
     model = prepare_model(mesh_vertices, mesh_faces, cfg)
     scene, down, feats = prepare_scene(
@@ -197,8 +226,9 @@ def register_scan(
     if best.fitness < config.min_fitness:
         raise StageError(
             STAGE,
-            f"registration fitness {best.fitness:.2f} below {config.min_fitness:.2f}: the mesh "
-            "does not explain the fused scan (wrong object, mesh units or turntable angles?)",
+            f"registration fitness {best.fitness:.2f} below {config.min_fitness:.2f}: {mesh_name} "
+            "does not explain the fused scan (wrong object, mesh units or turntable angles?)"
+            + "".join(f"; {n}" for n in _view_notes(views, names, counts, None, config)),
         )
     amb = distinct_from(best, candidates[1:], cfg)
     runner = amb.runner_up
@@ -231,7 +261,32 @@ def register_scan(
         runner_up_fitness=np.nan if runner is None else runner.fitness,
         runner_up_free_space_violation=v_runner,
         note=_note(ambiguous, amb.ambiguity_deg, v_best, config),
+        notes=tuple(proxy_notes + _view_notes(views, names, counts, fits, config)),
     )
+
+
+def _view_notes(views, names, counts, fits, config: RegisterScanConfig) -> list[str]:
+    """Views skipped for too few points, and views that share a platter angle (with their
+    fitness under the final pose when ``fits`` is given)."""
+    notes = []
+    skipped = [f"{n}: {c} points" for n, c in zip(names, counts, strict=True)
+               if c < config.min_view_points]
+    if skipped:
+        notes.append(f"{len(skipped)} scan view(s) skipped, fewer than {config.min_view_points} "
+                     f"depth points over the platter ({'; '.join(skipped)})")
+    by_angle: dict[float, list[int]] = {}
+    for k, (_, angle) in enumerate(views):
+        key = round(float(np.degrees(angle)) % 360.0, 3) % 360.0
+        by_angle.setdefault(key, []).append(k)
+    for angle, ks in by_angle.items():
+        if len(ks) < 2:
+            continue
+        fit = "" if fits is None else " (fitness under the final pose " + ", ".join(
+            "skipped" if not np.isfinite(fits[k]) else f"{fits[k]:.2f}" for k in ks) + ")"
+        notes.append(f"{len(ks)} scan views share angle_deg {angle:g}: "
+                     f"{', '.join(names[k] for k in ks)}{fit}; all used (a view that fits much "
+                     "worse than its twin has a wrong angle_deg)")
+    return notes
 
 
 def _violation_of(views, K, T_turntable_color, model, config: RegisterScanConfig):

@@ -36,7 +36,7 @@ from graspcap.tasks.outputs.qa_measures import (
     window_outlier_share,
 )
 
-STAGE_VERSION = "qa_metrics/6"
+STAGE_VERSION = "qa_metrics/7"
 STAGE = "qa_metrics"
 
 
@@ -285,7 +285,11 @@ def stage_notes(results: Mapping[str, Any]) -> list[str]:
     agreements judge against the independent thermal scan. As flags they were no sign of a
     wrong session: on the accuracy bench's 12 x 120-frame sessions they flagged 4 trustworthy
     ones and no wrong one; the one wrong calibration session with one (an adjustment 180 deg
-    off) failed by its contact agreement as well (``bench/qa_calibration.py``)."""
+    off) failed by its contact agreement as well (``bench/qa_calibration.py``).
+
+    Also what the stages noted about unusual input: keypoint frames dropped (far outside the
+    image, corrupt) or with several candidate hands, scan views sharing an angle or skipped,
+    thermal views left out, a contact map from one view."""
     notes = []
     if _attr(results, "refine_grasp", "accepted") is False:
         notes.append(f"refine_grasp: refinement rejected, the stage-3 fit kept "
@@ -296,6 +300,12 @@ def stage_notes(results: Mapping[str, Any]) -> list[str]:
                      "registers the object again in the grasp)")
     if _attr(results, "estimate_adjustment", "ambiguous"):
         notes.append("estimate_adjustment: ambiguous (the pose nearest stage 1 kept)")
+    keypoints = results.get("detect_keypoints")
+    if keypoints is not None and hasattr(keypoints, "qa_notes"):
+        notes += keypoints.qa_notes()
+    notes += [f"register_object: {n}" for n in _attr(results, "register_object", "notes") or ()]
+    notes += [f"register_scan: {n}" for n in _attr(results, "register_scan", "notes") or ()]
+    notes += [f"build_contactmap: {n}" for n in _attr(results, "build_contactmap", "notes") or ()]
     return notes
 
 

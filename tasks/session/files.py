@@ -3,12 +3,22 @@
 Each ``*_problems`` function returns a list of messages (empty when the file is fine) and
 never raises for a bad file; ``graspcap.tasks.session.load_session`` attaches session, file and
 field to them. Formats are those of ``session-format.md``.
+
+Only regular files are read: :func:`not_regular` says why a path is not one (missing, a
+directory, a FIFO, a device, a socket, a symlink loop) from one ``os.stat``, and
+:func:`read_regular` opens with ``O_NONBLOCK`` and checks the open file again, so a FIFO put
+in place after the check cannot hang a read. Sizes are bounded by
+:class:`~graspcap.schemas.session.SessionLimits`, checked before anything is decoded.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import math
+import os
+import re
+import stat
 import struct
 import zlib
 from dataclasses import dataclass
@@ -18,6 +28,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import trimesh
+
+from graspcap.schemas.session import DEFAULT_LIMITS, SessionLimits
 
 N_KEYPOINTS = 21
 """Hand keypoints in the OpenPose / MediaPipe layout."""
@@ -35,6 +47,79 @@ class ImageKind(StrEnum):
     """uint16, one channel (centi-kelvin)."""
     COLOR = "color"
     """8-bit, three channels (BGR)."""
+
+
+def _kind_of(mode: int) -> str:
+    if stat.S_ISDIR(mode):
+        return "is a directory, not a file"
+    if stat.S_ISFIFO(mode):
+        return "is a FIFO (named pipe), not a regular file; it is never opened"
+    if stat.S_ISSOCK(mode):
+        return "is a socket, not a regular file; it is never opened"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "is a device, not a regular file; it is never opened"
+    return "is not a regular file; it is never opened"
+
+
+def _os_error(exc: OSError) -> str:
+    if exc.errno == errno.ENOENT:
+        return "file does not exist"
+    if exc.errno == errno.ELOOP:
+        return "is a symlink loop (too many levels of symbolic links)"
+    if exc.errno == errno.ENOTDIR:
+        return "file does not exist (a component of its folder is a file)"
+    if exc.errno == errno.ENAMETOOLONG:
+        return "path is too long for the file system"
+    return f"cannot read: {exc.strerror or exc}"
+
+
+def not_regular(path: Path | str) -> str | None:
+    """Why ``path`` (symlinks followed) is not a regular file to read, or None when it is."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        return _os_error(exc)
+    except ValueError:  # an embedded NUL byte
+        return "path holds a NUL character"
+    return None if stat.S_ISREG(st.st_mode) else _kind_of(st.st_mode)
+
+
+@dataclass(frozen=True)
+class Unreadable:
+    """A file that was not read, and why (see :func:`read_regular`)."""
+
+    message: str
+
+
+def read_regular(path: Path | str, max_bytes: int | None = None) -> bytes | Unreadable:
+    """The bytes of the regular file at ``path``, or :class:`Unreadable` with why not.
+
+    Opened with ``O_NONBLOCK`` and checked with ``fstat`` on the open file: a directory,
+    FIFO, device or socket is refused before any read (a FIFO cannot block the open), and
+    a file larger than ``max_bytes`` is refused from its size.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        if exc.errno == errno.EISDIR:
+            return Unreadable("is a directory, not a file")
+        return Unreadable(_os_error(exc))
+    except ValueError:
+        return Unreadable("path holds a NUL character")
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            return Unreadable(_kind_of(st.st_mode))
+        if max_bytes is not None and st.st_size > max_bytes:
+            return Unreadable(f"{st.st_size} bytes is more than the limit of {max_bytes}")
+        with os.fdopen(fd, "rb", closefd=True) as handle:
+            fd = -1
+            return handle.read()
+    except OSError as exc:
+        return Unreadable(_os_error(exc))
+    finally:
+        if fd >= 0:
+            os.close(fd)
 
 
 _EXPECTED = {
@@ -132,8 +217,46 @@ def _png_header(data: bytes) -> tuple[int, int, np.dtype, int, int] | str:
     return width, height, dtype, channels, interlace
 
 
+def claimed_size(data: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` a PNG's IHDR or a JPEG's frame header claims, read without
+    decoding anything; None for other formats or when the header is not there."""
+    if data.startswith(PNG_SIGNATURE) and len(data) >= 24 and data[12:16] == b"IHDR":
+        return struct.unpack(">II", data[16:24])
+    if data.startswith(b"\xff\xd8"):
+        header = _jpeg_header(data)
+        return None if header is None else header[:2]
+    return None
+
+
+def size_problem(data: bytes, size: tuple[int, int] | None, max_pixels: int) -> str | None:
+    """Why the image in ``data`` must not be decoded, from its header alone: more pixels
+    than ``max_pixels``, or another size than the camera's ``size``; None otherwise."""
+    claimed = claimed_size(data)
+    if claimed is None:
+        return None
+    width, height = claimed
+    if width * height > max_pixels:
+        return (f"header claims {width}x{height} pixels, more than the limit of {max_pixels} "
+                "(SessionLimits.max_image_pixels); not decoded")
+    if size is not None and (width, height) != tuple(size) and width and height:
+        return f"size {width}x{height}, expected {size[0]}x{size[1]} (width x height)"
+    return None
+
+
+def decode(data: bytes, flags: int) -> np.ndarray | None:
+    """``cv2.imdecode`` of ``data``, None for an empty or undecodable buffer (never
+    OpenCV's assertion error)."""
+    if not data:
+        return None
+    try:
+        return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    except cv2.error:
+        return None
+
+
 def image_problems(
-    path: Path, kind: ImageKind, size: tuple[int, int] | None, *, fast_png: bool = True
+    path: Path, kind: ImageKind, size: tuple[int, int] | None, *, fast_png: bool = True,
+    limits: SessionLimits = DEFAULT_LIMITS,
 ) -> list[str]:
     """Why the image at ``path`` is not a decodable ``kind`` image of ``size`` (width, height).
 
@@ -142,14 +265,17 @@ def image_problems(
     take size and channels from their frame header and are decoded at 1/8 scale; other
     formats, and interlaced PNGs, are decoded with ``cv2.imdecode(..., IMREAD_UNCHANGED)``.
     """
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        return [f"cannot read: {exc.strerror or exc}"]
+    data = read_regular(path)
+    if isinstance(data, Unreadable):
+        return [data.message]
+    if not data:
+        return ["empty file (0 bytes)"]
     if path.suffix.lower() in (".jpg", ".jpeg") or data.startswith(b"\xff\xd8"):
         problem = _jpeg_problem(data)
         if problem:
             return [problem]
+    if (problem := size_problem(data, None, limits.max_image_pixels)) is not None:
+        return [problem]
     header = _png_header(data) if fast_png and data.startswith(PNG_SIGNATURE) else None
     if isinstance(header, str):
         return [header]
@@ -159,12 +285,11 @@ def image_problems(
     elif jpeg is not None:
         # the size and channels from the frame header; the whole entropy-coded scan is still
         # decoded (at 1/8 scale, which skips most of the inverse DCT) to know that it decodes
-        buffer = np.frombuffer(data, np.uint8)
-        if cv2.imdecode(buffer, cv2.IMREAD_REDUCED_GRAYSCALE_8) is None:
+        if decode(data, cv2.IMREAD_REDUCED_GRAYSCALE_8) is None:
             return ["does not decode as an image (corrupt or unsupported)"]
         (width, height, channels), dtype = jpeg, np.dtype(np.uint8)
     else:
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        image = decode(data, cv2.IMREAD_UNCHANGED)
         if image is None:
             return ["does not decode as an image (corrupt or unsupported)"]
         height, width = image.shape[:2]
@@ -179,19 +304,73 @@ def image_problems(
     return problems
 
 
-def mesh_problems(path: Path) -> list[str]:
-    """Why the mesh at ``path`` does not load with trimesh as a non-empty, finite triangle mesh."""
+_PLY_ELEMENT = re.compile(rb"^element\s+(vertex|face)\s+(\d+)\s*$", re.M)
+
+
+def _claimed_mesh_size(data: bytes, suffix: str) -> tuple[int, int] | None:
+    """``(vertices, faces)`` a mesh file says it holds, found without parsing it (PLY
+    header, binary STL triangle count, OBJ ``v``/``f`` lines), or None when unknown."""
+    if data.startswith(b"ply"):
+        end = data.find(b"end_header")
+        counts = dict(_PLY_ELEMENT.findall(data[: end if end > 0 else 4096]))
+        if b"vertex" in counts or b"face" in counts:
+            return int(counts.get(b"vertex", 0)), int(counts.get(b"face", 0))
+        return None
+    if suffix == ".stl" and not data[:5].lower() == b"solid" and len(data) >= 84:
+        (triangles,) = struct.unpack("<I", data[80:84])
+        return 3 * triangles, triangles
+    if suffix == ".stl":
+        triangles = data.count(b"facet")
+        return 3 * triangles, triangles
+    if suffix == ".obj":
+        return data.count(b"\nv ") + data.startswith(b"v "), data.count(b"\nf ")
+    return None
+
+
+def mesh_problems(path: Path, limits: SessionLimits = DEFAULT_LIMITS) -> list[str]:
+    """Why the mesh at ``path`` is not a non-empty, finite triangle mesh within the limits
+    whose faces index its vertices. Sizes are checked from the file before trimesh parses it;
+    a loader error is reported with what it means for the file."""
+    data = read_regular(path, limits.max_mesh_bytes)
+    if isinstance(data, Unreadable):
+        return [data.message + (" (SessionLimits.max_mesh_bytes)" * ("limit" in data.message))]
+    claimed = _claimed_mesh_size(data, path.suffix.lower())
+    if claimed is not None:
+        problems = _mesh_size_problems(*claimed, limits)
+        if problems:
+            return problems
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
+        mesh = trimesh.load(trimesh.util.wrap_as_stream(data), file_type=path.suffix[1:].lower(),
+                            force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for a bad file
-        return [f"does not load as a mesh: {type(exc).__name__}: {exc}"]
+        text = str(exc).strip() or type(exc).__name__
+        return [f"does not load as a {path.suffix[1:].upper()} mesh (corrupt or not a mesh "
+                f"file; the loader said: {text[:200]})"]
     vertices = np.asarray(getattr(mesh, "vertices", np.empty((0, 3))))
     faces = np.asarray(getattr(mesh, "faces", np.empty((0, 3))))
     if len(vertices) == 0 or len(faces) == 0:
         return [f"empty mesh ({len(vertices)} vertices, {len(faces)} faces)"]
+    problems = _mesh_size_problems(len(vertices), len(faces), limits)
+    if problems:
+        return problems
     if not np.all(np.isfinite(vertices)):
         return ["mesh has non-finite vertex coordinates"]
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        bad = int(np.argmax((faces < 0).any(axis=1) | (faces >= len(vertices)).any(axis=1)))
+        return [f"face {bad} indexes vertices {faces[bad].tolist()}, but the mesh has "
+                f"{len(vertices)} vertices (indices 0..{len(vertices) - 1})"]
     return []
+
+
+def _mesh_size_problems(vertices: int, faces: int, limits: SessionLimits) -> list[str]:
+    out = []
+    if faces > limits.max_mesh_faces:
+        out.append(f"{faces} faces is more than the limit of {limits.max_mesh_faces} "
+                   "(SessionLimits.max_mesh_faces); decimate the mesh or raise the limit")
+    if vertices > limits.max_mesh_vertices:
+        out.append(f"{vertices} vertices is more than the limit of {limits.max_mesh_vertices} "
+                   "(SessionLimits.max_mesh_vertices); decimate the mesh or raise the limit")
+    return out
 
 
 @dataclass(frozen=True)
@@ -201,17 +380,43 @@ class JsonSyntaxError:
     message: str
 
 
-def load_json(path: Path) -> object | JsonSyntaxError:
-    """The parsed JSON at ``path``, or a :class:`JsonSyntaxError` with line and column."""
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+
+
+def json_depth_exceeds(text: str, max_depth: int) -> bool:
+    """Whether arrays and objects in JSON ``text`` nest deeper than ``max_depth`` (strings
+    skipped). Cheap for ordinary files: fewer brackets than the limit cannot nest deeper."""
+    if text.count("[") + text.count("{") <= max_depth:
+        return False
+    bare = _JSON_STRING.sub("", text).encode("utf-8", "replace")
+    codes = np.frombuffer(bare, np.uint8)
+    step = (np.isin(codes, (ord("["), ord("{"))).astype(np.int32)
+            - np.isin(codes, (ord("]"), ord("}"))))
+    return bool(len(step)) and int(np.cumsum(step).max()) > max_depth
+
+
+def load_json(path: Path, max_bytes: int | None = DEFAULT_LIMITS.max_keypoint_bytes,
+              max_depth: int = DEFAULT_LIMITS.max_json_depth) -> object | JsonSyntaxError:
+    """The parsed JSON at ``path``, or a :class:`JsonSyntaxError` saying why not (line and
+    column of a syntax error; not a regular file; larger than ``max_bytes``; nested deeper
+    than ``max_depth``). Never raises for a bad file."""
+    data = read_regular(path, max_bytes)
+    if isinstance(data, Unreadable):
+        return JsonSyntaxError(data.message)
     try:
-        text = path.read_text("utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        return JsonSyntaxError(f"cannot read as UTF-8 text: {exc}")
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return JsonSyntaxError(f"not UTF-8 text (byte {exc.start}: {exc.reason})")
+    if json_depth_exceeds(text, max_depth):
+        return JsonSyntaxError(f"arrays and objects nest deeper than {max_depth} levels "
+                               "(SessionLimits.max_json_depth); not parsed")
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
         where = f"line {exc.lineno} column {exc.colno}"
         return JsonSyntaxError(f"JSON syntax error at {where}: {exc.msg}")
+    except (RecursionError, ValueError) as exc:  # a number too long to convert, ...
+        return JsonSyntaxError(f"does not parse as JSON: {exc}"[:300])
 
 
 def _is_number(value: object) -> bool:

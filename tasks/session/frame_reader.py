@@ -18,7 +18,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from graspcap.tasks.session.files import _jpeg_problem
+from graspcap.schemas.session import DEFAULT_LIMITS
+from graspcap.tasks.session.files import (
+    Unreadable,
+    _jpeg_problem,
+    decode,
+    read_regular,
+    size_problem,
+)
 
 Frame = tuple[np.ndarray | None, str]
 """An ``(h, w, 3) uint8`` read-only RGB image and "", or None and why it could not be read."""
@@ -31,15 +38,18 @@ def read_rgb(path: Path | str, size: tuple[int, int] | None) -> Frame:
     keypoints would not be in that camera's pixels. JPEG and PNG decode straight to RGB
     (``cv2.IMREAD_COLOR_RGB``: the same pixels as BGR then ``cvtColor``, without the pass).
     """
-    try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
-        return None, f"cannot read: {exc.strerror or exc}"
+    data = read_regular(path)  # never opens a FIFO or device, never reads a directory
+    if isinstance(data, Unreadable):
+        return None, data.message
+    if not data:
+        return None, "empty file (0 bytes)"
     if Path(path).suffix.lower() in (".jpg", ".jpeg") or data.startswith(b"\xff\xd8"):
         problem = _jpeg_problem(data)
         if problem:
             return None, problem
-    rgb = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR_RGB)
+    if (problem := size_problem(data, size, DEFAULT_LIMITS.max_image_pixels)) is not None:
+        return None, problem  # from the header: a wrong or huge size is never decoded
+    rgb = decode(data, cv2.IMREAD_COLOR_RGB)
     if rgb is None:
         return None, "does not decode as an image (corrupt or unsupported)"
     h, w = rgb.shape[:2]

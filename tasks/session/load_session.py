@@ -6,6 +6,12 @@ the file and the field, and never stops at the first; :func:`load_session` raise
 :class:`SessionInvalid` with all of them or returns a :class:`Session` whose readers
 convert to the units of the code (metres, kelvin).
 
+Validation never raises and never hangs on a malformed session: only regular files are
+opened (a directory, FIFO, device, socket or symlink loop is a problem line), JSON nesting,
+file sizes, frame counts, pattern lengths, image dimensions (from the header, before any
+decode) and mesh sizes are bounded by :class:`SessionLimits` (``LoadSessionConfig.limits``),
+and a library's error is reported with what it means for the file.
+
 A problem inside one grasp frame's colour image or keypoint file (corrupt or truncated
 JPEG, wrong size, keypoint JSON with bad values) is :attr:`Severity.FRAME`: reported, but
 the session loads and ``detect_keypoints`` treats that frame as a missing detection.
@@ -26,11 +32,15 @@ import numpy as np
 from pydantic import BaseModel, ValidationError
 
 from graspcap.schemas.session import (
+    DEFAULT_LIMITS,
     FORMAT,
     MESH_PATH_RE,
     RELATIVE_PATH_RE,
+    SESSION_ID_RE,
+    SESSION_ID_RULE,
     Grasp,
     ScanView,
+    SessionLimits,
     SessionManifest,
     Stage1,
 )
@@ -39,11 +49,16 @@ from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.session.files import (
     ImageKind,
     JsonSyntaxError,
+    Unreadable,
+    decode,
     image_problems,
     load_json,
     mesh_problems,
+    not_regular,
     openpose_hands,
     openpose_problems,
+    read_regular,
+    size_problem,
 )
 
 STAGE_VERSION = "load_session/1"
@@ -52,12 +67,16 @@ STAGE_VERSION = "load_session/1"
 class LoadSessionConfig(StageConfig):
     check_images: bool = True
     """Decode every image to check its size and dtype (False: only that the files exist)."""
+    limits: SessionLimits = DEFAULT_LIMITS
+    """Bounds on frames, views, file sizes, image and mesh sizes (``docs/session-limits.md``)."""
 
 
 PRESETS = {"default": LoadSessionConfig(), "fast": LoadSessionConfig(check_images=False)}
 MANIFEST = "session.json"
 WHOLE_FILE = "(file)"
 """The ``field`` of a problem that concerns a whole file (missing manifest, JSON syntax)."""
+MISSING = "file does not exist"
+"""The message of a path that names nothing (see ``session_files.not_regular``)."""
 MAX_LISTED = 20
 """Missing frames listed one by one per pattern before the rest are summarised."""
 
@@ -98,21 +117,58 @@ class SessionInvalid(StageError):
         super().__init__("load_session", reason, session=session)
 
 
-def discover_sessions(roots: Sequence[Path]) -> list[Path]:
-    """Session directories at or below ``roots``, sorted and without duplicates.
+NOT_A_SESSION = "not a session: no session.json"
+"""What ``graspcap validate`` says of a folder in :attr:`Discovery.not_sessions`."""
+
+
+@dataclass(frozen=True)
+class Discovery:
+    """What :func:`discover` found under the roots."""
+
+    sessions: list[Path]
+    """Session directories (holding ``session.json``), sorted, without duplicates."""
+    not_sessions: list[Path]
+    """Folders without ``session.json`` and without a session below them that sit beside
+    sessions (their parent holds a session at or below it): most likely a session whose
+    manifest is missing. A folder holding other sessions' parents is not one, nor anything
+    inside a reported folder, nor a folder whose name starts with ``.``; sorted."""
+
+
+def discover(roots: Sequence[Path]) -> Discovery:
+    """Session directories at or below ``roots``, and the folders among them that are not
+    sessions (see :class:`Discovery`).
 
     A directory holding ``session.json`` is a session (nothing below it is searched);
     otherwise its subdirectories are. A root without sessions (or that is not a directory)
     contributes nothing.
     """
     found: dict[Path, Path] = {}
+    walked: list[tuple[Path, Path]] = []  # (directory, its root), directories without manifest
     for root in map(Path, roots):
         for current, dirs, files in os.walk(root):
             if MANIFEST in files:
                 found.setdefault(Path(current).resolve(), Path(current))
                 dirs.clear()
+            else:
+                walked.append((Path(current), root))
             dirs.sort()
-    return sorted(found.values())
+    holding: set[Path] = set()  # directories with a session at or below them
+    for session in found.values():
+        holding.update(session.parents)
+    lonely = {d for d, root in walked
+              if d != root and d not in holding and d.parent in holding
+              and not d.name.startswith(".")}
+    not_sessions = {d.resolve(): d for d in lonely}
+    for real in list(not_sessions):
+        if real in found:
+            del not_sessions[real]
+    return Discovery(sorted(found.values()), sorted(not_sessions.values()))
+
+
+def discover_sessions(roots: Sequence[Path]) -> list[Path]:
+    """Session directories at or below ``roots``, sorted and without duplicates
+    (:attr:`Discovery.sessions` of :func:`discover`)."""
+    return discover(roots).sessions
 
 
 class _Resolver:
@@ -134,13 +190,18 @@ class _Resolver:
             return None, f"absolute path {str(rel)!r}; paths are relative to the session directory"
         if ".." in PurePosixPath(rel).parts:
             return None, f"path {str(rel)!r} climbs out with '..'"
+        if "\0" in os.fspath(rel):
+            return None, f"path {str(rel)!r} holds a NUL character"
         parent, name = os.path.split(os.fspath(rel))
-        real_dir = self._dirs.get(parent)
-        if real_dir is None:
-            real_dir = self._dirs[parent] = (self.root / parent).resolve()
-        resolved = real_dir / name
-        if name and os.path.islink(resolved):
-            resolved = resolved.resolve()
+        try:
+            real_dir = self._dirs.get(parent)
+            if real_dir is None:
+                real_dir = self._dirs[parent] = (self.root / parent).resolve()
+            resolved = real_dir / name
+            if name and os.path.islink(resolved):
+                resolved = resolved.resolve()
+        except (OSError, RuntimeError):  # RuntimeError: Python 3.11's "Symlink loop"
+            return None, f"path {str(rel)!r} is a symlink loop (too many levels of symbolic links)"
         if not resolved.is_relative_to(self.real_root):
             return None, f"path {str(rel)!r} leaves the session directory (resolves to {resolved})"
         return resolved, None
@@ -180,11 +241,16 @@ class Session:
 
     def _read(self, rel_or_path: str | Path, kind: ImageKind, flags: int) -> np.ndarray:
         path = self._any(rel_or_path)
-        image = cv2.imread(str(path), flags)
+        rel = os.path.relpath(path, self.root)
+        data = read_regular(path)
+        why = data.message if isinstance(data, Unreadable) else (
+            size_problem(data, None, DEFAULT_LIMITS.max_image_pixels))
+        if why is not None:
+            raise SessionInvalid([Problem(self.session_id, rel, WHOLE_FILE, f"{kind}: {why}")])
+        image = decode(data, flags)  # type: ignore[arg-type]
         want = np.uint8 if kind is ImageKind.COLOR else np.uint16
         single = kind is ImageKind.COLOR or (image is not None and image.ndim == 2)
         if image is None or image.dtype != want or not single:
-            rel = os.path.relpath(path, self.root)
             what = "unreadable" if image is None else f"{image.dtype} {image.shape}"
             raise SessionInvalid([Problem(self.session_id, rel, WHOLE_FILE, f"{kind}: {what}")])
         return image
@@ -212,7 +278,7 @@ class Session:
         path = self.grasp_path("keypoints", index)
         if path is None:
             raise ValueError(f"session {self.session_id} has no grasp.keypoints")
-        document = load_json(path)
+        document = load_json(path, DEFAULT_LIMITS.max_keypoint_bytes)
         rel = os.path.relpath(path, self.root)
         if isinstance(document, JsonSyntaxError):
             raise SessionInvalid([Problem(self.session_id, rel, WHOLE_FILE, document.message)])
@@ -257,29 +323,40 @@ def _message(error: dict[str, Any]) -> str:
         return "required key is missing"
     if kind == "literal_error" and error["loc"] == ("format",):
         return f"format {error['input']!r} is not {FORMAT!r}, the only version this builder reads"
+    if kind == "string_pattern_mismatch" and ctx.get("pattern") == SESSION_ID_RE:
+        return f"{_shown(error.get('input'))} is not a session id: {SESSION_ID_RULE}"
     if kind == "string_pattern_mismatch" and ctx.get("pattern") in (RELATIVE_PATH_RE, MESH_PATH_RE):
         mesh = " ending in .ply, .obj or .stl" if ctx["pattern"] == MESH_PATH_RE else ""
-        return (f"{error['input']!r} is not a relative path inside the session{mesh} "
-                "(no leading '/', no '..')")
+        return (f"{_shown(error['input'])} is not a relative path inside the session{mesh} "
+                "(no leading '/', no '..', no control character)")
     message = error["msg"].removeprefix("Value error, ")
     got = repr(error.get("input"))
     return message if kind == "value_error" else f"{message} (got {got[:60]})"
 
 
-def _section(model: type[BaseModel], raw: Any) -> Any:
+def _shown(value: Any, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters (a 300-character id stays one short line)."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
+def _section(model: type[BaseModel], raw: Any, context: dict[str, Any]) -> Any:
     """``raw`` validated as ``model``, or None; used to keep checking files of a bad manifest.
 
     Keys with errors are dropped and validation retried once, so that e.g. a bad
     ``steady_from`` does not stop the checks of the frames.
     """
     try:
-        return model.model_validate(raw)
+        return model.model_validate(raw, context=context)
     except ValidationError as exc:
         if not isinstance(raw, dict) or any(not e["loc"] for e in exc.errors()):
             return None
         bad = {e["loc"][0] for e in exc.errors()}
+    if "count" in bad:  # frame files cannot be checked without a valid count
+        return None
     try:
-        return model.model_validate({k: v for k, v in raw.items() if k not in bad})
+        return model.model_validate({k: v for k, v in raw.items() if k not in bad},
+                                    context=context)
     except ValidationError:
         return None
 
@@ -293,20 +370,22 @@ def _size(camera: Any) -> tuple[int, int] | None:
     return None
 
 
-def _views(raw_scan: Any) -> list[tuple[int, ScanView]]:
-    """The scan views that are valid by themselves, with their index."""
+def _views(raw_scan: Any, limits: SessionLimits) -> list[tuple[int, ScanView]]:
+    """The scan views that are valid by themselves, with their index (none past the limit)."""
     views = raw_scan.get("views") if isinstance(raw_scan, dict) else None
-    if not isinstance(views, list):
+    if not isinstance(views, list) or len(views) > limits.max_scan_views:
         return []
-    valid = ((j, _section(ScanView, view)) for j, view in enumerate(views))
+    context = {"limits": limits}
+    valid = ((j, _section(ScanView, view, context)) for j, view in enumerate(views))
     return [(j, view) for j, view in valid if view is not None]
 
 
 class _Checker:
     """Collects problems of one session."""
 
-    def __init__(self, root: Path, session: str):
+    def __init__(self, root: Path, session: str, limits: SessionLimits = DEFAULT_LIMITS):
         self.root, self.session, self.problems = root, session, []
+        self.limits = limits
         self.inside = _Resolver(root)
 
     def add(self, file: str, field: str, message: str,
@@ -317,34 +396,42 @@ class _Checker:
         path, why = self.inside(rel)
         if path is None:
             self.add(rel, field, why or "")
-        elif not path.is_file():
-            if report_missing:
-                self.add(rel, field, "file does not exist")
+        elif (why := not_regular(path)) is not None:
+            if report_missing or why != MISSING:
+                self.add(rel, field, why)
             return None
         return path
 
     def image(self, rel: str | None, field: str, kind: ImageKind, size, check: bool) -> None:
         if rel is not None and (path := self.existing(rel, field)) is not None and check:
-            for message in image_problems(path, kind, size):
+            for message in image_problems(path, kind, size, limits=self.limits):
                 self.add(rel, field, message)
 
     def grasp_frames(self, grasp: Grasp, kind: FrameKind, size, check: bool) -> None:
-        field, missing = f"grasp.{kind}", []
+        field, missing, unusable = f"grasp.{kind}", [], []
         for i in range(grasp.count):
             rel = grasp.frame_path(kind, i) or ""
-            path = self.existing(rel, field, report_missing=False)
-            if path is None:
-                if self.inside(rel)[0] is not None:
-                    missing.append(i)
+            path, why = self.inside(rel)
+            if path is not None:
+                why = not_regular(path)
+            if why == MISSING:
+                missing.append(i)
+            elif why is not None:  # leaves the session, a directory, a FIFO, ...
+                unusable.append((rel, why))
             elif kind == "keypoints":
                 self.keypoints(path, rel, field)
             elif check:
                 # a bad colour frame is one missing detection; a bad depth frame stops stages
                 image_kind = ImageKind.COLOR if kind == "color" else ImageKind.DEPTH
                 severity = Severity.FRAME if kind == "color" else Severity.ERROR
-                for message in image_problems(path, image_kind, size):
+                for message in image_problems(path, image_kind, size, limits=self.limits):
                     self.add(rel, field, message, severity)
         pattern, count = getattr(grasp, kind), grasp.count
+        for rel, why in unusable[:MAX_LISTED]:
+            self.add(rel, field, why)
+        if len(unusable) > MAX_LISTED:
+            self.add(pattern, field, f"{len(unusable) - MAX_LISTED} more frames are not "
+                     f"readable files (the first: {unusable[MAX_LISTED][1]})")
         if missing and missing == list(range(missing[0], count)):
             self.add(pattern.format(index=missing[0]), "grasp.count",
                      f"count is {count} but {field} has files for frames 0..{missing[0] - 1} "
@@ -355,11 +442,11 @@ class _Checker:
             if len(missing) > MAX_LISTED:
                 self.add(pattern, field, f"{len(missing) - MAX_LISTED} more frames missing")
         beyond = pattern.format(index=count)
-        if (path := self.inside(beyond)[0]) is not None and path.is_file():
+        if (path := self.inside(beyond)[0]) is not None and not_regular(path) is None:
             self.add(beyond, "grasp.count", f"frame {count} exists but count is {count}")
 
     def keypoints(self, path: Path, rel: str, field: str) -> None:
-        document = load_json(path)
+        document = load_json(path, self.limits.max_keypoint_bytes, self.limits.max_json_depth)
         if isinstance(document, JsonSyntaxError):
             self.add(rel, field, document.message, Severity.FRAME)
             return
@@ -367,38 +454,47 @@ class _Checker:
             self.add(rel, inner, message, Severity.FRAME)
 
 
-def _validate(directory: Path, check_images: bool) -> tuple[SessionManifest | None, list[Problem]]:
+def _label(name: str) -> str:
+    """A session's name for problem lines: as is when it is a valid id, else its repr, cut."""
+    return name if re.search(SESSION_ID_RE, name) else _shown(name, 60)
+
+
+def _validate(directory: Path, check_images: bool,
+              limits: SessionLimits) -> tuple[SessionManifest | None, list[Problem]]:
     directory = Path(directory)
-    checker = _Checker(directory, directory.name)
+    checker = _Checker(directory, _label(directory.name), limits)
     manifest_path = directory / MANIFEST
-    if not manifest_path.is_file():
-        checker.add(MANIFEST, WHOLE_FILE, f"missing: {directory} holds no {MANIFEST}")
+    if (why := not_regular(manifest_path)) is not None:
+        message = f"missing: {directory} holds no {MANIFEST}" if why == MISSING else why
+        checker.add(MANIFEST, WHOLE_FILE, message)
         return None, checker.problems
-    raw = load_json(manifest_path)
+    raw = load_json(manifest_path, limits.max_manifest_bytes, limits.max_json_depth)
     if isinstance(raw, JsonSyntaxError):
         checker.add(MANIFEST, WHOLE_FILE, raw.message)
         return None, checker.problems
     if not isinstance(raw, dict):
         checker.add(MANIFEST, WHOLE_FILE, f"top level must be an object, got {type(raw).__name__}")
         return None, checker.problems
-    if isinstance(raw.get("session_id"), str) and raw["session_id"]:
+    if isinstance(raw.get("session_id"), str) and re.search(SESSION_ID_RE, raw["session_id"]):
         checker.session = raw["session_id"]
 
+    context = {"limits": limits}
     manifest = None
     try:
-        manifest = SessionManifest.model_validate(raw)
+        manifest = SessionManifest.model_validate(raw, context=context)
     except ValidationError as exc:
         for error in exc.errors():
             checker.add(MANIFEST, _field(error["loc"]), _message(error))
 
     # File checks run on every section that is valid by itself, even when others are not.
-    stage1, grasp = _section(Stage1, raw.get("stage1")), _section(Grasp, raw.get("grasp"))
+    stage1 = _section(Stage1, raw.get("stage1"), context)
+    grasp = _section(Grasp, raw.get("grasp"), context)
     color_size = _size(raw.get("color_camera"))
     thermal_size = _size(raw.get("thermal_camera"))
     mesh = raw.get("object_mesh")
     if isinstance(mesh, str) and re.search(MESH_PATH_RE, mesh):
         if (path := checker.existing(mesh, "object_mesh")) is not None:
-            for message in mesh_problems(path):
+            for message in mesh_problems(path, limits):
                 checker.add(mesh, "object_mesh", message)
     if stage1:
         checker.image(stage1.depth, "stage1.depth", ImageKind.DEPTH, color_size, check_images)
@@ -407,7 +503,7 @@ def _validate(directory: Path, check_images: bool) -> tuple[SessionManifest | No
         for kind in ("color", "depth", "keypoints"):
             if getattr(grasp, kind) is not None:
                 checker.grasp_frames(grasp, kind, color_size, check_images)
-    for j, view in _views(raw.get("scan")):
+    for j, view in _views(raw.get("scan"), limits):
         field = f"scan.views[{j}]"
         checker.image(view.thermal, f"{field}.thermal", ImageKind.THERMAL, thermal_size,
                       check_images)
@@ -415,19 +511,22 @@ def _validate(directory: Path, check_images: bool) -> tuple[SessionManifest | No
     return manifest, checker.problems
 
 
-def validate_session(directory: Path, *, check_images: bool = True) -> list[Problem]:
+def validate_session(directory: Path, *, check_images: bool = True,
+                     limits: SessionLimits = DEFAULT_LIMITS) -> list[Problem]:
     """Every problem of the session at ``directory``; empty when it meets the contract.
 
     ``check_images`` False skips decoding images (existence, paths, JSON still checked).
-    Problems of :attr:`Severity.FRAME` do not stop :func:`load_session`.
+    Problems of :attr:`Severity.FRAME` do not stop :func:`load_session`. Never raises for a
+    malformed session (see the module docstring).
     """
-    return _validate(directory, check_images)[1]
+    return _validate(directory, check_images, limits)[1]
 
 
-def load_session(directory: Path, *, check_images: bool = True) -> Session:
+def load_session(directory: Path, *, check_images: bool = True,
+                 limits: SessionLimits = DEFAULT_LIMITS) -> Session:
     """The validated session at ``directory``; raises :class:`SessionInvalid` with every
     problem of :attr:`Severity.ERROR` (frame-level ones are left to ``detect_keypoints``)."""
-    manifest, problems = _validate(directory, check_images)
+    manifest, problems = _validate(directory, check_images, limits)
     errors = [p for p in problems if p.severity is Severity.ERROR]
     if errors or manifest is None:
         raise SessionInvalid(errors)

@@ -1,5 +1,6 @@
-"""Catalog formats: the golden catalogs of formats 1, 2 and 3 fail to open naming `migrate`,
-and migrate (old rows read the newer columns as null, new commits fill them)."""
+"""Catalog formats: the golden catalogs of formats 1 to 4 fail to open naming `migrate`, and
+migrate (old rows read the newer columns as null, new commits fill them; array groups get
+their format-5 manifests)."""
 
 from __future__ import annotations
 
@@ -65,7 +66,7 @@ def _check_golden_content(cat: gc.Catalog, version) -> None:
 def test_current_format_tables_keep_their_delta_logs(tmp_path):
     gc.open(tmp_path / "cat", create=True)
     stamp = json.loads((tmp_path / "cat" / "catalog.json").read_text())
-    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 4
+    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 5
     for name, config in _properties(tmp_path / "cat").items():
         assert config == DELTA_TABLE_PROPERTIES, name
 
@@ -80,15 +81,15 @@ def test_golden_v1_fails_naming_migrate_then_migrated_copy_reads(tmp_path):
     before = _listing(src)
 
     report = migrate_catalog(src, tmp_path / "v2")
-    assert (report.from_format, report.to_format, report.new_version) == (1, 4, 2)
+    assert (report.from_format, report.to_format, report.new_version) == (1, 5, 2)
     assert _listing(src) == before  # source untouched (the copy is taken under its lock)
     with pytest.raises(gc.CatalogFormatError, match="migrate"):
         gc.open(src)
 
     cat = gc.open(tmp_path / "v2")
     assert cat.versions()["version"].to_pylist() == [1, 2]
-    assert cat.versions()["format_version"].to_pylist() == [1, 4]
-    assert cat.versions()["build_id"].to_pylist() == ["golden-1", "migrate-1-to-4"]
+    assert cat.versions()["format_version"].to_pylist() == [1, 5]
+    assert cat.versions()["build_id"].to_pylist() == ["golden-1", "migrate-1-to-5"]
     assert cat.resolve("golden") == 1
     for version in ("golden", 2, None):
         _check_golden_content(cat, version)
@@ -107,7 +108,7 @@ def test_migrate_in_place_is_idempotent_and_refuses_what_it_cannot(tmp_path):
     src = unpack(ARCHIVE, tmp_path / "v1")
     assert migrate_catalog(src).new_version == 2
     again = migrate_catalog(src)
-    assert (again.from_format, again.new_version) == (4, None)
+    assert (again.from_format, again.new_version) == (5, None)
     _check_golden_content(gc.open(src), 2)
     with pytest.raises(gc.CatalogError, match="exists"):
         migrate_catalog(src, tmp_path / "v1")
@@ -137,8 +138,9 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
     src = unpack(archive(fmt), tmp_path / f"v{fmt}")
     assert json.loads((src / "catalog.json").read_text())["format_version"] == fmt
     added = added_after(fmt)  # {table: columns the formats after fmt added}
-    assert "camera_solved" in added["frames"]  # every golden format predates format 4
-    assert {"qa_flags", "qa_notes"} <= set(added["sessions"])
+    if fmt < 4:  # format 5 added no column
+        assert "camera_solved" in added["frames"]
+        assert {"qa_flags", "qa_notes"} <= set(added["sessions"])
     for name, cols in added.items():
         assert not set(cols) & set(_delta_columns(src, name)), name  # the golden lacks them
     for name, cols in COLUMNS_ADDED.get(fmt, {}).items():
@@ -146,13 +148,14 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
     with pytest.raises(gc.CatalogFormatError, match=rf"format {fmt}.*graspcap catalog migrate"):
         gc.open(src)
     report = migrate_catalog(src)
-    assert (report.from_format, report.to_format, report.new_version) == (fmt, 4, 2)
+    assert (report.from_format, report.to_format, report.new_version) == (fmt, 5, 2)
+    assert (report.arrays_upgraded, report.damaged_arrays) == (3, {})  # given manifests
     for name, cols in added.items():
         assert _delta_columns(src, name)[-len(cols):] == list(cols), name
     for name in TABLE_SCHEMAS:
         assert sorted(_delta_columns(src, name)) == sorted(TABLE_SCHEMAS[name].names), name
     cat = gc.open(src)
-    assert cat.versions()["build_id"].to_pylist() == ["golden-1", f"migrate-{fmt}-to-4"]
+    assert cat.versions()["build_id"].to_pylist() == ["golden-1", f"migrate-{fmt}-to-5"]
     for version in (1, "golden", 2):  # pinned before, and made by, the migration
         for name, cols in added.items():
             old = cat.table(name, version)
@@ -189,7 +192,7 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
     frames = cat.table("frames", 3).sort_by([("session_id", "ascending"), ("frame", "ascending")])
     golden = frames.filter(pc.equal(frames["session_id"], SESSION))
     new = frames.filter(pc.not_equal(frames["session_id"], SESSION))
-    assert golden["camera_solved"].to_pylist() == [None, None]
+    assert golden["camera_solved"].to_pylist() == ([None, None] if fmt < 4 else [True, False])
     want = np.asarray(build.frames["camera_solved"])  # sessions sorted, as the build's
     assert new["camera_solved"].to_pylist() == want.tolist()
     assert want.any() and not want.all()  # both True and False written
@@ -202,7 +205,8 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
             got = some.table(name, 3, columns=["session_id", *cols])
             n_old = sum(s == SESSION for s in got["session_id"].to_pylist())
             assert all(got[c].null_count == n_old > 0 for c in cols), (name, order)
-    assert cat.table("frames", 1)["camera_solved"].to_pylist() == [None, None]
+    assert cat.table("frames", 1)["camera_solved"].to_pylist() == (
+        [None, None] if fmt < 4 else [True, False])
     _check_golden_content(cat, 1)
 
 

@@ -1,6 +1,6 @@
 """Regenerate the golden catalogs under tests/golden/ (checked in with this script).
 
-    .venv/bin/python tests/golden/make_golden.py [--formats 1 2 3]
+    .venv/bin/python tests/golden/make_golden.py [--formats 1 2 3 4]
 
 - ``catalog_v0/``: the stamp of a catalog of format 0 (never released, no migration leads from
   it), for the "rebuild it" error. A few hundred bytes.
@@ -10,7 +10,9 @@
   schemas; Delta tables without ``DELTA_TABLE_PROPERTIES`` for format 1; stamp and versions row
   saying ``k``; docs/data_changelog.md). ``catalog_v2.tar.gz`` was first written by the code of
   format 2 itself (before format 3's columns existed), ``catalog_v3.tar.gz`` by the code of
-  format 3 (before ``frames.camera_solved``, ``sessions.qa_flags`` and ``qa_notes``);
+  format 3 (before ``frames.camera_solved``, ``sessions.qa_flags`` and ``qa_notes``),
+  ``catalog_v4.tar.gz`` by the code of format 4 (Zarr groups without format 5's manifests and
+  all-fill chunks, which this script now writes: only the columns are compared);
   ``test_golden_script_still_writes_...`` checks that this script still writes the same
   columns. Unpacked one is ~86 KB in 33 files
   (Delta logs, and Parquet footers repeating the schema's docs), packed ~15-20 KB. Tests unpack
@@ -55,7 +57,7 @@ COLUMNS_ADDED: dict[int, dict[str, tuple[str, ...]]] = {
 """``{format: {table: columns that format added}}`` (docs/data_changelog.md): a catalog of an
 older format lacks them."""
 FORMAT_2_COLUMNS = COLUMNS_ADDED[2]
-GOLDEN_FORMATS = (1, 2, 3)
+GOLDEN_FORMATS = (1, 2, 3, 4)
 """Older formats with a golden catalog (every one ``graspcap catalog migrate`` leads from)."""
 
 

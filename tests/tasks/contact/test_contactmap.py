@@ -262,7 +262,7 @@ def test_weighted_median():
 
 
 def test_config_presets():
-    assert STAGE_VERSION == "build_contactmap/1"
+    assert STAGE_VERSION == "build_contactmap/2"
     assert set(PRESETS) >= {"default", "fixed_rise"}
     assert PRESETS["default"].digest() != PRESETS["fixed_rise"].digest()
     with pytest.raises(ValueError):

@@ -51,7 +51,8 @@ def test_nan_and_low_confidence_become_missing():
 
 def test_reads_real_openpose_output_with_confidences(shared_data, tmp_path):
     src = shared_data / "openpose_hand_json" / "COCO_val2014_000000000192_keypoints.json"
-    directory = write_session(tmp_path / "s", frames=2)
+    size = {"width": 640, "height": 480}  # the COCO image's (the files are 80x60: not read)
+    directory = write_session(tmp_path / "s", frames=2, color_camera=size)
     session = load_session(directory, check_images=False)
     for i in range(2):
         shutil.copy(src, session.grasp_path("keypoints", i))
