@@ -2,7 +2,8 @@
 
     report = build_dataset(["captures/"], "catalog/")
 
-1. discover the sessions under the roots (``load_session.discover_sessions``);
+1. discover the sessions under the roots (``load_session.discover``; folders beside them
+   without ``session.json`` are named in the report, not skipped without a word);
 2. submit every session's stage tasks into this one flow run (not a subflow per session:
    measured in ``docs/architecture.md``), so sessions run concurrently on the task runner;
 3. wait for each task; a failed session never stops the others, and its downstream tasks
@@ -54,7 +55,7 @@ from graspcap.flows.session import InSession, Settled, failure_text, submit_sess
 from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.schemas.tables import Status
 from graspcap.tasks.core.config import StageConfig
-from graspcap.tasks.session.load_session import discover_sessions
+from graspcap.tasks.session.load_session import discover
 
 BUILDS_LOG = "builds.jsonl"
 __all__ = ["BuildFailed", "ProgressFn", "build_dataset", "build_flow"]
@@ -124,6 +125,30 @@ def recorded_failures(cat: gc.Catalog) -> dict[str, str]:
     failed = {f["session_id"]: f["error"] for f in last["sessions_failed"]}
     record = json.loads(last["parameters_json"]).get("report", {})
     return {**failed, **record.get("summary", {}).get("failed", {})}
+
+
+def _shared_object_notes(rows: Mapping[str, Mapping[str, Any]],
+                         previous: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
+    """A note for each session of ``rows`` whose ``object_id`` labels more than one object
+    mesh in the catalog once they are committed (``previous``: the latest version's rows).
+    Allowed by the contract (a re-scanned object): each session keeps its own mesh and
+    contact map, but a reader grouping by ``object_id`` should know."""
+    latest = {**{sid: r for sid, r in previous.items() if r.get("object_mesh_digest")}, **rows}
+    by_object: dict[str, dict[str, list[str]]] = {}
+    for sid, r in sorted(latest.items()):
+        if r.get("object_mesh_digest"):
+            by_object.setdefault(r["object_id"], {}).setdefault(
+                r["object_mesh_digest"], []).append(sid)
+    notes = {}
+    for object_id, meshes in by_object.items():
+        if len(meshes) > 1:
+            groups = "; ".join(f"{d[:12]}: {', '.join(s)}" for d, s in meshes.items())
+            for sid in rows:
+                if rows[sid]["object_id"] == object_id:
+                    notes[sid] = (f"object_id {object_id!r} labels {len(meshes)} different "
+                                  f"object meshes ({groups}); each session keeps its own mesh "
+                                  "and contact map")
+    return notes
 
 
 def _input_digest(work: WorkArea, session_dir: Path) -> str:
@@ -226,7 +251,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     configs = resolve_configs(preset, overrides)
     cdigest = configs_digest(configs)
     version = code_version()
-    dirs = discover_sessions([Path(r) for r in roots])
+    found = discover([Path(r) for r in roots])
+    dirs = found.sessions
     ids = [_session_id(d) for d in dirs]
     if retry_failed:
         wanted = last_build_failures(cat, work)
@@ -255,8 +281,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
 
     previous = cat.latest_version()
     prev_rows = ({r["session_id"]: r for r in cat.table("sessions").select(
-        ["session_id", "status", "input_digest", "config_digest", "steady_from",
-         *NEWEST_COLUMNS]).to_pylist()}
+        ["session_id", "status", "input_digest", "config_digest", "steady_from", "object_id",
+         "object_mesh_digest", *NEWEST_COLUMNS]).to_pylist()}
         if previous is not None else {})
     attempts: dict[tuple[str, str], int] = {}
     for rec in work.executions(build_id):
@@ -338,9 +364,12 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
             continue
         built.append((i, d, sid, sr, info, common, prev, good_prev, attempted))
         meshes[sid] = sr.object_mesh  # the session's own mesh (content-addressed)
+    shared = _shared_object_notes({sid: sr.session for _, _, sid, sr, *_ in built}, prev_rows)
     # the checks the commit runs, per session: one whose rows, frames or arrays would make it
     # raise fails alone, with the reason, and the others are committed
     for i, d, sid, sr, info, common, prev, good_prev, attempted in built:
+        if sid in shared:
+            info["notes"] = (*info["notes"], shared[sid])
         try:
             check_commit(gc.BuildCommit(build=info_commit, sessions=[sr.session],
                                         frames=sr.frames, session_arrays={sid: sr.arrays},
@@ -360,7 +389,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
 
     params = {"roots": [str(r) for r in roots], "catalog": str(cat.layout.root),
               "preset": preset, "retry_failed": retry_failed, "work": str(work.root),
-              "configs": {n: json.loads(c.canonical_json()) for n, c in configs.items()}}
+              "configs": {n: json.loads(c.canonical_json()) for n, c in configs.items()},
+              "not_sessions": [str(p) for p in found.not_sessions]}
     seconds = {"discover": t_discover - t0, "run": t_run - t_discover, "rows": t_rows - t_run}
     draft = BuildReport(build_id, None, previous, tuple(reports), seconds, params)
     new_version = None

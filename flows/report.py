@@ -6,6 +6,8 @@ import json
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
 
+from graspcap.tasks.session.load_session import NOT_A_SESSION
+
 
 class BuildFailed(RuntimeError):
     """The build committed nothing (the catalog's lock, the disk, the commit itself): not one
@@ -97,6 +99,8 @@ class BuildReport:
                 kept = " (previous rows kept)" if s.kept_previous else ""
                 lines.append(f"  FAILED {s.session_id}{kept}: {s.error}")
             lines += [f"  note {s.session_id}: {n}" for n in s.notes]
+        lines += [f"  SKIPPED {folder}: {NOT_A_SESSION}"
+                  for folder in self.parameters.get("not_sessions", ())]
         return "\n".join(lines)
 
     def record(self) -> dict:

@@ -8,12 +8,17 @@ Every :class:`Kind` mutates a good session written by the independent writer
 - :class:`Builds`: the session builds, with a note (and, for a problem inside one grasp
   frame, a frame-level problem naming that frame's file and field).
 
-It holds every row of issue 15's table, the malformed kinds ``tests/tasks/session/test_validate.py``
-already checks (imported from there, not copied) and the kinds of the validator's limits.
-``tests/flows/test_reliability_validate.py`` runs every kind through ``validate_session`` and
-``graspcap validate``. The stage-level outcomes (:class:`Fails`, the notes of
-:class:`Builds`) are the ones the issue asks for; those with ``verified=False`` are data for
-the build's own tests (other modules make them true): only their validity is checked here.
+It holds every row of issue 15's table, the malformed kinds
+``tests/tasks/session/test_validate.py`` already checks (imported from there, not copied) and
+the kinds of the validator's limits. ``tests/tasks/session/test_reliability_validate.py`` runs
+every kind through ``validate_session`` and ``graspcap validate``. The stage-level outcomes
+(:class:`Fails`, the notes of :class:`Builds`) are the ones the issue asks for; those with
+``verified=False`` are data for the build's own tests (other modules make them true): only their
+validity is checked here; ``verified=True`` ones are built and checked by
+``tests/tasks/test_stage_messages.py``, ``tests/flows/test_build_isolation.py`` or
+``tests/flows/test_build_meshes.py`` (on sessions the stages get through), and
+``tests/flows/test_reliability_build.py`` builds the whole corpus with good sessions in one
+build.
 """
 
 from __future__ import annotations
@@ -266,9 +271,9 @@ ROW = "grasp/keypoints/000001_keypoints.json"
 
 ISSUE_ROWS: list[Kind] = [
     Kind("same object_id, another mesh", _mesh_other_vertices,
-         Builds(note_contains="object_id box"), issue_row=True),
+         Builds(note_contains="labels 2 different object meshes", verified=True), issue_row=True),
     Kind("duplicate session_id across folders", _set(session_id=DUPLICATE_ID),
-         Fails(stage="build", message_contains="same session_id"), issue_row=True),
+         Fails(stage="build", message_contains="is also the id of", verified=True), issue_row=True),
     Kind("session_id of 300 characters", _set(session_id="s" * 300),
          Invalid("session.json", "session_id", "not a session id"), issue_row=True),
     Kind("session_id with a newline", _set(session_id="p01\nmug"),
@@ -313,7 +318,8 @@ ISSUE_ROWS: list[Kind] = [
          issue_row=True),
     Kind("all-zero thermal image",
          lambda d: _png(d / "scan/thermal/000.png", np.zeros((THERMAL_H, THERMAL_W), np.uint16)),
-         Fails(stage="build_contactmap", message_contains="scan/thermal/000.png"),
+         Fails(stage="build_contactmap", message_contains="scan/thermal/000.png",
+               verified=True),
          issue_row=True),
     Kind("mesh face index out of range", _mesh_index_past_end,
          Invalid("object.ply", "object_mesh",
@@ -324,7 +330,8 @@ ISSUE_ROWS: list[Kind] = [
     Kind("keypoints only for the other hand",
          lambda d: _keypoints_all(d, {"people": [{"hand_left_keypoints_2d": _hand(40, 30),
                                                   "hand_right_keypoints_2d": []}]}),
-         Fails(stage="detect_keypoints", message_contains="hand_left_keypoints_2d"),
+         Fails(stage="detect_keypoints", message_contains="hand_left_keypoints_2d",
+               verified=True),
          issue_row=True),
     Kind("keypoints at 1e8 px",
          lambda d: _keypoints_all(d, {"people": [{"hand_right_keypoints_2d": _hand(1e8, 1e8)}]}),
@@ -343,8 +350,9 @@ ISSUE_ROWS: list[Kind] = [
     Kind("keypoint frame with two people",
          lambda d: _keypoints(d, 2, {"people": [{"hand_right_keypoints_2d": _hand(30, 20)},
                                                 {"hand_right_keypoints_2d": _hand(50, 40)}]}),
-         Builds(note_contains="2 people"), issue_row=True),
-    Kind("one scan view", _one_view, Builds(note_contains="one scan view"), issue_row=True),
+         Builds(note_contains="had more than one right hand", verified=True), issue_row=True),
+    Kind("one scan view", _one_view,
+         Builds(note_contains="one thermal view only", verified=True), issue_row=True),
 ]
 """Every row of issue 15's table (two-input rows split into one kind per input)."""
 

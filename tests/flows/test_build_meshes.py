@@ -58,6 +58,9 @@ def test_one_object_id_with_two_meshes_commits_every_session(warm, synth_root, t
     assert rows["twin-of-second"]["object_id"] == rows[first_id]["object_id"] == label
     owners = cat.object_meshes(label)  # the fixture's two sessions share one object and mesh
     assert rows[second_id]["object_id"] == label
+    (twin_report,) = [s for s in report.sessions if s.session_id == "twin-of-second"]
+    assert any("labels 2 different object meshes" in n and first_id in n and second_id in n
+               and "twin-of-second" in n for n in twin_report.notes), twin_report.notes
     assert owners == {rows[first_id]["object_mesh_digest"]: sorted([first_id, second_id]),
                       rows["twin-of-second"]["object_mesh_digest"]: ["twin-of-second"]}
     for sid, folder in ((first_id, first), ("twin-of-second", twin)):
