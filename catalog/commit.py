@@ -135,6 +135,13 @@ class ObjectMesh:
     faces: np.ndarray
 
 
+def mesh_group(mesh: ObjectMesh, owner: str) -> tuple[str, dict[str, np.ndarray]]:
+    """The content digest of ``mesh`` and its checked arrays (the session ``owner``'s)."""
+    checked = check_arrays("object_mesh", {"vertices": mesh.vertices, "faces": mesh.faces},
+                           owner=owner)
+    return array_digest("object_mesh", checked), checked
+
+
 @dataclass(frozen=True)
 class BuildCommit:
     """Everything one build writes: its lineage, rows and arrays.
@@ -429,9 +436,7 @@ def _prepare(commit: BuildCommit) -> tuple[pa.Table, pa.Table, dict[str, tuple[s
         if mesh is None and i < len(objects):
             mesh = commit.object_meshes.get(objects[i])
         if mesh is not None:
-            checked = check_arrays("object_mesh", {"vertices": mesh.vertices,
-                                                    "faces": mesh.faces}, owner=sid)
-            digest = array_digest("object_mesh", checked)
+            digest, checked = mesh_group(mesh, sid)
             groups[digest] = ("object_mesh", checked)
             filled["object_mesh_digest"][i] = digest
             if arrays is not None and len(arrays.contact) != len(checked["vertices"]):

@@ -44,6 +44,7 @@ from prefect.futures import as_completed
 
 import graspcap
 import graspcap.catalog as gc
+from graspcap.catalog.commit import mesh_group
 from graspcap.catalog.layout import CatalogLayout
 from graspcap.catalog.validate import check_commit
 from graspcap.flows.cached import reads_digest, session_files, session_id_of
@@ -127,24 +128,33 @@ def recorded_failures(cat: gc.Catalog) -> dict[str, str]:
     return {**failed, **record.get("summary", {}).get("failed", {})}
 
 
-def _shared_object_notes(rows: Mapping[str, Mapping[str, Any]],
+def mesh_digest(mesh: Any, owner: str) -> str | None:
+    """The catalog's content digest of a session's object mesh (None: none, or one the
+    commit's checks refuse, which fails that session there)."""
+    try:
+        return None if mesh is None else mesh_group(mesh, owner)[0]
+    except Exception:  # noqa: BLE001 - reported by the per-session checks below
+        return None
+
+
+def _shared_object_notes(built: Mapping[str, tuple[str, str | None]],
                          previous: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
-    """A note for each session of ``rows`` whose ``object_id`` labels more than one object
-    mesh in the catalog once they are committed (``previous``: the latest version's rows).
-    Allowed by the contract (a re-scanned object): each session keeps its own mesh and
-    contact map, but a reader grouping by ``object_id`` should know."""
-    latest = {**{sid: r for sid, r in previous.items() if r.get("object_mesh_digest")}, **rows}
+    """A note for each session of ``built`` (``(object_id, mesh digest)`` by session id) whose
+    ``object_id`` labels more than one object mesh once committed (``previous``: the latest
+    version's rows). Allowed by the contract (a re-scanned object): each session keeps its
+    own mesh and contact map, but a reader grouping by ``object_id`` should know."""
+    latest = {sid: (r["object_id"], r["object_mesh_digest"]) for sid, r in previous.items()}
+    latest.update(built)
     by_object: dict[str, dict[str, list[str]]] = {}
-    for sid, r in sorted(latest.items()):
-        if r.get("object_mesh_digest"):
-            by_object.setdefault(r["object_id"], {}).setdefault(
-                r["object_mesh_digest"], []).append(sid)
+    for sid, (object_id, digest) in sorted(latest.items()):
+        if digest:
+            by_object.setdefault(object_id, {}).setdefault(digest, []).append(sid)
     notes = {}
     for object_id, meshes in by_object.items():
         if len(meshes) > 1:
             groups = "; ".join(f"{d[:12]}: {', '.join(s)}" for d, s in meshes.items())
-            for sid in rows:
-                if rows[sid]["object_id"] == object_id:
+            for sid, (label, _) in built.items():
+                if label == object_id:
                     notes[sid] = (f"object_id {object_id!r} labels {len(meshes)} different "
                                   f"object meshes ({groups}); each session keeps its own mesh "
                                   "and contact map")
@@ -364,7 +374,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
             continue
         built.append((i, d, sid, sr, info, common, prev, good_prev, attempted))
         meshes[sid] = sr.object_mesh  # the session's own mesh (content-addressed)
-    shared = _shared_object_notes({sid: sr.session for _, _, sid, sr, *_ in built}, prev_rows)
+    shared = _shared_object_notes({sid: (sr.object_id, mesh_digest(sr.object_mesh, sid))
+                                   for _, _, sid, sr, *_ in built}, prev_rows)
     # the checks the commit runs, per session: one whose rows, frames or arrays would make it
     # raise fails alone, with the reason, and the others are committed
     for i, d, sid, sr, info, common, prev, good_prev, attempted in built:

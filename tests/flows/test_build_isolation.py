@@ -156,7 +156,8 @@ def test_per_session_mishaps_after_the_stages_never_lose_the_build(warm, synth_r
     assert sorted(p.name for p in (catalog / "pictures" / buggy).iterdir()) == [
         "contact.png", "keypoints.png"]
     # nothing under the catalog but its own folders
-    assert {p.name for p in catalog.iterdir()} <= {"catalog.json", "tables", "arrays",
+    assert {p.name for p in catalog.iterdir()} <= {"catalog.json", "published.json", "tables",
+                                                   "arrays", "vacuum.jsonl",
                                                    "pictures", ".lock", "work"}
 
 
