@@ -224,6 +224,12 @@ def _cmd_vacuum(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_repair(args: argparse.Namespace) -> int:
+    from graspcap.catalog.repair import main
+
+    return main([args.catalog])
+
+
 def _cmd_migrate(args: argparse.Namespace) -> int:
     from graspcap.catalog.migrate import migrate_catalog
 
@@ -289,7 +295,7 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
     as_json = argparse.ArgumentParser(add_help=False)
     as_json.add_argument("--json", action="store_true", help="print JSON")
     parser = subparsers.add_parser("catalog", help="list, show, compare, tag, export, vacuum, "
-                                   "verify and migrate catalog versions")
+                                   "verify, repair and migrate catalog versions")
     sub = parser.add_subparsers(dest="catalog_command", required=True)
 
     p = sub.add_parser("versions", parents=[common, as_json], help="every version")
@@ -323,6 +329,10 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
                        "matches its digest; exit 1 naming what is damaged")
     p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
     p.set_defaults(func=_guard(_cmd_verify))
+    p = sub.add_parser("repair", parents=[common],
+                       help="mend a damaged versions log (garbled entries moved aside, holes "
+                       "filled, lost versions rows restored from their files)")
+    p.set_defaults(func=_cmd_repair)
     p = sub.add_parser("migrate", parents=[common],
                        help="upgrade an older-format catalog to this graspcap's format")
     p.add_argument("path", nargs="?", help="the catalog (default: --catalog)")

@@ -34,7 +34,7 @@ LOG_ENTRY = re.compile(r"(\d{20})\.json")
 """A Delta commit file in ``_delta_log``: its number is the Delta version it makes."""
 CHECKPOINT = re.compile(r"(\d{20})\.checkpoint(\.\d+\.\d+)?\.parquet")
 REPAIR_LOG = (
-    "for log entries of the versions table, `python -m graspcap.catalog.repair CATALOG` puts "
+    "for log entries of the versions table, `graspcap catalog repair --catalog CATALOG` puts "
     "their rows back from the rows' own data files; else put the named files back from a "
     "backup or snapshot of the catalog; graspcap does not "
     "guess what a missing or unreadable log entry held. Versions that do not need them still "

@@ -10,7 +10,7 @@ committed before it (a row is only written after its tables' commits), so its ve
 it did. Each row is checked against its tables' row counts first; one that does not match is
 left out and named.
 
-    python -m graspcap.catalog.repair CATALOG
+    graspcap catalog repair --catalog CATALOG    (or: python -m graspcap.catalog.repair CATALOG)
 """
 
 from __future__ import annotations

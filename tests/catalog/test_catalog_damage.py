@@ -82,7 +82,7 @@ def test_lost_last_versions_entry_stops_writers_and_drops_nothing(tmp_path):
     assert err.value.problems == [
         f"{root / 'published.json'}: version 3 was published, but the versions table ends at "
         "version 2 (its rows or log entries after that were lost)"]
-    assert "`python -m graspcap.catalog.repair CATALOG` puts their rows back" in str(err.value)
+    assert "`graspcap catalog repair --catalog CATALOG` puts their rows back" in str(err.value)
     assert _logs(root) == pins  # nothing rolled back, nothing written
 
     (root / "published.json").unlink()  # without the record: the versions row's own file
@@ -115,7 +115,9 @@ def test_repair_puts_lost_versions_rows_back_from_their_files(tmp_path, damage):
     with pytest.raises(CatalogDamaged):
         gc.open(root).commit(make_build(["p05-drill-use-00"], seed=5, build_id="b5"))
 
-    assert main([str(root)]) == 0
+    from graspcap.cli import main as graspcap_cli  # `graspcap catalog repair`, as a user types
+
+    assert graspcap_cli(["catalog", "repair", "--catalog", str(root)]) == 0
     assert (root / "tables" / "versions" / "_delta_log" /
             f"{n:020d}.json.damaged").exists() == (damage == "entry garbled")
     fresh = gc.open(root)

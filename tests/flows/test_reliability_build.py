@@ -46,7 +46,9 @@ def test_the_whole_corpus_and_four_good_sessions_in_one_build(synth_root, prefec
     folders = {kind.name: prepare(root / "b-kinds" / kind.slug, kind) for kind in KINDS}
     catalog = tmp_path / "catalog"
 
-    report = build_dataset([root], catalog, PRESET, build_id="corpus")
+    # the fast preset skips decoding images at load; a user's default build decodes them
+    report = build_dataset([root], catalog, PRESET, build_id="corpus",
+                           overrides={"load_session": {"check_images": True}})
 
     cat = gc.open(catalog)
     assert [v["version"] for v in cat.versions().to_pylist()] == [1]
