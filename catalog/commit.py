@@ -343,8 +343,8 @@ def _published(first: int, last: int) -> str:
 
 
 REPAIR_VERSIONS = (
-    "when the lost or garbled files are the versions table's log entries, `python -m "
-    "graspcap.catalog.repair CATALOG` puts their rows back from the rows' own data files; "
+    "when the lost or garbled files are the versions table's log entries, `graspcap catalog "
+    "repair --catalog CATALOG` puts their rows back from the rows' own data files; "
     "else put the lost files back from a backup or snapshot of the catalog (the newest version "
     "stays unwritable until then: rolling the tables back would drop data a reader may have "
     "seen, and a new version would reuse a published number). Readers of the intact versions "
