@@ -22,7 +22,6 @@ import numpy as np
 from graspcap.catalog.commit import ObjectMesh, SessionArrays
 from graspcap.schemas.qa import qa_columns
 from graspcap.schemas.tables import Status
-from graspcap.tasks.core.geometry import inv_T, transform_points
 from graspcap.tasks.outputs.qa_metrics import QaReport, qa_metrics
 
 MANIFEST_MAX_BYTES = 1 << 20
@@ -70,7 +69,7 @@ def qa_report(results: Mapping[str, Any]) -> QaReport:
 def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version: str,
                  build_id: str, config_digest: str) -> SessionRows:
     """Rows and arrays of a session whose stages all completed (``results`` by stage name)."""
-    from graspcap.tasks.pipeline import final_pose, read_mesh
+    from graspcap.tasks.hand.final import final_hand, final_pose
 
     session = results["load_session"]
     m = session.manifest
@@ -117,19 +116,14 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
             "joints_c": _flat(prop.joints_c[j]), "reproj_err_px": _flat(prop.reproj_err_px[j]),
             "build_id": build_id,
         })
-    V, F = read_mesh(session)
-    if refined is not None:  # the refined hand (stage 5), object frame
-        hand_v, hand_f, joints_o = refined.hand_vertices_o, refined.hand_faces, refined.joints_o
-    else:  # the stage-3 fit, moved into the object at the first steady frame
-        T_o_w = inv_T(results["estimate_adjustment"].T_w_o)
-        hand = fit.mesh()
-        hand_v, hand_f = transform_points(T_o_w, hand.vertices), hand.faces
-        joints_o = transform_points(T_o_w, fit.joints_fit_w)
+    V, F = session.read_mesh()
+    # refine_grasp's hand when it ran, else fit_hand's moved into the object
+    hand = final_hand(fit, refined, results["estimate_adjustment"].T_w_o)
     arrays = SessionArrays(
         contact=np.zeros(len(V), np.float32) if contact is None else contact.contact,
         observed=np.zeros(len(V), bool) if contact is None else contact.observed,
-        hand_vertices=np.asarray(hand_v, np.float32), hand_faces=np.asarray(hand_f, np.int32),
-        joints=np.asarray(joints_o, np.float64),
+        hand_vertices=np.asarray(hand.vertices_o, np.float32),
+        hand_faces=np.asarray(hand.faces, np.int32), joints=np.asarray(hand.joints_o, np.float64),
     )
     mesh = ObjectMesh(V.astype(np.float32), F.astype(np.int32))
     return SessionRows(row, frames, arrays, m.object_id, mesh)

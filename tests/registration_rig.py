@@ -168,7 +168,7 @@ def rig_session_stage1(out: Path, seed: list[int], kind: str):
     s = pipeline.run_stage(
         pipeline.STAGES["load_session"], d, pipeline.configs_for()["load_session"], {}
     )
-    V, F = pipeline.read_mesh(s)
+    V, F = s.read_mesh()
     return (
         s.read_depth_m(s.manifest.stage1.depth),
         np.asarray(s.manifest.color_camera.K, float),

@@ -210,6 +210,12 @@ class ObjectRegistration:
     free_weakness: float
     notes: tuple[str, ...] = ()
 
+    @property
+    def second_hypothesis(self) -> np.ndarray | None:
+        """The pose ``estimate_adjustment`` tries beside ``T_w_o``: the runner-up (4, 4) of an
+        ambiguous result (a near-symmetric object could be posed either way), else None."""
+        return self.T_w_o_runner_up if self.ambiguous else None
+
 
 @single_threaded()
 def register_object(
