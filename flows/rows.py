@@ -82,7 +82,7 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
     T_w_o1 = results["register_object"].T_w_o
     T_adj = results["estimate_adjustment"].T_adj
     scan = results.get("register_scan")
-    T_tt_o = None if scan is None else scan.T_turntable_o_scan
+    T_turntable_o = None if scan is None else scan.T_turntable_o_scan
     contact = results.get("build_contactmap")
     qa = qa_report(results)
     row = {
@@ -93,7 +93,7 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         "keypoint_frames_detected": int(detected["frames_with_hand"]),
         "steady_from": int(results["select_steady"].steady_from),
         "T_w_o_stage1": _flat(T_w_o1), "T_adj": _flat(T_adj), "T_w_p": _flat(T_w_p),
-        "T_turntable_o_scan": _flat(T_tt_o),
+        "T_turntable_o_scan": _flat(T_turntable_o),
         "hand_scale": float(fit.scale), "joint_angles_rad": _flat(angles_rad),
         "joints_w": _flat(sfm.joints_w), "joints_fit_w": _flat(joints_hand_w),
         **{f"qa_{name}": qa.metrics.get(name) for name in QA_COLUMNS},
