@@ -38,7 +38,7 @@ def predates_columns(row: Mapping[str, Any]) -> bool:
     """Whether a ``sessions`` row with results was written before format 2's, 3's or 4's
     columns existed (a migrated catalog's old rows): such a row has no keypoint backend, none
     of format 3's QA metrics (a row written since has ``qa_window_outlier_share`` whenever
-    stage 2 ran), or no ``qa_flags`` (a row with results always has a list, empty or not).
+    reconstruct_hand ran), or no ``qa_flags`` (a row with results always has a list, empty or not).
     The build rewrites it, and its ``frames`` rows (format 4's ``camera_solved``), from the
     session's cached stage results."""
     return (row["keypoint_backend"] is None or all(row[c] is None for c in FORMAT_3_QA)
@@ -109,7 +109,7 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         frames.append({
             "session_id": m.session_id, "frame": int(f),
             "T_w_c": _flat(sfm.T_w_c[i]) if i is not None else [float("nan")] * 16,
-            # False: stage 2 interpolated this camera (too few detections), or has none
+            # False: reconstruct_hand interpolated this camera (too few detections), or has none
             "camera_solved": bool(sfm.pose_valid[i]) if i is not None else False,
             "T_c_o": _flat(prop.T_c_o[j]), "T_c_p": _flat(prop.T_c_p[j]),
             "joints_2d_px": _flat(kp[f, :, :2]), "keypoint_conf": _flat(kp[f, :, 2]),

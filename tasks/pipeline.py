@@ -4,9 +4,10 @@ Each :class:`Stage` names the stages it consumes (``upstream``), the session fil
 whose bytes it reads (``reads``: roles of :meth:`Session.input_files`), its code
 version and config type, and a ``run`` function: a few lines of glue that pull the
 stage's inputs out of the session and the upstream results (``up``, by stage name) and call
-the stage module's function, where the stage's logic lives. ``flows/`` turns each stage into a cached Prefect task from exactly this
-table; :func:`run_session` runs the same table bare and in order (the baseline the
-build is benchmarked against, and a way to debug one session without Prefect).
+the stage module's function, where the stage's logic lives. ``flows/`` turns each stage into
+a cached Prefect task from exactly this table; :func:`run_session` runs the same table bare
+and in order (the baseline the build is benchmarked against, and a way to debug one session
+without Prefect).
 """
 
 from __future__ import annotations

@@ -160,7 +160,7 @@ def generate_session(out: Path, session_seed: int | Sequence[int], config: Synth
     scene = _Scene(cfg, T_color_turntable, T_color_thermal)
     obj_mesh = (obj.vertices, obj.faces)
 
-    # Stage 1: the object alone on the platter.
+    # stage1 (register_object's input): the object alone on the platter.
     T_turntable_o1 = rest_on_platter(obj, cfg, rng)
     T_w_o1 = T_color_turntable @ T_turntable_o1
     hits = scene.render([(obj_mesh, T_w_o1)])
