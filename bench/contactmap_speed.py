@@ -61,19 +61,20 @@ def main() -> None:
     mesh = bumpy_ellipsoid(args.vertices, rng)
     V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     contact = contact_blobs(V, rng)
-    T_color_tt, T_tt_o = look_at_turntable(), np.eye(4)
+    T_color_turntable, T_turntable_o = look_at_turntable(), np.eye(4)
     views = []
     for k in range(args.views):
         angle = 2 * np.pi * k / args.views
-        hits = render([(V, F)], [T_color_tt @ rot_z(angle) @ T_tt_o], K_TH, WIDTH, HEIGHT)
+        hits = render([(V, F)], [T_color_turntable @ rot_z(angle) @ T_turntable_o], K_TH, WIDTH,
+                      HEIGHT)
         temp = np.where(hits.mesh_index == 0, AMBIENT_K + RISE_K * hits.interpolate(0, F, contact),
                         AMBIENT_K - 0.3)
         views.append(((temp + NOISE_K * rng.standard_normal(temp.shape)).astype(np.float32), angle))
     times = []
     for _ in range(args.repeat):
         t0 = time.perf_counter()
-        cm = build_contactmap(V, F, views, K_TH, np.eye(4), T_color_tt, T_tt_o, PRESETS["default"],
-                              image_size=(WIDTH, HEIGHT))
+        cm = build_contactmap(V, F, views, K_TH, np.eye(4), T_color_turntable, T_turntable_o,
+                              PRESETS["default"], image_size=(WIDTH, HEIGHT))
         times.append(time.perf_counter() - t0)
     mae = float(np.abs(cm.contact[cm.observed] - contact[cm.observed]).mean())
     print("| mesh vertices | views | median time (s) | min (s) | MAE on observed | coverage "

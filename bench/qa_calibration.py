@@ -37,8 +37,9 @@ import numpy as np
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import estimate_from_results, evaluate
 from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.hand.final import final_hand
 from graspcap.tasks.outputs.qa_metrics import METRICS, qa_metrics
-from graspcap.tasks.pipeline import STAGES, configs_for, final_hand, read_mesh, run_stage
+from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
 
 SEEDS = {"realistic": 9400, "hard": 9401}
 
@@ -85,8 +86,9 @@ def run_stages(session_dir: Path) -> tuple[dict[str, Any], str | None]:
 def judge(session_dir: Path, results: dict[str, Any]):
     """The current ``qa_metrics`` (default preset) on pickled stage results."""
     session = results["load_session"]
-    return qa_metrics(results, object_mesh=read_mesh(session),
-                      hand_mesh_o=final_hand(results)[0])
+    hand = final_hand(results["fit_hand"], results.get("refine_grasp"),
+                      results["estimate_adjustment"].T_w_o)
+    return qa_metrics(results, object_mesh=session.read_mesh(), hand_mesh_o=hand.mesh_o)
 
 
 def _cache(out: Path, session_dir: Path) -> Path:

@@ -58,8 +58,8 @@ def _adjustment(session, cfg, res) -> tuple[object, bool]:
     depth = session.read_depth_m(session.grasp_path("depth", s))
     kp = res["detect_keypoints"].keypoints[s]
     mask = hand_mask_from_keypoints(kp[:, :2], kp[:, 2], depth.shape, 6.0)
-    V, F = pipeline.read_mesh(session)
-    K = pipeline._K(session)
+    V, F = session.read_mesh()
+    K = session.color_K
     return ea.estimate_adjustment(depth, K, V, F, res["register_object"].T_w_o, mask, cfg), True
 
 

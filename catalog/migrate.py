@@ -4,8 +4,8 @@ What the formats changed (docs/data_changelog.md): format 2 gave every Delta tab
 ``DELTA_TABLE_PROPERTIES`` (expired-log cleanup off, so Delta never deletes the log entries old
 catalog versions are pinned to) and added ``sessions.keypoint_backend`` and
 ``keypoint_frames_detected``; format 3 added four ``qa_*`` columns to ``sessions``; format 4
-added ``frames.camera_solved`` (whether stage 2 solved the frame's camera or interpolated it)
-and ``sessions.qa_flags`` and ``qa_notes`` (``list<string>``: QA's flag reasons and notes).
+added ``frames.camera_solved`` (whether reconstruct_hand solved the frame's camera or interpolated
+it) and ``sessions.qa_flags`` and ``qa_notes`` (``list<string>``: QA's flag reasons and notes).
 Every added column is nullable. One upgrade serves every older format, in one go: it sets the
 properties where they differ, adds the columns the current schemas have and the Delta tables
 lack, and brings the columns' field metadata (docs, units; format 3 reworded

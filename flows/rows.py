@@ -22,7 +22,6 @@ import numpy as np
 from graspcap.catalog.commit import ObjectMesh, SessionArrays
 from graspcap.schemas.qa import qa_columns
 from graspcap.schemas.tables import Status
-from graspcap.tasks.core.geometry import inv_T, transform_points
 from graspcap.tasks.outputs.qa_metrics import QaReport, qa_metrics
 
 MANIFEST_MAX_BYTES = 1 << 20
@@ -39,7 +38,7 @@ def predates_columns(row: Mapping[str, Any]) -> bool:
     """Whether a ``sessions`` row with results was written before format 2's, 3's or 4's
     columns existed (a migrated catalog's old rows): such a row has no keypoint backend, none
     of format 3's QA metrics (a row written since has ``qa_window_outlier_share`` whenever
-    stage 2 ran), or no ``qa_flags`` (a row with results always has a list, empty or not).
+    reconstruct_hand ran), or no ``qa_flags`` (a row with results always has a list, empty or not).
     The build rewrites it, and its ``frames`` rows (format 4's ``camera_solved``), from the
     session's cached stage results."""
     return (row["keypoint_backend"] is None or all(row[c] is None for c in FORMAT_3_QA)
@@ -70,7 +69,7 @@ def qa_report(results: Mapping[str, Any]) -> QaReport:
 def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version: str,
                  build_id: str, config_digest: str) -> SessionRows:
     """Rows and arrays of a session whose stages all completed (``results`` by stage name)."""
-    from graspcap.tasks.pipeline import final_pose, read_mesh
+    from graspcap.tasks.hand.final import final_hand, final_pose
 
     session = results["load_session"]
     m = session.manifest
@@ -83,7 +82,7 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
     T_w_o1 = results["register_object"].T_w_o
     T_adj = results["estimate_adjustment"].T_adj
     scan = results.get("register_scan")
-    T_tt_o = None if scan is None else scan.T_turntable_o_scan
+    T_turntable_o = None if scan is None else scan.T_turntable_o_scan
     contact = results.get("build_contactmap")
     qa = qa_report(results)
     row = {
@@ -94,7 +93,7 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         "keypoint_frames_detected": int(detected["frames_with_hand"]),
         "steady_from": int(results["select_steady"].steady_from),
         "T_w_o_stage1": _flat(T_w_o1), "T_adj": _flat(T_adj), "T_w_p": _flat(T_w_p),
-        "T_turntable_o_scan": _flat(T_tt_o),
+        "T_turntable_o_scan": _flat(T_turntable_o),
         "hand_scale": float(fit.scale), "joint_angles_rad": _flat(angles_rad),
         "joints_w": _flat(sfm.joints_w), "joints_fit_w": _flat(joints_hand_w),
         **{f"qa_{name}": qa.metrics.get(name) for name in QA_COLUMNS},
@@ -110,26 +109,21 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         frames.append({
             "session_id": m.session_id, "frame": int(f),
             "T_w_c": _flat(sfm.T_w_c[i]) if i is not None else [float("nan")] * 16,
-            # False: stage 2 interpolated this camera (too few detections), or has none
+            # False: reconstruct_hand interpolated this camera (too few detections), or has none
             "camera_solved": bool(sfm.pose_valid[i]) if i is not None else False,
             "T_c_o": _flat(prop.T_c_o[j]), "T_c_p": _flat(prop.T_c_p[j]),
             "joints_2d_px": _flat(kp[f, :, :2]), "keypoint_conf": _flat(kp[f, :, 2]),
             "joints_c": _flat(prop.joints_c[j]), "reproj_err_px": _flat(prop.reproj_err_px[j]),
             "build_id": build_id,
         })
-    V, F = read_mesh(session)
-    if refined is not None:  # the refined hand (stage 5), object frame
-        hand_v, hand_f, joints_o = refined.hand_vertices_o, refined.hand_faces, refined.joints_o
-    else:  # the stage-3 fit, moved into the object at the first steady frame
-        T_o_w = inv_T(results["estimate_adjustment"].T_w_o)
-        hand = fit.mesh()
-        hand_v, hand_f = transform_points(T_o_w, hand.vertices), hand.faces
-        joints_o = transform_points(T_o_w, fit.joints_fit_w)
+    V, F = session.read_mesh()
+    # refine_grasp's hand when it ran, else fit_hand's moved into the object
+    hand = final_hand(fit, refined, results["estimate_adjustment"].T_w_o)
     arrays = SessionArrays(
         contact=np.zeros(len(V), np.float32) if contact is None else contact.contact,
         observed=np.zeros(len(V), bool) if contact is None else contact.observed,
-        hand_vertices=np.asarray(hand_v, np.float32), hand_faces=np.asarray(hand_f, np.int32),
-        joints=np.asarray(joints_o, np.float64),
+        hand_vertices=np.asarray(hand.vertices_o, np.float32),
+        hand_faces=np.asarray(hand.faces, np.int32), joints=np.asarray(hand.joints_o, np.float64),
     )
     mesh = ObjectMesh(V.astype(np.float32), F.astype(np.int32))
     return SessionRows(row, frames, arrays, m.object_id, mesh)

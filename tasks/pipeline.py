@@ -3,10 +3,11 @@
 Each :class:`Stage` names the stages it consumes (``upstream``), the session files
 whose bytes it reads (``reads``: roles of :meth:`Session.input_files`), its code
 version and config type, and a ``run`` function: a few lines of glue that pull the
-stage's inputs out of the session and the upstream results and call the pure stage
-function. ``flows/`` turns each stage into a cached Prefect task from exactly this
-table; :func:`run_session` runs the same table bare and in order (the baseline the
-build is benchmarked against, and a way to debug one session without Prefect).
+stage's inputs out of the session and the upstream results (``up``, by stage name) and call
+the stage module's function, where the stage's logic lives. ``flows/`` turns each stage into
+a cached Prefect task from exactly this table; :func:`run_session` runs the same table bare
+and in order (the baseline the build is benchmarked against, and a way to debug one session
+without Prefect).
 """
 
 from __future__ import annotations
@@ -14,23 +15,22 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trimesh
 
 from graspcap.tasks.contact import build_contactmap
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.core.geometry import inv_T, project, transform_points
-from graspcap.tasks.core.presets import PIPELINE_PRESETS, UnknownPreset
+from graspcap.tasks.core.presets import PIPELINE_PRESETS, UnknownPreset, apply_settings
 from graspcap.tasks.hand import fit_hand, refine_grasp
+from graspcap.tasks.hand.final import FinalHand, final_hand, final_pose
 from graspcap.tasks.hand.model import SURFACE_OFFSET_M, HandSide
 from graspcap.tasks.hand_sfm import crosscheck_sfm, reconstruct_hand, select_steady
-from graspcap.tasks.hand_sfm.metric_scale import window_median
+from graspcap.tasks.hand_sfm.metric_scale import depth_lookup
 from graspcap.tasks.keypoints import detect_keypoints
+from graspcap.tasks.keypoints.detect_keypoints import why_missing
 from graspcap.tasks.object_pose import estimate_adjustment, register_object, register_scan
 from graspcap.tasks.outputs import pictures, propagate_poses, qa_metrics
 from graspcap.tasks.session import load_session
@@ -60,39 +60,8 @@ class Stage:
 
 
 # --- glue: session + upstream results -> pure stage call ------------------------------------
-
-
-def read_mesh(session: Session) -> tuple[np.ndarray, np.ndarray]:
-    """The object mesh as (vertices (n, 3) float, faces (m, 3) int), in file vertex order."""
-    mesh = trimesh.load(session.path(session.manifest.object_mesh), force="mesh", process=False)
-    return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64)
-
-
-def mesh_name(session: Session) -> str:
-    """The object mesh as messages name it: ``object_mesh <file>``."""
-    return f"object_mesh {session.manifest.object_mesh}"
-
-
-def _K(session: Session) -> np.ndarray:
-    return np.asarray(session.manifest.color_camera.K, dtype=float)
-
-
-def _T_color_turntable(session: Session) -> np.ndarray:
-    return np.asarray(session.manifest.turntable.T_color_turntable, dtype=float)
-
-
-def depth_lookup(session: Session, window_px: int = 2, read: Callable | None = None):
-    """``depth_at(frame, uv (k, 2)) -> (k,)`` metres, median of non-zero depth around each
-    pixel; frames are read lazily (a session's depth video does not fit in memory as float),
-    by ``read(frame) -> (h, w)`` metres when given (to share a cache)."""
-    read = read or lru_cache(maxsize=4)(
-        lambda i: session.read_depth_m(session.grasp_path("depth", i))
-    )
-
-    def depth_at(frame: int, uv: np.ndarray) -> np.ndarray:
-        return window_median(read(int(frame)), uv, window_px)
-
-    return depth_at
+# Each takes the upstream results as ``**up`` by stage name and reads them as ``up["stage"]``:
+# a bare stage name below is always the stage's module, never its result.
 
 
 def _load(session_dir: Path | str, config) -> Session:
@@ -100,168 +69,118 @@ def _load(session_dir: Path | str, config) -> Session:
                                      limits=config.limits)
 
 
-def _register_object(session, config, **_):
-    depth = session.read_depth_m(session.manifest.stage1.depth)
-    V, F = read_mesh(session)
+def _register_object(session: Session, config, **up):
     return register_object.register_object(
-        depth, _K(session), _T_color_turntable(session), V, F, config,
-        depth_name=f"stage1.depth {session.manifest.stage1.depth}", mesh_name=mesh_name(session),
+        session.read_depth_m(session.manifest.stage1.depth), session.color_K,
+        session.T_color_turntable, *session.read_mesh(), config,
+        depth_name=f"stage1.depth {session.manifest.stage1.depth}", mesh_name=session.mesh_name,
     )
 
 
-def _detect_keypoints(session, config, **_):
+def _detect_keypoints(session: Session, config, **up):
     return detect_keypoints.detect_keypoints(session, config)
 
 
-def _select_steady(session, config, detect_keypoints, **_):
+def _select_steady(session: Session, config, **up):
+    keypoints = up["detect_keypoints"]
     return select_steady.select_steady(
-        detect_keypoints.keypoints, _K(session), session.manifest.grasp.steady_from, config,
-        why_missing=_why_missing(detect_keypoints),
+        keypoints.keypoints, session.color_K, session.manifest.grasp.steady_from, config,
+        why_missing=why_missing(keypoints),
     )
 
 
-def _why_missing(keypoints: Any) -> str:
-    """``Keypoints2D.missing_summary()``; empty for a result cached before it had one."""
-    summary = getattr(keypoints, "missing_summary", None)
-    return summary() if summary is not None else ""
-
-
-def _reconstruct_hand(session, config, detect_keypoints, select_steady, **_):
-    read = lru_cache(maxsize=4)(lambda i: session.read_depth_m(session.grasp_path("depth", i)))
+def _reconstruct_hand(session: Session, config, **up):
+    keypoints, read = up["detect_keypoints"], session.grasp_depth_reader()
     return reconstruct_hand.reconstruct_hand(
-        detect_keypoints.keypoints,
-        _K(session),
-        select_steady.steady_from,
-        depth_lookup(session, read=read),
-        np.asarray(SURFACE_OFFSET_M),
-        config,
-        depth_frame=read,
-        T_color_turntable=_T_color_turntable(session),
-        why_missing=_why_missing(detect_keypoints),
+        keypoints.keypoints, session.color_K, up["select_steady"].steady_from,
+        depth_lookup(read), np.asarray(SURFACE_OFFSET_M), config, depth_frame=read,
+        T_color_turntable=session.T_color_turntable, why_missing=why_missing(keypoints),
     )
 
 
-def _crosscheck_sfm(session, config, detect_keypoints, reconstruct_hand, **_):
+def _crosscheck_sfm(session: Session, config, **up):
     return crosscheck_sfm.crosscheck_sfm(
-        detect_keypoints.keypoints, _K(session), reconstruct_hand, config
+        up["detect_keypoints"].keypoints, session.color_K, up["reconstruct_hand"], config
     )
 
 
-def _fit_hand(session, config, reconstruct_hand, **_):
-    return fit_hand.fit_hand(reconstruct_hand.joints_w, HandSide(session.manifest.hand), config)
+def _fit_hand(session: Session, config, **up):
+    return fit_hand.fit_hand(up["reconstruct_hand"].joints_w, HandSide(session.manifest.hand),
+                             config)
 
 
-def _estimate_adjustment(
-    session, config, register_object, detect_keypoints, select_steady, reconstruct_hand,
-    fit_hand, **_,
-):
-    s = select_steady.steady_from
-    hand = fit_hand.mesh()
+def _estimate_adjustment(session: Session, config, **up):
+    s, sfm, stage1 = up["select_steady"].steady_from, up["reconstruct_hand"], up["register_object"]
+    hand = up["fit_hand"].mesh()
     return estimate_adjustment.estimate_adjustment_steady(
-        lambda k: session.read_depth_m(session.grasp_path("depth", s + k)), _K(session),
-        *read_mesh(session), (hand.vertices, hand.faces),
-        detect_keypoints.keypoints[s : s + len(reconstruct_hand.T_w_c)], reconstruct_hand.T_w_c,
-        reconstruct_hand.pose_valid, register_object.T_w_o, config,
-        # a stage-1 pose that could be another (near-symmetric object) is tried both ways
-        T_w_o_stage1_alt=register_object.T_w_o_runner_up if register_object.ambiguous else None,
+        lambda k: session.read_depth_m(session.grasp_path("depth", s + k)), session.color_K,
+        *session.read_mesh(), (hand.vertices, hand.faces),
+        up["detect_keypoints"].keypoints[s : s + len(sfm.T_w_c)], sfm.T_w_c, sfm.pose_valid,
+        stage1.T_w_o, config, T_w_o_stage1_alt=stage1.second_hypothesis,
     )
 
 
-def _register_scan(session, config, **_):
-    views = [
-        (session.read_depth_m(v.depth), np.radians(v.angle_deg))
-        for v in session.manifest.scan.views
-    ]
-    V, F = read_mesh(session)
+def _register_scan(session: Session, config, **up):
+    views = session.manifest.scan.views
     return register_scan.register_scan(
-        views, _K(session), _T_color_turntable(session), V, F, config,
-        view_names=[v.depth for v in session.manifest.scan.views], mesh_name=mesh_name(session),
+        [(session.read_depth_m(v.depth), np.radians(v.angle_deg)) for v in views],
+        session.color_K, session.T_color_turntable, *session.read_mesh(), config,
+        view_names=[v.depth for v in views], mesh_name=session.mesh_name,
     )
 
 
-def _build_contactmap(session, config, register_scan, **_):
-    m = session.manifest
-    cam = m.thermal_camera
-    views = [(session.read_thermal_k(v.thermal), np.radians(v.angle_deg)) for v in m.scan.views]
-    V, F = read_mesh(session)
+def _build_contactmap(session: Session, config, **up):
+    cam, views = session.manifest.thermal_camera, session.manifest.scan.views
     return build_contactmap.build_contactmap(
-        V, F, views, np.asarray(cam.K, dtype=float), np.asarray(cam.T_color_thermal, dtype=float),
-        _T_color_turntable(session), register_scan.T_turntable_o_scan, config,
-        image_size=(cam.width, cam.height), view_names=[v.thermal for v in m.scan.views],
-        mesh_name=mesh_name(session),
+        *session.read_mesh(),
+        [(session.read_thermal_k(v.thermal), np.radians(v.angle_deg)) for v in views],
+        np.asarray(cam.K, dtype=float), np.asarray(cam.T_color_thermal, dtype=float),
+        session.T_color_turntable, up["register_scan"].T_turntable_o_scan, config,
+        image_size=(cam.width, cam.height), view_names=[v.thermal for v in views],
+        mesh_name=session.mesh_name,
     )
 
 
-def _refine_grasp(session, config, fit_hand, estimate_adjustment, build_contactmap, **_):
-    V, F = read_mesh(session)
+def _refine_grasp(session: Session, config, **up):
+    contact = up["build_contactmap"]
     return refine_grasp.refine_grasp(
-        fit_hand, HandSide(session.manifest.hand), estimate_adjustment.T_w_o, V, F,
-        build_contactmap.contact, build_contactmap.observed, config,
+        up["fit_hand"], HandSide(session.manifest.hand), up["estimate_adjustment"].T_w_o,
+        *session.read_mesh(), contact.contact, contact.observed, config,
     )
 
 
-def _propagate_poses(
-    session,
-    config,
-    detect_keypoints,
-    select_steady,
-    reconstruct_hand,
-    fit_hand,
-    register_object,
-    estimate_adjustment,
-    refine_grasp=None,
-    **_,
-):
-    s = select_steady.steady_from
-    frames = np.arange(s, session.manifest.grasp.count)
-    T_w_p, _, joints_hand_w = final_pose(fit_hand, refine_grasp)
+def _propagate_poses(session: Session, config, **up):
+    sfm, frames = up["reconstruct_hand"], np.arange(up["select_steady"].steady_from,
+                                                    session.manifest.grasp.count)
+    T_w_p, _, joints_hand_w = final_pose(up["fit_hand"], up.get("refine_grasp"))
     return propagate_poses.propagate_poses(
-        reconstruct_hand.T_w_c, estimate_adjustment.T_adj, register_object.T_w_o,
-        T_w_p, reconstruct_hand.joints_w, _K(session), frames,
-        detect_keypoints.keypoints[frames], joints_fit_w=joints_hand_w, config=config,
+        sfm.T_w_c, up["estimate_adjustment"].T_adj, up["register_object"].T_w_o, T_w_p,
+        sfm.joints_w, session.color_K, frames, up["detect_keypoints"].keypoints[frames],
+        joints_fit_w=joints_hand_w, config=config,
     )
 
 
-def final_pose(fit: Any, refined: Any | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The session's final hand pose from the results of ``fit_hand`` and ``refine_grasp``
-    (None when it did not run): palm ``T_w_p`` (4, 4), ``angles_rad`` (20,) and joints
-    (21, 3) in the world; the refinement's when there is one, else the stage-3 fit's."""
-    if refined is not None:
-        return refined.T_w_p, refined.angles_rad, refined.joints_w
-    return fit.T_w_p, fit.angles_rad, fit.joints_fit_w
+def _final_hand(up: Mapping[str, Any]) -> FinalHand:
+    return final_hand(up["fit_hand"], up.get("refine_grasp"), up["estimate_adjustment"].T_w_o)
 
 
-def final_hand(results: Mapping[str, Any]) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
-    """The session's final hand: (vertices (k, 3) in the object frame, faces), and its joints
-    (21, 3) in the world; refined when ``refine_grasp`` ran, else the stage-3 fit."""
-    refined = results.get("refine_grasp")
-    if refined is not None:
-        return (refined.hand_vertices_o, refined.hand_faces), refined.joints_w
-    fit = results["fit_hand"]
-    hand = fit.mesh()
-    T_o_w = inv_T(results["estimate_adjustment"].T_w_o)  # object at the first steady frame
-    return (transform_points(T_o_w, hand.vertices), hand.faces), fit.joints_fit_w
+def _qa_metrics(session: Session, config, **up):
+    return qa_metrics.qa_metrics(up, config, object_mesh=session.read_mesh(),
+                                 hand_mesh_o=_final_hand(up).mesh_o)
 
 
-def _qa_metrics(session, config, **upstream):
-    return qa_metrics.qa_metrics(upstream, config, object_mesh=read_mesh(session),
-                                 hand_mesh_o=final_hand(upstream)[0])
-
-
-def _pictures(session, config, **up):
+def _pictures(session: Session, config, **up):
     """The first steady frame (its camera is the world frame) and the final hand."""
-    f = up["select_steady"].steady_from
-    sfm, contact = up["reconstruct_hand"], up["build_contactmap"]
-    i = int(np.flatnonzero(np.asarray(sfm.frames) == f)[0])
-    hand_o, joints_w = final_hand(up)
-    image, background = pictures.read_frame(session, f)
+    f, sfm, hand = up["select_steady"].steady_from, up["reconstruct_hand"], _final_hand(up)
+    contact = up["build_contactmap"]
+    model_px, outlier = pictures.model_keypoints(session.color_K, f, sfm.frames, sfm.T_w_c,
+                                                 sfm.inlier, hand.joints_w)
     return pictures.pictures(
-        image, background, up["detect_keypoints"].keypoints[f],
-        project(_K(session), transform_points(inv_T(sfm.T_w_c[i]), joints_w)), f,
-        session_id=session.session_id, outlier=~np.asarray(sfm.inlier[i], bool),
-        object_mesh=read_mesh(session), contact=contact.contact, observed=contact.observed,
-        hand_mesh_o=hand_o, up_o=up["register_scan"].T_turntable_o_scan[2, :3],
-        note=str(up["qa_metrics"].verdict), config=config,
+        *pictures.read_frame(session, f), up["detect_keypoints"].keypoints[f], model_px, f,
+        session_id=session.session_id, outlier=outlier, object_mesh=session.read_mesh(),
+        contact=contact.contact, observed=contact.observed, hand_mesh_o=hand.mesh_o,
+        up_o=up["register_scan"].T_turntable_o_scan[2, :3], note=str(up["qa_metrics"].verdict),
+        config=config,
     )
 
 
@@ -364,56 +283,11 @@ def configs_for(preset: str = "default", **overrides: StageConfig) -> dict[str, 
 
 def settings_overrides(settings: list[str] | tuple[str, ...],
                        preset: str = "default") -> dict[str, StageConfig]:
-    """``["stage.field=value", ...]`` (``--set``) as the configs of the stages they change,
-    ``preset``'s with the fields set, each setting checked against the stage's config model:
-    the stage, the field (a dotted path into nested configs) and the value's type. The value
-    is read as JSON (``1.5``, ``true``, ``"x"``, ``[1, 2]``), else taken as a string (enum
-    values). Raises ``ValueError`` naming the setting and what is wrong with it."""
-    import json
-
-    from pydantic import ValidationError
-
-    base = configs_for(preset)
-    out: dict[str, dict[str, Any]] = {}
-    configs: dict[str, StageConfig] = {}
-    for setting in settings:
-        path, sep, raw = setting.partition("=")
-        stage, _, field = path.strip().partition(".")
-        if not sep or not field:
-            raise ValueError(f"--set {setting!r}: expected STAGE.FIELD=VALUE")
-        if stage not in STAGES:
-            raise ValueError(f"--set {setting!r}: no stage {stage!r}; stages are {list(STAGES)}")
-        try:
-            value = json.loads(raw)
-        except ValueError:
-            value = raw
-        fields = out.setdefault(stage, {})
-        node, model, keys = fields, type(base[stage]), field.split(".")
-        for i, key in enumerate(keys):
-            known = getattr(model, "model_fields", None)
-            if known is None or key not in known:
-                where = ".".join([stage, *keys[:i]])
-                raise ValueError(f"--set {setting!r}: {where} has no field {key!r}; its fields "
-                                 f"are {sorted(known or [])}")
-            if i == len(keys) - 1:
-                node[key] = value
-            else:
-                node = node.setdefault(key, {})
-                model = known[key].annotation
-        merged = _deep_merge(base[stage].model_dump(), fields)
-        try:
-            configs[stage] = type(base[stage]).model_validate(merged)
-        except ValidationError as exc:
-            raise ValueError(f"--set {setting!r}: {exc.errors()[0]['msg']}") from None
-    return configs
-
-
-def _deep_merge(a: dict, b: Mapping) -> dict:
-    out = dict(a)
-    for k, v in b.items():
-        out[k] = _deep_merge(out[k], v) if isinstance(v, Mapping) and isinstance(
-            out.get(k), dict) else v
-    return out
+    """``["stage.field=value", ...]`` (``--set``) as the configs of the stages they change:
+    ``preset``'s with the fields set, each checked against the stage's config model
+    (:func:`~graspcap.tasks.core.presets.apply_settings`). Raises ``ValueError`` naming the
+    setting and what is wrong with it."""
+    return apply_settings(settings, configs_for(preset))
 
 
 def run_stage(

@@ -30,8 +30,8 @@ def look_at_turntable(distance_m: float = 0.7, elevation_deg: float = 40.0) -> n
     z = -c / np.linalg.norm(c)
     x = np.array([1.0, 0.0, 0.0])
     y = np.cross(z, x)
-    T_t_c = make_T(np.stack([x, y, z], axis=1), c)
-    return inv_T(T_t_c)
+    T_turntable_color = make_T(np.stack([x, y, z], axis=1), c)
+    return inv_T(T_turntable_color)
 
 
 def load_mesh(shared_data: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -78,13 +78,13 @@ def render_turntable(
 ) -> np.ndarray:
     """Noisy depth (h, w) of the platter turned by ``angle_rad``, with the object on it."""
     meshes, poses = [], []
-    T_c_t = T_color_turntable @ rot_z(angle_rad)
-    for mesh, T_t_m in background():  # the disk looks the same at any angle
+    T_color_platter = T_color_turntable @ rot_z(angle_rad)  # the platter, turned
+    for mesh, T_turntable_m in background():  # the disk looks the same at any angle
         meshes.append(mesh)
-        poses.append(T_color_turntable @ T_t_m)
+        poses.append(T_color_turntable @ T_turntable_m)
     if with_object:
         meshes.append(obj)
-        poses.append(T_c_t @ T_turntable_o)
+        poses.append(T_color_platter @ T_turntable_o)
     hits = render(meshes, poses, K, WIDTH, HEIGHT)
     return noisy_depth(hits.depth_m, hits.cos_incidence, rng)
 
@@ -147,10 +147,11 @@ def lifted_procedural(kind: str, seed: int, angle_deg: float):
 
     obj = procedural_object(kind)
     mesh = (obj.vertices, obj.faces)
-    T_c_t = look_at_turntable()
-    T_w_o1 = T_c_t @ random_pose_on_platter(*mesh, np.random.default_rng(seed), index=0)
+    T_color_turntable = look_at_turntable()
+    T_w_o1 = T_color_turntable @ random_pose_on_platter(*mesh, np.random.default_rng(seed),
+                                                        index=0)
     depth, mask, T_true = lifted_in_hand(
-        mesh, T_w_o1, T_c_t, np.random.default_rng(100 + seed), angle_deg=angle_deg
+        mesh, T_w_o1, T_color_turntable, np.random.default_rng(100 + seed), angle_deg=angle_deg
     )
     return mesh, T_w_o1, depth, mask, T_true
 
@@ -168,7 +169,7 @@ def rig_session_stage1(out: Path, seed: list[int], kind: str):
     s = pipeline.run_stage(
         pipeline.STAGES["load_session"], d, pipeline.configs_for()["load_session"], {}
     )
-    V, F = pipeline.read_mesh(s)
+    V, F = s.read_mesh()
     return (
         s.read_depth_m(s.manifest.stage1.depth),
         np.asarray(s.manifest.color_camera.K, float),

@@ -69,7 +69,7 @@ def estimate_from_results(
 
 
 def _refinement_estimate(results: Mapping[str, Any]) -> dict[str, Any]:
-    """The refined and the stage-3 hands in the object frame, refined joints in the world."""
+    """The refined and fit_hand's hands in the object frame, refined joints in the world."""
     ref, fit = results["refine_grasp"], results["fit_hand"]
     hand_fit = fit.mesh()
     T_o_w = inv_T(results["estimate_adjustment"].T_w_o)
@@ -97,7 +97,7 @@ def estimate_from_catalog(session: Mapping[str, Any], frames: Any) -> dict[str, 
     est["frame"] = frames["frame"].to_numpy()
     est["T_w_c"] = np.stack([mat(v, (4, 4)) for v in frames["T_w_c"]])
     est["T_c_o"] = np.stack([mat(v, (4, 4)) for v in frames["T_c_o"]])
-    # null in a catalog written before format 4: unknown which cameras stage 2 solved
+    # null in a catalog written before format 4: unknown which cameras reconstruct_hand solved
     solved = frames["camera_solved"] if "camera_solved" in frames else None
     if solved is not None and not solved.isna().any():
         est["camera_solved"] = solved.to_numpy(dtype=bool)
@@ -172,7 +172,7 @@ def _contact_metrics(contact: np.ndarray, observed: np.ndarray, session_dir: Pat
 def _refinement_metrics(est: Mapping[str, Any], session_dir: Path,
                         near_mm: float = 3.0) -> dict[str, float]:
     """Share of truly contacted (> 0.4) vertices within ``near_mm`` of the refined and of the
-    stage-3 hand mesh (unsigned distance to the surface), penetration max before and after,
+    fit_hand's hand mesh (unsigned distance to the surface), penetration max before and after,
     and the refinement time when the estimate has it."""
     import open3d as o3d
     import trimesh
@@ -201,9 +201,9 @@ def _refinement_metrics(est: Mapping[str, Any], session_dir: Path,
 
 def _T_adj_at(truth: Mapping[str, Any], steady_est: int) -> np.ndarray:
     """The true ``T_adj`` as the pipeline defines it when it is given ``steady_est`` as the
-    first steady frame: the object's motion from stage 1 to its pose in that frame. After the
-    true onset the object moves with the hand (``truth["T_w_c"]``); before it, the truth holds
-    no per-frame pose, and the onset's is used (the object has nearly settled there)."""
+    first steady frame: the object's motion from register_object's pose to its pose in that frame.
+    After the true onset the object moves with the hand (``truth["T_w_c"]``); before it, the truth
+    holds no per-frame pose, and the onset's is used (the object has nearly settled there)."""
     i = steady_est - int(truth["steady_from"])
     if i <= 0 or i >= len(truth["T_w_c"]):
         return truth["T_adj"]
@@ -215,8 +215,8 @@ def _anchor(steady_est: int, steady_true: int, n_est: int, solved: np.ndarray | 
     """Video frame both reconstructions are compared in: the first frame from both first
     steady frames on whose camera the estimate solved from the frame's own keypoints. Each
     world frame is its own first steady camera; when the detected steady frame differs from the
-    truth the estimate is re-anchored, and never on a camera stage 2 only interpolated (a frame
-    without detections): that camera is a fill, and every camera measured against it would
+    truth the estimate is re-anchored, and never on a camera reconstruct_hand only interpolated (a
+    frame without detections): that camera is a fill, and every camera measured against it would
     carry its error."""
     first = max(steady_est, steady_true)
     if solved is not None:

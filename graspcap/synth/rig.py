@@ -44,10 +44,11 @@ def turntable_pose(cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
     centre = -dist * forward
     x = np.cross(forward, [0.0, 0.0, 1.0])
     x /= np.linalg.norm(x)
-    R_tt_c = np.stack([x, np.cross(forward, x), forward], axis=1)
+    R_turntable_color = np.stack([x, np.cross(forward, x), forward], axis=1)
     # Aim a little off the platter centre so the object is not always dead centre.
-    T_tt_c = rot_z(yaw) @ make_T(R_tt_c, centre) @ from_rotvec(rng.normal(0, 0.02, 3), [0, 0, 0])
-    return inv_T(T_tt_c)
+    T_turntable_color = (rot_z(yaw) @ make_T(R_turntable_color, centre)
+                         @ from_rotvec(rng.normal(0, 0.02, 3), [0, 0, 0]))
+    return inv_T(T_turntable_color)
 
 
 def platter_mesh(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -86,12 +86,14 @@ def _matrix(T: np.ndarray) -> list[list[float]]:
 class _Scene:
     """The colour and thermal cameras over the static platter and table."""
 
-    def __init__(self, cfg: SynthConfig, T_color_tt: np.ndarray, T_color_thermal: np.ndarray):
+    def __init__(self, cfg: SynthConfig, T_color_turntable: np.ndarray,
+                 T_color_thermal: np.ndarray):
         static = [platter_mesh(cfg), table_mesh(cfg)]
-        self.color = StaticCamera(color_K(cfg), cfg.width, cfg.height, static, [T_color_tt] * 2)
+        self.color = StaticCamera(color_K(cfg), cfg.width, cfg.height, static,
+                                  [T_color_turntable] * 2)
         self.T_thermal_color = inv_T(T_color_thermal)
         self.thermal = StaticCamera(thermal_K(cfg), cfg.thermal_width, cfg.thermal_height, static,
-                                    [self.T_thermal_color @ T_color_tt] * 2)
+                                    [self.T_thermal_color @ T_color_turntable] * 2)
 
     def render(self, parts: list[tuple[tuple[np.ndarray, np.ndarray], np.ndarray]]) -> RayHits:
         """Colour-camera hits of ``parts`` (mesh, T_color_mesh), then platter, then table."""
@@ -105,8 +107,9 @@ class _Scene:
                                    [self.T_thermal_color @ T for _, T in parts])
 
 
-def _above_table(points_w: np.ndarray, T_color_tt: np.ndarray, margin_m: float = 0.008) -> bool:
-    return bool(transform_points(inv_T(T_color_tt), points_w)[:, 2].min() > margin_m)
+def _above_table(points_w: np.ndarray, T_color_turntable: np.ndarray,
+                 margin_m: float = 0.008) -> bool:
+    return bool(transform_points(inv_T(T_color_turntable), points_w)[:, 2].min() > margin_m)
 
 
 def _in_image(uv: np.ndarray, cfg: SynthConfig, margin_px: float) -> bool:
@@ -114,7 +117,7 @@ def _in_image(uv: np.ndarray, cfg: SynthConfig, margin_px: float) -> bool:
 
 
 def _steady_pose(obj: ObjectMesh, hand_o: np.ndarray, joints_o: np.ndarray, T_w_o1: np.ndarray,
-                 T_color_tt: np.ndarray, cfg: SynthConfig, rng: np.random.Generator):
+                 T_color_turntable: np.ndarray, cfg: SynthConfig, rng: np.random.Generator):
     """Object pose at the first steady frame: lifted towards the camera, a bounded turn."""
     K = color_K(cfg)
     centre_o = joints_o[list(RIGID_PALM_POINTS)].mean(axis=0)
@@ -128,7 +131,7 @@ def _steady_pose(obj: ObjectMesh, hand_o: np.ndarray, joints_o: np.ndarray, T_w_
         c_w = backproject(K, uv[None], np.array([rng.uniform(*cfg.hand_distance_m)]))[0]
         T = make_T(R_w_o, c_w - R_w_o @ centre_o)
         if _in_image(project(K, transform_points(T, joints_o)), cfg, 25) and _above_table(
-                transform_points(T, sample), T_color_tt, 0.02):
+                transform_points(T, sample), T_color_turntable, 0.02):
             return T
     raise StageError("synth", f"object {obj.name}: no steady pose keeps the hand in view")
 
@@ -153,31 +156,32 @@ def generate_session(out: Path, session_seed: int | Sequence[int], config: Synth
 
     K, K_th = color_K(cfg), thermal_K(cfg)
     T_color_thermal = thermal_extrinsics(cfg, rng)
-    T_color_tt = turntable_pose(cfg, rng)
-    scene = _Scene(cfg, T_color_tt, T_color_thermal)
+    T_color_turntable = turntable_pose(cfg, rng)
+    scene = _Scene(cfg, T_color_turntable, T_color_thermal)
     obj_mesh = (obj.vertices, obj.faces)
 
-    # Stage 1: the object alone on the platter.
-    T_tt_o1 = rest_on_platter(obj, cfg, rng)
-    T_w_o1 = T_color_tt @ T_tt_o1
+    # stage1 (register_object's input): the object alone on the platter.
+    T_turntable_o1 = rest_on_platter(obj, cfg, rng)
+    T_w_o1 = T_color_turntable @ T_turntable_o1
     hits = scene.render([(obj_mesh, T_w_o1)])
     _png(root / "stage1/depth.png", noisy_depth_mm(hits.depth_m, hits.cos_incidence, cfg, rng))
     albedo = [ALBEDO["object"], ALBEDO["platter"], ALBEDO["table"]]
     _png(root / "stage1/color.png", shaded_rgb(hits, albedo, rng)[..., ::-1])
 
     # The grasp, planned on the object as it rests on the platter.
-    grasp = plan_grasp(obj, hm, scale, T_tt_o1[:3, :3].T @ [0.0, 0.0, 1.0], cfg, rng)
+    grasp = plan_grasp(obj, hm, scale, T_turntable_o1[:3, :3].T @ [0.0, 0.0, 1.0], cfg, rng)
     hand_p = hm.mesh(grasp.angles_rad, np.eye(4), scale)
     hand_o = transform_points(grasp.T_o_p, hand_p.vertices)
     joints_o = hm.keypoints(grasp.angles_rad, grasp.T_o_p, scale)
-    T_w_o_steady = _steady_pose(obj, hand_o, joints_o, T_w_o1, T_color_tt, cfg, rng)
+    T_w_o_steady = _steady_pose(obj, hand_o, joints_o, T_w_o1, T_color_turntable, cfg, rng)
     T_adj = T_w_o_steady @ inv_T(T_w_o1)
     T_w_p = T_w_o_steady @ grasp.T_o_p
     joints_w = hm.keypoints(grasp.angles_rad, T_w_p, scale)
 
     count = cfg.frames
     steady = int(np.clip(round(count * rng.uniform(*cfg.adjust_fraction)), 2, count - 2))
-    motions = _video_motion(obj, hand_o, joints_o, T_w_o_steady, T_color_tt, steady, cfg, rng)
+    motions = _video_motion(obj, hand_o, joints_o, T_w_o_steady, T_color_turntable, steady, cfg,
+                            rng)
 
     # The grasp video.
     clean = np.zeros((count, 21, 2))
@@ -188,7 +192,7 @@ def generate_session(out: Path, session_seed: int | Sequence[int], config: Synth
             T_w_o, T_w_p_i, angles = M @ T_w_o_steady, M @ T_w_p, grasp.angles_rad
             hand_v = transform_points(T_w_p_i, hand_p.vertices)
         else:
-            T_w_o, T_w_p_i, angles = _adjustment(grasp, T_w_o1, T_w_o_steady, T_color_tt,
+            T_w_o, T_w_p_i, angles = _adjustment(grasp, T_w_o1, T_w_o_steady, T_color_turntable,
                                                  i / steady)
             hand_v = hm.mesh(angles, T_w_p_i, scale).vertices
         joints = hm.keypoints(angles, T_w_p_i, scale)
@@ -203,12 +207,12 @@ def generate_session(out: Path, session_seed: int | Sequence[int], config: Synth
 
     # The scan: the object back on the platter in a new pose, rotated through 360 deg.
     contact = hand_contact(obj, hand_o, hand_p.faces, hand_p.part)
-    T_tt_o_scan = rest_on_platter(obj, cfg, rng, avoid=contact)
+    T_turntable_o_scan = rest_on_platter(obj, cfg, rng, avoid=contact)
     n_views = int(rng.integers(cfg.scan_views[0], cfg.scan_views[1] + 1))
     views = []
     for k in range(n_views):
         angle_deg = 360.0 * k / n_views
-        T_c_o = T_color_tt @ _rot_z_deg(angle_deg) @ T_tt_o_scan
+        T_c_o = T_color_turntable @ _rot_z_deg(angle_deg) @ T_turntable_o_scan
         hits = scene.render([(obj_mesh, T_c_o)])
         depth_rel, thermal_rel = f"scan/depth/{k:03d}.png", f"scan/thermal/{k:03d}.png"
         _png(root / depth_rel, noisy_depth_mm(hits.depth_m, hits.cos_incidence, cfg, rng))
@@ -231,7 +235,7 @@ def generate_session(out: Path, session_seed: int | Sequence[int], config: Synth
         "thermal_camera": {"K": _matrix(K_th), "dist": [0.0] * 5, "width": cfg.thermal_width,
                            "height": cfg.thermal_height,
                            "T_color_thermal": _matrix(T_color_thermal)},
-        "turntable": {"T_color_turntable": _matrix(T_color_tt)},
+        "turntable": {"T_color_turntable": _matrix(T_color_turntable)},
         "stage1": {"depth": "stage1/depth.png", "color": "stage1/color.png"},
         "grasp": {"fps": cfg.fps, "count": count, "color": COLOR_PATTERN, "depth": DEPTH_PATTERN,
                   "keypoints": KEYPOINTS_PATTERN,
@@ -252,7 +256,7 @@ def generate_session(out: Path, session_seed: int | Sequence[int], config: Synth
         "steady_from": steady,
         "T_w_c": [_matrix(inv_T(M)) for M in motions],
         "joints_w": _matrix(joints_w),
-        "T_turntable_o_scan": _matrix(T_tt_o_scan),
+        "T_turntable_o_scan": _matrix(T_turntable_o_scan),
         "T_w_p": _matrix(T_w_p),
         "T_o_p": _matrix(grasp.T_o_p),
         "hand_scale": scale,
@@ -272,7 +276,8 @@ def _rot_z_deg(angle_deg: float) -> np.ndarray:
 
 
 def _adjustment(grasp: Grasp, T_w_o1: np.ndarray, T_w_o_steady: np.ndarray,
-                T_color_tt: np.ndarray, x: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                T_color_turntable: np.ndarray, x: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Object pose, palm pose and angles at fraction ``x`` in [0, 1) of grasp adjustment.
 
     The open hand approaches and closes while the object still rests on the
@@ -282,7 +287,7 @@ def _adjustment(grasp: Grasp, T_w_o1: np.ndarray, T_w_o_steady: np.ndarray,
     s_hand = float(smoothstep(x))
     s_obj = float(smoothstep((x - 0.35) / 0.65))
     T_w_o = interpolate_pose(T_w_o1, T_w_o_steady, s_obj)
-    T_w_o[:3, 3] += T_color_tt[:3, 2] * _LIFT_M * np.sin(np.pi * s_obj)
+    T_w_o[:3, 3] += T_color_turntable[:3, 2] * _LIFT_M * np.sin(np.pi * s_obj)
     back = make_T(np.eye(3), [0.0, 0.0, -_APPROACH_M * (1.0 - min(1.0, s_hand / 0.6))])
     angles = grasp.open_angles_rad + s_hand * (grasp.angles_rad - grasp.open_angles_rad)
     return T_w_o, T_w_o @ grasp.T_o_p @ back, angles
@@ -302,7 +307,7 @@ def _occluded(
 
 
 def _video_motion(obj: ObjectMesh, hand_o: np.ndarray, joints_o: np.ndarray,
-                  T_w_o_steady: np.ndarray, T_color_tt: np.ndarray, steady: int,
+                  T_w_o_steady: np.ndarray, T_color_turntable: np.ndarray, steady: int,
                   cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
     """Rigid motions M_i (camera frame) of hand and object for frames ``steady`` .. count-1:
     turned by at least ``MIN_STEADY_TURN_DEG``, in view and above the table."""
@@ -310,13 +315,13 @@ def _video_motion(obj: ObjectMesh, hand_o: np.ndarray, joints_o: np.ndarray,
     joints_w = transform_points(T_w_o_steady, joints_o)
     sample = transform_points(T_w_o_steady, np.concatenate([obj.vertices[::11], hand_o[::7]]))
     centre = transform_points(T_w_o_steady, joints_o[list(RIGID_PALM_POINTS)]).mean(axis=0)
-    T_tt_color = inv_T(T_color_tt)
+    T_turntable_color = inv_T(T_color_turntable)
     try:
         return steady_motion(
             centre, cfg.frames - steady, cfg, rng,
             in_view=lambda M: _in_image(project(K, transform_points(M, joints_w)), cfg, 5),
-            heights_m=lambda M: float(transform_points(T_tt_color @ M, sample)[:, 2].min()),
-            up=T_color_tt[:3, 2],
+            heights_m=lambda M: float(transform_points(T_turntable_color @ M, sample)[:, 2].min()),
+            up=T_color_turntable[:3, 2],
         )  # fmt: skip
     except StageError as e:
         raise StageError("synth", f"object {obj.name}: {e.reason}") from e

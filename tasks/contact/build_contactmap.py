@@ -1,4 +1,5 @@
-"""Per-vertex contact from the post-grasp thermal turntable scan (stage 4, ContactDB protocol).
+"""The ``build_contactmap`` stage (the paper's stage 4, ContactDB protocol): per-vertex contact
+from the post-grasp thermal turntable scan.
 
 For every thermal view the object's pose in the thermal camera is
 ``T_thermal_o = inv(T_color_thermal) @ T_color_turntable @ Rz(angle) @ T_turntable_o_scan``.

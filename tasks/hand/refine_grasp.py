@@ -15,7 +15,7 @@ inside the joint limits, minimising
   ``repel_margin_mm`` to the hand surface;
 - penetration: the object's signed distance at hand probes (spheres along the bones, palm
   surface points) and object vertices near the hand that lie inside it;
-- prior: joints (mm), angles and palm pose stay near the stage-3 fit.
+- prior: joints (mm), angles and palm pose stay near fit_hand's fit.
 
 Distances to the hand are the model's own (``hand.surface``); penetration and contact
 agreement before and after are measured on the hand mesh. The refinement never penetrates
@@ -71,15 +71,15 @@ class RefineGraspConfig(StageConfig):
     penetration_weight: float = 3.0
     """Weight of each penetration probe's depth (mm); not averaged, so every probe counts."""
     prior_joint_weight: float = 0.3
-    """Weight of the RMS move of the 21 joints from the stage-3 fit (mm)."""
+    """Weight of the RMS move of the 21 joints from fit_hand's fit (mm)."""
     prior_angle_weight_mm_per_rad: float = 2.0
     """An RMS angle change of 1 rad costs as much as this many mm of RMS attraction gap."""
     max_palm_shift_mm: float = 12.0
-    """Largest move of the palm origin per axis from the stage-3 fit."""
+    """Largest move of the palm origin per axis from fit_hand's fit."""
     max_palm_turn_deg: float = 8.0
-    """Largest turn of the palm per axis (palm frame) from the stage-3 fit."""
+    """Largest turn of the palm per axis (palm frame) from fit_hand's fit."""
     max_angle_change_deg: float = 25.0
-    """Largest change of any joint angle from the stage-3 fit (inside the joint limits too)."""
+    """Largest change of any joint angle from fit_hand's fit (inside the joint limits too)."""
     rounds: int = 2
     """Optimisation rounds; each re-selects the vertices within the capture radius."""
     max_evaluations: int = 40
@@ -138,7 +138,7 @@ class GraspRefinement:
     ----------
     side : HandSide
     scale : float
-        The stage-3 scale (unchanged).
+        fit_hand's scale (unchanged).
     T_w_p, T_o_p : (4, 4) float
         Refined palm pose in the world of the first steady frame and in the object frame.
     angles_rad : (20,) float
@@ -148,7 +148,7 @@ class GraspRefinement:
     hand_faces : (m, 3) int
         Refined hand mesh, object frame.
     before, after : GraspMetrics
-        The stage-3 fit's and the returned hand's metrics.
+        fit_hand's fit's and the returned hand's metrics.
     iterations : int
         Jacobian evaluations of the least squares, over all rounds.
     n_attract, n_repel : int
@@ -157,7 +157,7 @@ class GraspRefinement:
         Share of the optimised move (palm correction and angle changes) returned: 1 the
         optimum, less when it was scaled back so as to penetrate no deeper than the fit.
     accepted : bool
-        The refinement is returned; False: the stage-3 fit is returned unchanged.
+        The refinement is returned; False: fit_hand's fit is returned unchanged.
     reason : str
         Why it was not accepted (empty when it was).
     """
@@ -304,7 +304,7 @@ def refine_grasp(
     observed: np.ndarray,
     config: RefineGraspConfig = PRESETS["default"],
 ) -> GraspRefinement:
-    """Refine the stage-3 hand against the object's contact map, in the object frame.
+    """Refine fit_hand's hand against the object's contact map, in the object frame.
 
     Parameters
     ----------

@@ -46,14 +46,20 @@ def window_median(depth_m: np.ndarray, uv_px: np.ndarray, window_px: int = 2) ->
     return out
 
 
+def depth_lookup(read: Callable[[int], np.ndarray], window_px: int = 2) -> DepthLookup:
+    """A :data:`DepthLookup` over the frames ``read(frame) -> (h, w)`` metres, by
+    :func:`window_median` (frames read lazily, as the lookup asks for them)."""
+
+    def depth_at(frame: int, uv_px: np.ndarray) -> np.ndarray:
+        return window_median(read(int(frame)), uv_px, window_px)
+
+    return depth_at
+
+
 def depth_lookup_from_frames(depth_m: np.ndarray, window_px: int = 2) -> DepthLookup:
     """A :data:`DepthLookup` over depth images (n, h, w) in metres, by :func:`window_median`."""
     depth_m = np.asarray(depth_m, dtype=float)
-
-    def depth_at(frame: int, uv_px: np.ndarray) -> np.ndarray:
-        return window_median(depth_m[frame], uv_px, window_px)
-
-    return depth_at
+    return depth_lookup(lambda frame: depth_m[frame], window_px)
 
 
 @dataclass(frozen=True)

@@ -198,6 +198,13 @@ class Keypoints2D:
         }
 
 
+def why_missing(keypoints: Keypoints2D) -> str:
+    """``keypoints.missing_summary()`` for the stages that fail on too few detections; empty
+    for a result cached before :class:`Keypoints2D` had one."""
+    summary = getattr(keypoints, "missing_summary", None)
+    return summary() if summary is not None else ""
+
+
 def _clean(hand: np.ndarray, min_confidence: float) -> np.ndarray:
     hand = np.array(hand, dtype=float)
     bad = ~np.isfinite(hand).all(axis=1) | (hand[:, 2] < min_confidence)

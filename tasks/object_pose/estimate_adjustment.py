@@ -3,19 +3,20 @@
 The object in the first steady frame is registered against that frame's depth with the
 hand's pixels masked out. Two paths, tried in order:
 
-1. ``stage1_icp``: ICP initialised at the stage-1 pose, accepted when enough depth points
+1. ``stage1_icp``: ICP initialised at register_object's pose, accepted when enough depth points
    around the posed object are explained (small motions).
 2. ``near_hand_global``: the participant usually lifts the object 0.1-0.3 m and turns it
    tens of degrees, out of ICP's reach. The object touches the hand, so the depth is
    restricted to the space within one object diameter of the hand's 3D points, then FPFH +
-   RANSAC + ICP as in stage 1, the stage-1 pose one more start. Among poses that explain
-   the depth equally well (a symmetric object) the one closest in rotation to stage 1 wins.
+   RANSAC + ICP as in register_object, register_object's pose one more start. Among poses
+   that explain the depth equally well (a symmetric object) the one closest in rotation to
+   register_object's wins.
 
 One frame shows one side of the object, partly hidden by the hand: a mug's visible half fits its
 own flipped twin as well as the truth (rig seed 11 #0: 163 deg off, fitness 0.98), and with its
 handle hidden any turn about its body's axis. The global path's candidates include, when the
 model's principal axes are ill-defined, half turns about its own near-symmetry axes and the best
-pose turned about the rotation the depth leaves free, to the rotation nearest stage 1
+pose turned about the rotation the depth leaves free, to the rotation nearest register_object's
 (:mod:`free_rotation`). Other steady frames (``other_views``) show it turned: when the first
 frame alone fits below ``views_below_fitness`` or is ambiguous (axes ill-defined), their points,
 carried into the first frame by ``reconstruct_hand``'s virtual cameras, are registered together
@@ -74,7 +75,7 @@ class AdjustmentPath(StrEnum):
 
 
 class Stage1Hypothesis(StrEnum):
-    """Which stage-1 pose the adjustment started from."""
+    """Which register_object pose the adjustment started from."""
 
     BEST = "best"
     RUNNER_UP = "runner_up"
@@ -112,9 +113,9 @@ class EstimateAdjustmentConfig(StageConfig):
     min_hand_points: int = 30
     """With fewer hand pixels with depth than this, the whole (unmasked) cloud is searched."""
     stage1_reach_m: float = 0.03
-    """ICP from the stage-1 pose sees the points within the object's radius plus this."""
+    """ICP from register_object's pose sees the points within the object's radius plus this."""
     stage1_coarse_min: float = 0.6
-    """ICP from the stage-1 pose runs its finer levels only when the depth agrees with the
+    """ICP from register_object's pose runs its finer levels only when the depth agrees with the
     first level's pose on at least this share (an object lifted away: ~0.3 s saved)."""
     cluster_voxel_m: float = 0.004
     """Voxel size of the Euclidean clustering of the region around the hand."""
@@ -127,7 +128,7 @@ class EstimateAdjustmentConfig(StageConfig):
     agree_stride_px: int = 2
     """The depth agreement judges every this-th pixel of every this-th row."""
     accept_fitness: float = 0.85
-    """ICP from the stage-1 pose is accepted at this fitness."""
+    """ICP from register_object's pose is accepted at this fitness."""
     min_fitness: float = 0.5
     """A final fitness below this fails the stage."""
     other_views: int = 6
@@ -144,7 +145,8 @@ class EstimateAdjustmentConfig(StageConfig):
     """...and their pose is kept when the views agree with it by this much more (than with the
     first frame's; by any amount when that was ``ambiguous``)."""
     check_ambiguity: bool = True
-    """Run the symmetry probes on the global path (finds the symmetric pose closest to stage 1)."""
+    """Run the symmetry probes on the global path (finds the symmetric pose nearest
+    register_object's)."""
     probe_rounds: int = 2
     """Further rounds of symmetry probes from the best pose while its fitness times depth
     agreement is below ``reprobe_below`` (realistic carton s9400 #5: its 180 deg twin at
@@ -153,9 +155,9 @@ class EstimateAdjustmentConfig(StageConfig):
     """See ``probe_rounds``; the rounds stop at the first probe that reaches it."""
     tie_tol: float = 0.005
     """Among poses whose fitness times depth agreement is within this of the best, the one
-    closest in rotation to stage 1 is kept; poses within ``ambiguity_fitness_tol`` (0.02)
+    closest in rotation to register_object's is kept; poses within ``ambiguity_fitness_tol`` (0.02)
     make the result ``ambiguous`` (a lifted carton's 180 deg twin at 0.988 against the
-    truth's 1.0 was kept for being nearer stage 1)."""
+    truth's 1.0 was kept for being nearer register_object's)."""
     flip_probes: bool = True
     """With ill-defined principal axes (``ill_defined_ratio``) the symmetry probes also turn
     the best pose half a turn about the model's two best self-matching axes
@@ -165,8 +167,8 @@ class EstimateAdjustmentConfig(StageConfig):
     (:func:`symmetry.axes_ill_defined`; mug, bottle 0.968; carton 0.78, spray 0.71, drill 0.65)."""
     free_turns: bool = True
     """With ``check_ambiguity`` and ill-defined axes: the best pose turned about the rotation
-    the depth leaves least constrained to the rotation nearest stage 1, upright and flipped,
-    are candidates too (:mod:`free_rotation`; a mug, handle hidden). Not gated by
+    the depth leaves least constrained to the rotation nearest register_object's, upright and
+    flipped, are candidates too (:mod:`free_rotation`; a mug, handle hidden). Not gated by
     ``FreeAxis.weakness``: [9900, 4] from onset 26 needs them with its views at 0.07 (50.5 deg
     off without; other mugs 0.07-0.18)."""
     registration: RegistrationConfig = RegistrationConfig(coarse_model_points=5000)
@@ -206,7 +208,7 @@ class Adjustment:
     ambiguous : bool
         A pose at least ``ambiguity_min_deg`` away explains the depth as well.
     stage1_hypothesis : Stage1Hypothesis
-        The stage-1 pose it started from (``runner_up`` only when one was passed and won).
+        The register_object pose it started from (``runner_up`` only when one was passed and won).
     """
 
     T_adj: np.ndarray
@@ -249,10 +251,10 @@ def estimate_adjustment(
         Pixels of the hand (from the fitted hand or
         :func:`adjustment_region.hand_mask_from_keypoints`).
     T_w_o_stage1_alt : (4, 4) float, optional
-        A second stage-1 hypothesis (``ObjectRegistration.T_w_o_runner_up`` when stage 1 was
-        ``ambiguous``): the stage runs from both and keeps the pose whose rendering the depth
-        agrees with more (ties: ``T_w_o_stage1``); ``Adjustment.stage1_hypothesis`` says which.
-        ``T_adj`` stays relative to ``T_w_o_stage1``.
+        A second register_object hypothesis (``ObjectRegistration.T_w_o_runner_up`` when
+        register_object was ``ambiguous``): the stage runs from both and keeps the pose whose
+        rendering the depth agrees with more (ties: ``T_w_o_stage1``);
+        ``Adjustment.stage1_hypothesis`` says which. ``T_adj`` stays relative to ``T_w_o_stage1``.
     other_views : ``() -> [SteadyView, ...]``, other steady frames (same intrinsics ``K``),
         asked for only when the first frame alone fits below ``views_below_fitness`` or is
         ``ambiguous``.
@@ -290,8 +292,8 @@ def estimate_adjustment(
                 errors.append(e)
         if not results:
             raise errors[0]
-        best = max(results, key=lambda a: a.fitness)  # ties: the stage-1 best (listed first)
-        # T_adj is relative to the stage-1 pose passed in, whichever hypothesis won, so that
+        best = max(results, key=lambda a: a.fitness)  # ties: register_object's best (listed first)
+        # T_adj is relative to register_object's pose passed in, whichever hypothesis won, so that
         # T_adj @ T_w_o_stage1 is the object's pose in the steady frame.
         return replace(best, T_adj=best.T_w_o @ inv_T(T_w_o1), views=len(views))
 
@@ -411,7 +413,7 @@ def estimate_adjustment_steady(
 
 @dataclass(frozen=True)
 class _Context:
-    """The steady frames, prepared once for every stage-1 hypothesis: the views
+    """The steady frames, prepared once for every register_object hypothesis: the views
     ``(depth, keep, T_ref_c)`` and the points of all of them in the first one's frame."""
 
     views: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -428,13 +430,13 @@ def _from_hypothesis(
     which: Stage1Hypothesis,
     config: EstimateAdjustmentConfig,
 ) -> Adjustment:
-    """Both paths from one stage-1 pose ``T_w_o1`` (4, 4); ``T_adj`` relative to it."""
+    """Both paths from one register_object pose ``T_w_o1`` (4, 4); ``T_adj`` relative to it."""
     cfg = config.registration
     views, K, points, hand_pts, model, mesh = (
         ctx.views, ctx.K, ctx.points, ctx.hand_pts, ctx.model, ctx.mesh
     )  # fmt: skip
 
-    # Path 1: ICP from the stage-1 pose, on the points it can reach.
+    # Path 1: ICP from register_object's pose, on the points it can reach.
     centre1 = T_w_o1[:3, :3] @ model.centroid + T_w_o1[:3, 3]
     reach1 = np.linalg.norm(points - centre1, axis=1) <= model.radius_m + config.stage1_reach_m
     scene_all = to_pcd(points[reach1])

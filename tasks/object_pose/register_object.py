@@ -1,4 +1,5 @@
-"""Stage 1: the object's pose on the turntable from one depth image.
+"""The ``register_object`` stage (the paper's stage 1): the object's pose on the turntable
+from one depth image.
 
 Depth -> camera-frame cloud -> crop to the space over the platter (turntable
 frame) -> FPFH + RANSAC with restarts -> coarse-to-fine point-to-plane ICP
@@ -132,7 +133,7 @@ class RegisterObjectConfig(StageConfig):
     )
     """Global registration and ICP settings: a probe's first ICP level against a quarter of the
     model's points (4x cheaper); 10000 RANSAC iterations per restart instead of 20000 (on 14
-    realistic sessions the same stage-1 poses and the least CPU in all; with 5000 a carton
+    realistic sessions the same poses and the least CPU in all; with 5000 a carton
     needed all four restarts)."""
 
 
@@ -155,7 +156,7 @@ PRESETS: dict[str, RegisterObjectConfig] = {
 
 @dataclass(frozen=True)
 class ObjectRegistration:
-    """Result of stage 1.
+    """Result of ``register_object``.
 
     Attributes
     ----------
@@ -210,6 +211,12 @@ class ObjectRegistration:
     free_weakness: float
     notes: tuple[str, ...] = ()
 
+    @property
+    def second_hypothesis(self) -> np.ndarray | None:
+        """The pose ``estimate_adjustment`` tries beside ``T_w_o``: the runner-up (4, 4) of an
+        ambiguous result (a near-symmetric object could be posed either way), else None."""
+        return self.T_w_o_runner_up if self.ambiguous else None
+
 
 @single_threaded()
 def register_object(
@@ -223,7 +230,7 @@ def register_object(
     depth_name: str = "the stage-1 depth image",
     mesh_name: str = "the object mesh",
 ) -> ObjectRegistration:
-    """Register the object mesh in the stage-1 depth image.
+    """Register the object mesh in the ``stage1`` depth image.
 
     Parameters
     ----------

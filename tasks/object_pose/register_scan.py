@@ -1,11 +1,11 @@
 """The object's pose on the platter during the turntable scan (pipeline item 8).
 
-The object was put back in a new pose, so stage 1 is no help. Every view's
+The object was put back in a new pose, so register_object's pose is no help. Every view's
 depth is cropped to the platter and brought into the turntable frame at angle
 0 (``p_t0 = Rz(angle)^-1 @ T_color_turntable^-1 @ p_color``); the views are
 fused (normals estimated per view, facing that view's camera) and the mesh is
 registered against the fused cloud at once: FPFH + RANSAC with restarts, then
-point-to-plane ICP, then the symmetry probes of stage 1.
+point-to-plane ICP, then the symmetry probes of register_object.
 
 Candidates are ranked by their fitness times the share of the mesh's surface samples that
 no view sees through (:mod:`scan_free_space`). The fitness alone cannot tell a mug from the

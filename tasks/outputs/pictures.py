@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from graspcap.tasks.core.config import StageConfig
-from graspcap.tasks.core.geometry import make_T
+from graspcap.tasks.core.geometry import inv_T, make_T, project, transform_points
 from graspcap.tasks.core.render import cast_rays, pixel_rays
 from graspcap.tasks.hand.model import SKELETON
 from graspcap.tasks.outputs.drawing import (
@@ -322,6 +322,24 @@ def read_frame(session, frame: int) -> tuple[np.ndarray, Background]:
     return session.read_depth_m(session.grasp_path("depth", frame)), Background.DEPTH
 
 
+def model_keypoints(K: np.ndarray, frame: int, frames: np.ndarray, T_w_c: np.ndarray,
+                    inlier: np.ndarray, joints_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The hand's joints as the camera of video frame ``frame`` sees them, and which of its
+    observations the reconstruction rejected.
+
+    K : (3, 3) colour intrinsics; frames : (m,) the video frames of the reconstruction's
+    cameras ``T_w_c`` (m, 4, 4) and its ``inlier`` flags (m, 21); joints_w : (21, 3) the hand
+    in the world. Returns the joints' pixels (21, 2) and the outliers (21,) bool. Raises
+    ``ValueError`` when the reconstruction has no camera for ``frame``.
+    """
+    at = np.flatnonzero(np.asarray(frames) == frame)
+    if at.size == 0:
+        raise ValueError(f"frame {frame} has no camera in the reconstruction")
+    i = int(at[0])
+    model_px = project(K, transform_points(inv_T(np.asarray(T_w_c[i])), joints_w))
+    return model_px, ~np.asarray(inlier[i], bool)
+
+
 def pictures(frame_image: np.ndarray, background: Background, detected: np.ndarray,
              model_px: np.ndarray | None, frame: int, *, session_id: str,
              outlier: np.ndarray | None = None,
@@ -354,5 +372,6 @@ def pictures(frame_image: np.ndarray, background: Background, detected: np.ndarr
 
 __all__ = [
     "BONES", "PRESETS", "STAGE_VERSION", "Background", "Pictures", "PicturesConfig",
-    "contact_picture", "keypoints_picture", "look_at", "pictures", "read_frame",
+    "contact_picture", "keypoints_picture", "look_at", "model_keypoints", "pictures",
+    "read_frame",
 ]  # fmt: skip

@@ -1,7 +1,7 @@
 """What ``qa_metrics`` computes itself from the stage results (the limits and the verdict stay
 in ``qa_metrics``): the worst window of keypoint outliers, and the hand-object metrics of the
 final hand (``refine_grasp``'s own after-refinement numbers, or the same ``hand.surface``
-measures on the stage-3 hand)."""
+measures on fit_hand's hand)."""
 
 from __future__ import annotations
 

@@ -1,10 +1,10 @@
 """Quality gate of one session: the metrics of ``pipeline.md`` item 11 and a verdict.
 
 Every metric is read from the upstream stage results (reprojection RMSE and inlier ratio of
-stage 2, the GTSAM vs pycolmap and RGB-D vs pixels-only discrepancies, fitness and inlier
+reconstruct_hand, the GTSAM vs pycolmap and RGB-D vs pixels-only discrepancies, fitness and inlier
 RMSE of the three rigid registrations, the hand fit residual, the contact map's coverage,
 ``refine_grasp``'s before / after penetration and contact agreement) or computed here from
-them (the worst window of keypoint outliers; penetration and agreement of the stage-3 hand
+them (the worst window of keypoint outliers; penetration and agreement of fit_hand's hand
 when there is no refinement, by the same ``hand.surface`` functions).
 
 Each metric has a :class:`Bound` in the config: beyond ``flag`` the session is ``flagged``
@@ -12,7 +12,7 @@ Each metric has a :class:`Bound` in the config: beyond ``flag`` the session is `
 default limits are calibrated against synthetic truth (``bench/qa_calibration.py``). The
 stages' own warnings (an ambiguous scan registration of a symmetric object, scan views that
 see empty space where the registered mesh lies, an all-ambient thermal scan) flag the session
-too; an ambiguity the pipeline resolves itself (stage 1's and the adjustment's, see
+too; an ambiguity the pipeline resolves itself (register_object's and estimate_adjustment's, see
 :func:`stage_notes`) is a note. A metric whose stage did not run
 (crosscheck disabled, no refinement yet) is reported in ``missing`` and never changes the
 verdict. This module is the one place that decides a session's ``status``.
@@ -82,13 +82,13 @@ class QaMetricsConfig(StageConfig):
     reproj_rmse_px: Bound = Bound(flag=5.9, fail=8.0)
     """SfM reprojection RMSE (px), upper limits; trustworthy <= 3.91 (x 1.5)."""
     inlier_ratio: Bound = Bound(flag=0.915, fail=0.6)
-    """Share of keypoint observations kept as inliers by stage 2, lower limits; trustworthy
+    """Share of keypoint observations kept as inliers by reconstruct_hand, lower limits; trustworthy
     >= 0.944 (x 1.5); the hard sessions, all wrong, had 0.74-0.83."""
     window_outlier_share: Bound = Bound(flag=0.2, fail=0.45)
-    """Share of the keypoint detections that stage 2 rejected as outliers, in the worst window
-    of ``outlier_window_frames`` consecutive steady frames (see :func:`window_outlier_share`),
-    upper limits; trustworthy <= 0.099 (x 2: a window's share fluctuates more than a
-    session's); onsets detected 12-24 frames early gave 0.54-0.67."""
+    """Share of the keypoint detections that reconstruct_hand rejected as outliers, in the worst
+    window of ``outlier_window_frames`` consecutive steady frames (see
+    :func:`window_outlier_share`), upper limits; trustworthy <= 0.099 (x 2: a window's share
+    fluctuates more than a session's); onsets detected 12-24 frames early gave 0.54-0.67."""
     crosscheck_mm: Bound = Bound(flag=0.5, fail=5.0)
     """Largest joint discrepancy between GTSAM and pycolmap on the same pixels-only problem
     (mm, after a similarity), upper limits; trustworthy <= 0.05 (numerical noise), so the
@@ -101,10 +101,10 @@ class QaMetricsConfig(StageConfig):
     (mm, after a similarity), upper limits; trustworthy <= 8.14 (x 1.5; the depth terms move
     joints by several mm by design, and the wrong sessions were no higher)."""
     registration_fitness: Bound = Bound(flag=0.95, fail=0.6)
-    """Stage-1 registration fitness (share of scene points explained), lower limits;
+    """register_object's registration fitness (share of scene points explained), lower limits;
     trustworthy >= 0.972 (x 1.5 gives 0.958, rounded down to 0.95)."""
     registration_rmse_mm: Bound = Bound(flag=1.7, fail=5.0)
-    """Stage-1 registration inlier RMSE (mm), upper limits; trustworthy <= 1.12 (x 1.5)."""
+    """register_object's inlier RMSE (mm), upper limits; trustworthy <= 1.12 (x 1.5)."""
     adjustment_fitness: Bound = Bound(flag=0.5, fail=0.3)
     """Fitness of the object at the first steady frame (``estimate_adjustment``), lower
     limits; trustworthy >= 0.644 (x 1.5 gives 0.47; the stage itself refuses < 0.5)."""
@@ -124,7 +124,7 @@ class QaMetricsConfig(StageConfig):
     penetration_mean_mm: Bound = Bound(flag=1.0)
     """Mean depth of the hand vertices inside the object (mm; 0 when none is), upper."""
     fit_contact_agreement: Bound = Bound(flag=0.3)
-    """``contact_agreement`` of the stage-3 fit, before ``refine_grasp`` drew the hand to the
+    """``contact_agreement`` of fit_hand's fit, before ``refine_grasp`` drew the hand to the
     contact map, lower limits: the video's hand and the thermal scan, two independent
     measurements, agree on where the grasp is (low: the hand poses, the object pose or the
     contact map's registration is wrong); trustworthy >= 0.405, wrong 0-0.29 where this was
@@ -152,7 +152,8 @@ class QaMetricsConfig(StageConfig):
     """Flag the stages' own warnings (an ambiguous scan registration, an all-ambient scan, a
     mesh with zero-area faces, joints behind a camera). ``crosscheck_sfm``'s own flag is not
     one: its three numbers are judged here, by these limits; a rejected refinement and an
-    ambiguous stage-1 or adjustment registration are notes (:func:`stage_notes`)."""
+    ambiguous register_object or estimate_adjustment registration are notes
+    (:func:`stage_notes`)."""
 
 
 def _scaled(config: QaMetricsConfig, factor: float) -> QaMetricsConfig:
@@ -277,15 +278,15 @@ _SOURCES: dict[str, tuple[str, str, float]] = {
 
 def stage_notes(results: Mapping[str, Any]) -> list[str]:
     """What the stages report that changes no verdict: a refinement rejected in favour of the
-    stage-3 fit (whose agreement with the contact map ``fit_contact_agreement`` judges), and
-    an ambiguous stage-1 or adjustment registration of a symmetric object. The pipeline
-    resolves those two itself (``estimate_adjustment`` tries stage 1's runner-up and keeps the
-    pose the depth agrees with better, and among equal poses the one nearest stage 1), and a
-    wrong resolution puts the hand on the wrong side of the object, which the contact
-    agreements judge against the independent thermal scan. As flags they were no sign of a
-    wrong session: on the accuracy bench's 12 x 120-frame sessions they flagged 4 trustworthy
-    ones and no wrong one; the one wrong calibration session with one (an adjustment 180 deg
-    off) failed by its contact agreement as well (``bench/qa_calibration.py``).
+    fit_hand's fit (whose agreement with the contact map ``fit_contact_agreement`` judges), and an
+    ambiguous register_object or estimate_adjustment registration of a symmetric object. The
+    pipeline resolves those two itself (``estimate_adjustment`` tries register_object's runner-up
+    and keeps the pose the depth agrees with better, and among equal poses the one nearest
+    register_object's), and a wrong resolution puts the hand on the wrong side of the object, which
+    the contact agreements judge against the independent thermal scan. As flags they were no sign of
+    a wrong session: on the accuracy bench's 12 x 120-frame sessions they flagged 4 trustworthy ones
+    and no wrong one; the one wrong calibration session with one (an adjustment 180 deg off) failed
+    by its contact agreement as well (``bench/qa_calibration.py``).
 
     Also what the stages noted about unusual input: keypoint frames dropped (far outside the
     image, corrupt) or with several candidate hands, scan views sharing an angle or skipped,

@@ -21,14 +21,16 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
+from functools import lru_cache
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
 import cv2
 import numpy as np
+import trimesh
 from pydantic import BaseModel, ValidationError
 
 from graspcap.schemas.session import (
@@ -268,6 +270,33 @@ class Session:
     def read_color(self, rel_or_path: str | Path) -> np.ndarray:
         """Colour image as ``(h, w, 3) uint8`` BGR."""
         return self._read(rel_or_path, ImageKind.COLOR, cv2.IMREAD_COLOR)
+
+    @property
+    def color_K(self) -> np.ndarray:
+        """The colour camera's intrinsics ``(3, 3)`` float, pixels."""
+        return np.asarray(self.manifest.color_camera.K, dtype=float)
+
+    @property
+    def T_color_turntable(self) -> np.ndarray:
+        """The turntable frame in the colour camera ``(4, 4)`` float, metres."""
+        return np.asarray(self.manifest.turntable.T_color_turntable, dtype=float)
+
+    @property
+    def mesh_name(self) -> str:
+        """The object mesh as messages name it: ``object_mesh <file>``."""
+        return f"object_mesh {self.manifest.object_mesh}"
+
+    def read_mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """The object mesh as (vertices (n, 3) float, faces (m, 3) int), in file vertex order."""
+        mesh = trimesh.load(self.path(self.manifest.object_mesh), force="mesh", process=False)
+        return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64)
+
+    def grasp_depth_reader(self, cached_frames: int = 4) -> Callable[[int], np.ndarray]:
+        """``read(frame) -> (h, w) float32`` metres of grasp depth frame ``frame``, the last
+        ``cached_frames`` frames read kept (a session's depth video does not fit in memory as
+        float)."""
+        return lru_cache(maxsize=cached_frames)(
+            lambda i: self.read_depth_m(self.grasp_path("depth", i)))
 
     def read_keypoints(self, index: int) -> list[np.ndarray]:
         """Frame ``index``'s OpenPose hands: one ``(21, 3)`` (x_px, y_px, conf) per person.

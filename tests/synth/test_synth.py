@@ -90,9 +90,9 @@ def test_object_at_truth_pose_matches_stage1_and_scan_depth(session):
     err, share = _median_depth_error_mm(_depth_m(session / "stage1/depth.png"), expected)
     assert err < 3.0 and share > 0.7, (err, share)
 
-    T_color_tt = np.array(manifest["turntable"]["T_color_turntable"])
+    T_color_turntable = np.array(manifest["turntable"]["T_color_turntable"])
     view = manifest["scan"]["views"][2]
-    T_c_o = T_color_tt @ rot_z(np.radians(view["angle_deg"])) @ np.array(
+    T_c_o = T_color_turntable @ rot_z(np.radians(view["angle_deg"])) @ np.array(
         truth["T_turntable_o_scan"])
     expected = render([obj], [T_c_o], K, w, h).depth_m
     err, share = _median_depth_error_mm(_depth_m(session / view["depth"]), expected)
@@ -121,13 +121,14 @@ def test_hot_thermal_pixels_fall_on_contacted_vertices(session):
     contact = np.load(session / "ground_truth/contact.npy").astype(float)
     th = manifest["thermal_camera"]
     K_th = np.array(th["K"])
-    T_th_tt = inv_T(np.array(th["T_color_thermal"])) @ np.array(
+    T_thermal_turntable = inv_T(np.array(th["T_color_thermal"])) @ np.array(
         manifest["turntable"]["T_color_turntable"])
     faces = np.asarray(mesh.faces)
     hot_total, on_contact = 0, 0
     for view in manifest["scan"]["views"]:
         kelvin = cv2.imread(str(session / view["thermal"]), cv2.IMREAD_UNCHANGED) * 0.01
-        T = T_th_tt @ rot_z(np.radians(view["angle_deg"])) @ np.array(truth["T_turntable_o_scan"])
+        T = (T_thermal_turntable @ rot_z(np.radians(view["angle_deg"]))
+             @ np.array(truth["T_turntable_o_scan"]))
         hits = cast([(np.asarray(mesh.vertices), faces)], [T], K_th, th["width"], th["height"])
         projected = hits.interpolate(0, faces, contact)
         near = cv2.dilate(projected.astype(np.float32), np.ones((3, 3), np.uint8))  # optics blur

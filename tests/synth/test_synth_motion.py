@@ -39,13 +39,13 @@ def _tight_scene(seed: int):
     up = np.array([0.0, -np.cos(elev), np.sin(elev)])
     origin = sample[np.argmin(sample @ up)] - 0.02 * up
     x = np.array([1.0, 0.0, 0.0])
-    T_c_tt = make_T(np.stack([x, np.cross(up, x), up], axis=1), origin)
-    return joints, sample, centre, T_c_tt
+    T_color_turntable = make_T(np.stack([x, np.cross(up, x), up], axis=1), origin)
+    return joints, sample, centre, T_color_turntable
 
 
-def _heights(T_c_tt, sample):
-    T_tt_c = inv_T(T_c_tt)
-    return lambda M: float(transform_points(T_tt_c @ M, sample)[:, 2].min())
+def _heights(T_color_turntable, sample):
+    T_turntable_color = inv_T(T_color_turntable)
+    return lambda M: float(transform_points(T_turntable_color @ M, sample)[:, 2].min())
 
 
 @pytest.mark.parametrize("difficulty", ["easy", "realistic"])
@@ -54,22 +54,22 @@ def test_steady_motion_turns_enough_in_view_above_the_table(difficulty):
     K = color_K(cfg)
     lifted = 0
     for seed in range(30):
-        joints, sample, centre, T_c_tt = _tight_scene(seed)
-        height = _heights(T_c_tt, sample)
+        joints, sample, centre, T_color_turntable = _tight_scene(seed)
+        height = _heights(T_color_turntable, sample)
 
         def in_view(M, joints=joints):
             uv = project(K, transform_points(M, joints))
             return bool(np.all((uv >= 5) & (uv <= [cfg.width - 5, cfg.height - 5])))
 
         Ms = steady_motion(centre, 32, cfg, np.random.default_rng([5, seed]), in_view=in_view,
-                           heights_m=height, up=T_c_tt[:3, 2])
+                           heights_m=height, up=T_color_turntable[:3, 2])
         turn = turn_deg(Ms)
         assert Ms.shape == (32, 4, 4)
         np.testing.assert_allclose(Ms[0], np.eye(4), atol=1e-12)
         assert MIN_STEADY_TURN_DEG <= turn.max() <= cfg.motion_rotation_deg + 1e-6
         assert all(in_view(M) for M in Ms)
         assert min(height(M) for M in Ms) >= 0.008
-        lifted += bool(np.any(np.abs(Ms[:, :3, 3] @ T_c_tt[:3, 2]) > 1e-3))
+        lifted += bool(np.any(np.abs(Ms[:, :3, 3] @ T_color_turntable[:3, 2]) > 1e-3))
     assert lifted >= 5  # the scene is tight: the lift is exercised, not only the redraws
 
 
@@ -99,7 +99,7 @@ def _check_truth(session: Path) -> float:
     manifest = json.loads((session / "session.json").read_text())
     K = np.asarray(manifest["color_camera"]["K"])
     w, h = manifest["color_camera"]["width"], manifest["color_camera"]["height"]
-    T_tt_c = inv_T(np.asarray(manifest["turntable"]["T_color_turntable"]))
+    T_turntable_color = inv_T(np.asarray(manifest["turntable"]["T_color_turntable"]))
     T_w_c = np.asarray(truth["T_w_c"])
     joints_w = np.asarray(truth["joints_w"])
     T_w_o = np.asarray(truth["T_adj"]) @ np.asarray(truth["T_w_o_stage1"])
@@ -108,7 +108,7 @@ def _check_truth(session: Path) -> float:
         M = inv_T(T)  # the static hand seen by camera T is the hand moved by M in the real one
         uv = project(K, transform_points(M, joints_w))
         assert np.all((uv >= 5) & (uv <= [w - 5, h - 5]))
-        assert transform_points(T_tt_c @ M @ T_w_o, V)[:, 2].min() > 0.008 - 1e-6
+        assert transform_points(T_turntable_color @ M @ T_w_o, V)[:, 2].min() > 0.008 - 1e-6
     np.testing.assert_allclose(T_w_c[0], np.eye(4), atol=1e-9)
     return float(turn_deg(T_w_c).max())
 

@@ -7,7 +7,7 @@ import pytest
 from graspcap.cli import build_parser
 from graspcap.flows.commands import run_build
 from graspcap.tasks import pipeline
-from graspcap.tasks.core.presets import PIPELINE_PRESETS, UnknownPreset
+from graspcap.tasks.core.presets import PIPELINE_PRESETS, UnknownPreset, apply_settings
 
 
 def test_the_table_names_exactly_the_stage_presets():
@@ -65,3 +65,17 @@ def test_build_refuses_a_wrong_setting_before_building(tmp_path, capsys):
     assert code == 2
     assert "fit_hand has no field 'nope'" in capsys.readouterr().err
     assert not (tmp_path / "cat").exists()
+
+
+def test_apply_settings_needs_only_the_configs():
+    """``core.presets.apply_settings`` on plain configs by stage name (no stage table)."""
+    from graspcap.tasks.hand.fit_hand import PRESETS as FIT
+    from graspcap.tasks.hand_sfm.select_steady import PRESETS as STEADY
+
+    base = {"fit_hand": FIT["default"], "select_steady": STEADY["default"]}
+    out = apply_settings(["fit_hand.loss=cauchy"], base)
+    assert out == {"fit_hand": FIT["default"].model_copy(update={"loss": out["fit_hand"].loss})}
+    assert out["fit_hand"].loss.value == "cauchy" and base["fit_hand"].loss.value != "cauchy"
+    assert apply_settings([], base) == {}
+    with pytest.raises(ValueError, match=r"no stage 'qa_metrics'; stages are \['fit_hand', "):
+        apply_settings(["qa_metrics.x=1"], base)

@@ -160,7 +160,7 @@ def test_one_temperature_has_its_ambient_peak():
 
 def test_face_index_out_of_range_names_the_mesh_in_every_stage(synth, tmp_path):
     session = load_session(synth, check_images=False)
-    V, F = pipeline.read_mesh(session)
+    V, F = session.read_mesh()
     bad = F.copy()
     bad[7, 1] = len(V) + 2
     why = (f"object_mesh {session.manifest.object_mesh}: 1 face(s) index vertices that do not "
@@ -168,7 +168,7 @@ def test_face_index_out_of_range_names_the_mesh_in_every_stage(synth, tmp_path):
            f"0..{len(V) - 1}): a truncated or corrupt mesh file")
     name = f"object_mesh {session.manifest.object_mesh}"
     depth = session.read_depth_m(session.manifest.stage1.depth)
-    K, T_ct = pipeline._K(session), pipeline._T_color_turntable(session)
+    K, T_ct = session.color_K, session.T_color_turntable
     with pytest.raises(StageError, match=re.escape(f"register_object: {why}")):
         register_object(depth, K, T_ct, V, bad, mesh_name=name)
     with pytest.raises(StageError, match=re.escape(f"register_scan: {why}")):
@@ -406,12 +406,12 @@ def test_a_fine_mesh_gets_a_contact_map_per_vertex_through_its_proxy():
 def test_a_fine_mesh_is_registered_through_its_proxy(synth):
     """register_scan on the session's mesh with a proxy of at most 2000 faces: the true pose."""
     session = load_session(synth, check_images=False)
-    V, F = pipeline.read_mesh(session)
+    V, F = session.read_mesh()
     assert len(F) > 2000
     views = [(session.read_depth_m(v.depth), np.radians(v.angle_deg))
              for v in session.manifest.scan.views]
     cfg = register_scan_presets["fast"].model_copy(update={"proxy_faces": 2000})
-    scan = register_scan(views, pipeline._K(session), pipeline._T_color_turntable(session),
+    scan = register_scan(views, session.color_K, session.T_color_turntable,
                          V, F, cfg)
     truth = _true_scan_pose(synth).T_turntable_o_scan
     rot_deg, trans_m = pose_error(scan.T_turntable_o_scan, truth)

@@ -1,4 +1,4 @@
-"""The rotation one depth view leaves free, and the poses along it nearest stage 1.
+"""The rotation one depth view leaves free, and the poses along it nearest register_object's.
 
 A mug held with its handle turned away shows the camera a patch of its cylindrical body only:
 every turn about the body's axis explains the depth equally (held-out mug [9900, 4]: the
@@ -8,8 +8,8 @@ the model's principal axes miss that family when the axes are ill-defined (the m
 largest principal spreads are within 3 %, so its axes are mixed 54 deg away from the body's
 axis and its handle's). The free rotation is read off the depth itself: the least
 constrained direction of point-to-plane ICP (the 6 x 6 normal matrix of the scene's points and
-normals, Gelfand et al. 2003). Turning a pose about it to the rotation nearest stage 1 gives the
-member of its family :mod:`estimate_adjustment`'s tie rule asks for.
+normals, Gelfand et al. 2003). Turning a pose about it to the rotation nearest register_object's
+gives the member of its family :mod:`estimate_adjustment`'s tie rule asks for.
 """
 
 from __future__ import annotations

@@ -98,7 +98,7 @@ def _load_contactdb(shared_data: Path, name: str):
             m.visual.vertex_colors[:, 0].astype(np.float64) / 255.0)
 
 
-def render_thermal_views(vertices, faces, contact, T_color_turntable, T_tt_o, n_views=12,
+def render_thermal_views(vertices, faces, contact, T_color_turntable, T_turntable_o, n_views=12,
                          seed=0):
     """Thermal images of a mesh on a turntable: ambient + RISE_K * contact interpolated on
     the hit triangle, background at ambient - 0.3 K, Gaussian noise ``NOISE_K``."""
@@ -107,7 +107,8 @@ def render_thermal_views(vertices, faces, contact, T_color_turntable, T_tt_o, n_
     views = []
     for k in range(n_views):
         angle = 2 * np.pi * k / n_views
-        T_c_o = T_color_turntable @ rot_z(angle) @ T_tt_o  # the thermal camera is the colour one
+        # the thermal camera is the colour one
+        T_c_o = T_color_turntable @ rot_z(angle) @ T_turntable_o
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(transform_points(T_c_o, vertices).astype(np.float32),
                             faces.astype(np.uint32))
@@ -135,10 +136,10 @@ def _upside_down(vertices) -> np.ndarray:
 
 def test_real_contactdb_apple_rebuilt(shared_data):
     vertices, faces, contact = _load_contactdb(shared_data, "apple_textured.ply")
-    T_color_tt = look_at_turntable(distance_m=0.5, elevation_deg=30.0)
-    T_tt_o = _upside_down(vertices)
-    views = render_thermal_views(vertices, faces, contact, T_color_tt, T_tt_o, seed=1)
-    cm = build_contactmap(vertices, faces, views, K_TH, np.eye(4), T_color_tt, T_tt_o,
+    T_color_turntable = look_at_turntable(distance_m=0.5, elevation_deg=30.0)
+    T_turntable_o = _upside_down(vertices)
+    views = render_thermal_views(vertices, faces, contact, T_color_turntable, T_turntable_o, seed=1)
+    cm = build_contactmap(vertices, faces, views, K_TH, np.eye(4), T_color_turntable, T_turntable_o,
                           image_size=(WIDTH, HEIGHT))
     mae, iou, _ = contact_scores(cm.contact, contact, cm.observed)
     assert mae <= 0.06, mae
@@ -150,8 +151,8 @@ def test_real_contactdb_apple_rebuilt(shared_data):
     # The same views with a known ambient and rise (a calibrated rig) agree as well.
     fixed = BuildContactmapConfig(ambient_mode=AmbientMode.FIXED, ambient_k=AMBIENT_K,
                                   rise_mode="fixed", full_rise_k=RISE_K)
-    cm_fixed = build_contactmap(vertices, faces, views, K_TH, np.eye(4), T_color_tt, T_tt_o,
-                                fixed)
+    cm_fixed = build_contactmap(vertices, faces, views, K_TH, np.eye(4), T_color_turntable,
+                                T_turntable_o, fixed)
     mae_fixed, _, _ = contact_scores(cm_fixed.contact, contact, cm_fixed.observed)
     assert mae_fixed <= 0.03, mae_fixed
 
@@ -161,11 +162,12 @@ def test_real_contactdb_controller_with_measured_ambient(shared_data):
     observed), so its untouched level (~0.35 in ContactDB's encoding) is all the stage can take
     for ambient; with the room temperature measured (fixed ambient) the map comes back."""
     vertices, faces, contact = _load_contactdb(shared_data, "ps_controller_textured.ply")
-    T_color_tt = look_at_turntable(distance_m=0.5, elevation_deg=30.0)
-    T_tt_o = _upside_down(vertices)
-    views = render_thermal_views(vertices, faces, contact, T_color_tt, T_tt_o, seed=2)
+    T_color_turntable = look_at_turntable(distance_m=0.5, elevation_deg=30.0)
+    T_turntable_o = _upside_down(vertices)
+    views = render_thermal_views(vertices, faces, contact, T_color_turntable, T_turntable_o, seed=2)
     cfg = BuildContactmapConfig(ambient_mode=AmbientMode.FIXED, ambient_k=AMBIENT_K)
-    cm = build_contactmap(vertices, faces, views, K_TH, np.eye(4), T_color_tt, T_tt_o, cfg)
+    cm = build_contactmap(vertices, faces, views, K_TH, np.eye(4), T_color_turntable,
+                          T_turntable_o, cfg)
     mae, iou, _ = contact_scores(cm.contact, contact, cm.observed)
     assert mae <= 0.06, mae
     assert iou >= 0.85, iou
@@ -180,36 +182,36 @@ def small_scene():
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces, np.int64)
     contact = np.clip((v[:, 0] - 0.02) / 0.02, 0, 1)
-    T_color_tt = look_at_turntable(distance_m=0.5, elevation_deg=30.0)
-    T_tt_o = make_T(np.eye(3), [0, 0, 0.05])
-    return v, f, contact, T_color_tt, T_tt_o
+    T_color_turntable = look_at_turntable(distance_m=0.5, elevation_deg=30.0)
+    T_turntable_o = make_T(np.eye(3), [0, 0, 0.05])
+    return v, f, contact, T_color_turntable, T_turntable_o
 
 
 def test_wrong_size_view_is_an_error(small_scene):
-    v, f, contact, T_color_tt, T_tt_o = small_scene
-    views = render_thermal_views(v, f, contact, T_color_tt, T_tt_o, n_views=3)
+    v, f, contact, T_color_turntable, T_turntable_o = small_scene
+    views = render_thermal_views(v, f, contact, T_color_turntable, T_turntable_o, n_views=3)
     views[1] = (views[1][0][:-10], views[1][1])
     with pytest.raises(StageError, match="thermal view 1 is 320x246"):
-        build_contactmap(v, f, views, K_TH, np.eye(4), T_color_tt, T_tt_o)
+        build_contactmap(v, f, views, K_TH, np.eye(4), T_color_turntable, T_turntable_o)
     with pytest.raises(StageError, match="expected 640x480"):
-        build_contactmap(v, f, views[:1], K_TH, np.eye(4), T_color_tt, T_tt_o,
+        build_contactmap(v, f, views[:1], K_TH, np.eye(4), T_color_turntable, T_turntable_o,
                          image_size=(640, 480))
 
 
 def test_object_nowhere_in_view_is_an_error(small_scene):
-    v, f, contact, T_color_tt, T_tt_o = small_scene
-    views = render_thermal_views(v, f, contact, T_color_tt, T_tt_o, n_views=2)
+    v, f, contact, T_color_turntable, T_turntable_o = small_scene
+    views = render_thermal_views(v, f, contact, T_color_turntable, T_turntable_o, n_views=2)
     behind = make_T(np.eye(3), [0.0, 0.0, 5.0])  # turntable 5 m below: never in the image
     with pytest.raises(StageError, match="no thermal view sees the object"):
-        build_contactmap(v, f, views, K_TH, np.eye(4), T_color_tt, behind @ T_tt_o)
+        build_contactmap(v, f, views, K_TH, np.eye(4), T_color_turntable, behind @ T_turntable_o)
 
 
 def test_views_without_object_are_only_counted(small_scene):
     """Off the platter centre the object swings out of some views: they see 0 vertices."""
-    v, f, contact, T_color_tt, _ = small_scene
-    T_tt_o = make_T(np.eye(3), [0.3, 0.0, 0.05])
-    views = render_thermal_views(v, f, contact, T_color_tt, T_tt_o, n_views=8)
-    cm = build_contactmap(v, f, views, K_TH, np.eye(4), T_color_tt, T_tt_o)
+    v, f, contact, T_color_turntable, _ = small_scene
+    T_turntable_o = make_T(np.eye(3), [0.3, 0.0, 0.05])
+    views = render_thermal_views(v, f, contact, T_color_turntable, T_turntable_o, n_views=8)
+    cm = build_contactmap(v, f, views, K_TH, np.eye(4), T_color_turntable, T_turntable_o)
     assert (cm.per_view_visible == 0).any() and (cm.per_view_visible > 0).sum() >= 2
     mae, _, _ = contact_scores(cm.contact, contact, cm.observed)
     assert mae <= 0.06, mae
@@ -217,40 +219,41 @@ def test_views_without_object_are_only_counted(small_scene):
 
 def test_one_bad_view_cannot_dominate(small_scene):
     """A view whose pixels are all hot (a reflection, a wrong frame) is outvoted."""
-    v, f, contact, T_color_tt, T_tt_o = small_scene
-    views = render_thermal_views(v, f, contact, T_color_tt, T_tt_o, n_views=12)
+    v, f, contact, T_color_turntable, T_turntable_o = small_scene
+    views = render_thermal_views(v, f, contact, T_color_turntable, T_turntable_o, n_views=12)
     views[0] = (views[0][0] + 3.0, views[0][1])
-    cm = build_contactmap(v, f, views, K_TH, np.eye(4), T_color_tt, T_tt_o)
+    cm = build_contactmap(v, f, views, K_TH, np.eye(4), T_color_turntable, T_turntable_o)
     mae, iou, _ = contact_scores(cm.contact, contact, cm.observed)
     assert mae <= 0.06 and iou >= 0.85, (mae, iou)
 
 
 def test_all_ambient_scan_is_a_flag(small_scene):
-    v, f, _, T_color_tt, T_tt_o = small_scene
-    views = render_thermal_views(v, f, np.zeros(len(v)), T_color_tt, T_tt_o, n_views=4)
-    cm = build_contactmap(v, f, views, K_TH, np.eye(4), T_color_tt, T_tt_o)
+    v, f, _, T_color_turntable, T_turntable_o = small_scene
+    views = render_thermal_views(v, f, np.zeros(len(v)), T_color_turntable, T_turntable_o,
+                                 n_views=4)
+    cm = build_contactmap(v, f, views, K_TH, np.eye(4), T_color_turntable, T_turntable_o)
     assert cm.all_ambient
     assert np.all(cm.contact == 0) and cm.observed.any()
     assert abs(cm.ambient_k - AMBIENT_K) < 0.05
 
 
 def test_degenerate_faces_are_skipped(small_scene):
-    v, f, contact, T_color_tt, T_tt_o = small_scene
-    views = render_thermal_views(v, f, contact, T_color_tt, T_tt_o, n_views=6)
-    clean = build_contactmap(v, f, views, K_TH, np.eye(4), T_color_tt, T_tt_o)
+    v, f, contact, T_color_turntable, T_turntable_o = small_scene
+    views = render_thermal_views(v, f, contact, T_color_turntable, T_turntable_o, n_views=6)
+    clean = build_contactmap(v, f, views, K_TH, np.eye(4), T_color_turntable, T_turntable_o)
     # Zero-area faces: a repeated index and three collinear vertices of one edge.
     a, b = f[0, 0], f[0, 1]
     v2 = np.vstack([v, (v[a] + v[b]) / 2])
     extra = np.array([[a, a, b], [a, b, len(v)], [b, b, b]])
     f2 = np.vstack([f, extra])
-    cm = build_contactmap(v2, f2, views, K_TH, np.eye(4), T_color_tt, T_tt_o)
+    cm = build_contactmap(v2, f2, views, K_TH, np.eye(4), T_color_turntable, T_turntable_o)
     assert cm.n_degenerate_faces == 3
     assert np.abs(cm.contact[: len(v)] - clean.contact).max() < 1e-6
     assert not cm.observed[len(v)]  # the vertex on degenerate faces only has no normal
     normals, n_bad = vertex_normals(v2, f2)
     assert n_bad == 3 and np.allclose(np.linalg.norm(normals[: len(v)], axis=1), 1.0)
     with pytest.raises(StageError, match="index vertices"):
-        build_contactmap(v, f + len(v), views, K_TH, np.eye(4), T_color_tt, T_tt_o)
+        build_contactmap(v, f + len(v), views, K_TH, np.eye(4), T_color_turntable, T_turntable_o)
 
 
 def test_weighted_median():

@@ -364,12 +364,13 @@ def test_depth_links_sharpen_the_cameras_on_a_rig_session(rig_session):
 
     d, kp, K, depth, truth = rig_session
     onset = int(truth["steady_from"])
-    T_c_tt = np.asarray(load_session(d).manifest.turntable.T_color_turntable, dtype=float)
+    T_color_turntable = np.asarray(load_session(d).manifest.turntable.T_color_turntable,
+                                   dtype=float)
     errors = {}
     for enabled in (False, True):
         cfg = ReconstructConfig(depth_links=DepthLinkConfig(enabled=enabled))
         rec = reconstruct_hand(kp, K, onset, depth, np.asarray(SURFACE_OFFSET_M), cfg,
-                               T_color_turntable=T_c_tt)  # fmt: skip
+                               T_color_turntable=T_color_turntable)  # fmt: skip
         ev = evaluate(d, {"steady_from": onset, "joints_w": rec.joints_w, "T_w_c": rec.T_w_c})
         errors[enabled] = (ev["camera_rot_deg"], ev["camera_trans_mm"], ev["joints_mpjpe_mm"])
         assert (len(rec.diagnostics.depth_links) > len(kp) - onset) == enabled

@@ -36,16 +36,16 @@ def _scene():
     return (obj.vertices, obj.faces), (table.vertices, table.faces)
 
 
-def _T_c_tt():
+def _T_color_turntable():
     """Camera 0.7 m from the table centre, looking down at 40 deg."""
     a = np.radians(40.0)
-    R_c_tt = np.array([[1.0, 0.0, 0.0], [0.0, -np.sin(a), -np.cos(a)],
+    R_color_turntable = np.array([[1.0, 0.0, 0.0], [0.0, -np.sin(a), -np.cos(a)],
                        [0.0, np.cos(a), -np.sin(a)]])  # fmt: skip
-    return make_T(R_c_tt, np.array([0.0, 0.0, 0.7]))
+    return make_T(R_color_turntable, np.array([0.0, 0.0, 0.7]))
 
 
-def _depth(obj, table, T_c_o, T_c_tt):
-    hits = render([obj, table], [T_c_o, T_c_tt], K, W, H)
+def _depth(obj, table, T_c_o, T_color_turntable):
+    hits = render([obj, table], [T_c_o, T_color_turntable], K, W, H)
     return np.round(hits.depth_m.astype(float), 3)  # millimetre PNGs
 
 
@@ -53,7 +53,7 @@ def _depth(obj, table, T_c_o, T_c_tt):
 def frames():
     """Object ~0.09 m above the table, 0.56 m from the camera; frame i moved by M_i."""
     obj, table = _scene()
-    T_c_tt = _T_c_tt()
+    T_color_turntable = _T_color_turntable()
     T_c_o0 = make_T(np.eye(3), np.array([0.0, 0.0, 0.56]))
     T_c_o0[:3, :3] = from_rotvec(np.array([0.3, 0.5, 0.1]), np.zeros(3))[:3, :3]
     rng = np.random.default_rng(3)
@@ -61,32 +61,34 @@ def frames():
     for _ in range(3):
         M = from_rotvec(rng.normal(0, np.radians(4.0), 3), rng.normal(0, 0.01, 3))
         T_c_o.append(M @ T_c_o0)
-    depth = [_depth(obj, table, T, T_c_tt) for T in T_c_o]
+    depth = [_depth(obj, table, T, T_color_turntable) for T in T_c_o]
     centre = [T[:3, 3] for T in T_c_o]
-    return depth, centre, np.stack(T_c_o), T_c_tt
+    return depth, centre, np.stack(T_c_o), T_color_turntable
 
 
 def _clouds(frames, with_table_cut=True):
-    depth, centre, _, T_c_tt = frames
+    depth, centre, _, T_color_turntable = frames
     return [
         surface_cloud(d, K, c, radius_m=0.15, stride_px=3,
-                      T_color_turntable=T_c_tt if with_table_cut else None, min_height_m=0.015)
+                      T_color_turntable=T_color_turntable if with_table_cut else None,
+                      min_height_m=0.015)
         for d, c in zip(depth, centre, strict=True)
     ]  # fmt: skip
 
 
 def test_surface_cloud_cuts_the_table_and_faces_the_camera(frames):
     clouds = _clouds(frames)
-    _, _, _, T_c_tt = frames
+    _, _, _, T_color_turntable = frames
     for c in clouds:
         assert c is not None and len(c.points) > 500
-        height = c.points @ inv_T(T_c_tt)[2, :3] + inv_T(T_c_tt)[2, 3]
+        height = c.points @ inv_T(T_color_turntable)[2, :3] + inv_T(T_color_turntable)[2, 3]
         assert height.min() > 0.015
         np.testing.assert_allclose(np.linalg.norm(c.normals, axis=1), 1.0, atol=1e-9)
         assert np.all(np.sum(c.normals * c.points, axis=1) < 0)
         assert c.index.max() == len(c.points) - 1
     uncut = _clouds(frames, with_table_cut=False)[0].points
-    on_table = np.abs(uncut @ inv_T(T_c_tt)[2, :3] + inv_T(T_c_tt)[2, 3]) < 0.005
+    T_turntable_color = inv_T(T_color_turntable)
+    on_table = np.abs(uncut @ T_turntable_color[2, :3] + T_turntable_color[2, 3]) < 0.005
     assert on_table.sum() > 100  # the table was in the sphere, and the cut removed it
 
 

@@ -103,13 +103,14 @@ def test_reconstruct_hand_is_the_same_with_the_second_thread_on_and_off():
         for j, (u, v) in enumerate(np.rint(true_uv).astype(int)):
             if 2 <= u < W - 2 and 2 <= v < H - 2:
                 frames[f, v - 2 : v + 3, u - 2 : u + 3] = video.skin_depth_m[f, j]
-    T_c_tt = np.diag([1.0, -1.0, -1.0, 1.0])
-    T_c_tt[2, 3] = 5.0  # the platter 5 m away, its up axis towards the camera: nothing cut
+    T_color_turntable = np.diag([1.0, -1.0, -1.0, 1.0])
+    T_color_turntable[2, 3] = 5.0  # the platter 5 m away, up towards the camera: nothing cut
     out = []
     for prefetch in (False, True):
         cfg = ReconstructConfig(prefetch_depth=prefetch)
         out.append(reconstruct_hand(video.keypoints, video.K, video.steady_from, frames,
-                                    video.surface_offset_m, cfg, T_color_turntable=T_c_tt))
+                                    video.surface_offset_m, cfg,
+                                    T_color_turntable=T_color_turntable))
     a, b = out
     assert np.array_equal(a.joints_w, b.joints_w)
     assert np.array_equal(a.T_w_c, b.T_w_c, equal_nan=True)

@@ -11,8 +11,10 @@ import pytest
 from graspcap.tasks.keypoints.detect_keypoints import (
     Backend,
     DetectKeypointsConfig,
+    Keypoints2D,
     detect_keypoints,
     track_hands,
+    why_missing,
 )
 from graspcap.tasks.session.load_session import load_session
 from tests.session_factory import write_session
@@ -118,3 +120,18 @@ def test_backend_is_chosen_from_the_manifest(tmp_path):
     assert choose_backend(bare, CONFIG) is Backend.MEDIAPIPE
     with pytest.raises(StageError, match="needs grasp.keypoints"):
         choose_backend(bare, DetectKeypointsConfig(backend=Backend.OPENPOSE_JSON))
+
+
+def test_why_missing_is_the_summary_and_empty_for_an_older_result():
+    kp = np.zeros((6, 21, 3))
+    kp[:2, :, 2] = 0.9
+    result = Keypoints2D(kp, Backend.OPENPOSE_JSON, hand="right", other_hand_frames=(3, 4))
+    assert why_missing(result) == result.missing_summary()
+    assert why_missing(result).startswith("of 6 frames, 2 have a right hand detected; 2 hold "
+                                          "only the other hand")
+    assert why_missing(Keypoints2D(kp, Backend.OPENPOSE_JSON, hand="right")) == ""
+
+    class Cached:  # a result pickled before Keypoints2D had missing_summary
+        keypoints = kp
+
+    assert why_missing(Cached()) == ""

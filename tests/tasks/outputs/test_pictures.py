@@ -21,6 +21,7 @@ from graspcap.tasks.outputs.pictures import (
     Background,
     contact_picture,
     keypoints_picture,
+    model_keypoints,
     pictures,
     read_frame,
 )
@@ -143,3 +144,22 @@ def test_contact_picture_with_the_hand_adds_a_row_in_skin_colour(sphere):
 
     assert skin_like(top).mean() < 0.01  # the top row is the object alone
     assert skin_like(bottom).mean() > 0.05  # the hand shows in the bottom row
+
+
+def test_model_keypoints_projects_the_hand_into_the_frames_camera():
+    """Joints 1 m ahead of frame 12's camera (moved 0.1 m along x) land where K puts them; the
+    outliers are that camera's rejected observations; a frame without a camera is an error."""
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+    T_w_c = np.stack([np.eye(4)] * 3)
+    T_w_c[1, 0, 3] = 0.1
+    inlier = np.ones((3, 21), bool)
+    inlier[1, [2, 5]] = False
+    joints_w = np.zeros((21, 3))
+    joints_w[:, 2] = 1.0
+    joints_w[:, 0] = np.linspace(-0.1, 0.1, 21)
+    px, outlier = model_keypoints(K, 12, np.array([10, 12, 14]), T_w_c, inlier, joints_w)
+    np.testing.assert_allclose(px[:, 0], 50 + 100 * (joints_w[:, 0] - 0.1))
+    np.testing.assert_allclose(px[:, 1], 40.0)
+    assert np.flatnonzero(outlier).tolist() == [2, 5]
+    with pytest.raises(ValueError, match="frame 11 has no camera"):
+        model_keypoints(K, 11, np.array([10, 12, 14]), T_w_c, inlier, joints_w)

@@ -358,3 +358,23 @@ def test_long_lists_of_missing_frames_are_capped(tmp_path):
     assert len(problems) == 21
     assert problems[-1].file == "grasp/color/{index:06d}.jpg"
     assert problems[-1].message == "9 more frames missing"
+
+
+def test_stage_inputs_read_from_the_session(session_dir):
+    """What the pipeline's glue hands the stages: intrinsics, turntable, the mesh, depth."""
+    session = load_session(session_dir)
+    np.testing.assert_array_equal(session.color_K,
+                                  [[70.0, 0, 40.0], [0, 70.0, 30.0], [0, 0, 1]])
+    assert session.color_K.dtype == float
+    T = session.T_color_turntable
+    assert T.shape == (4, 4) and T.dtype == float
+    np.testing.assert_allclose(T[:3, 3], [0.0, 0.1, 0.6])
+    assert session.mesh_name == "object_mesh object.ply"
+    V, F = session.read_mesh()
+    assert V.shape == (8, 3) and V.dtype == float and F.shape == (12, 3) and F.dtype == np.int64
+    np.testing.assert_allclose(V[1], [-0.03, -0.03, 0.06])  # file order, not re-sorted
+    read = session.grasp_depth_reader(cached_frames=2)
+    np.testing.assert_array_equal(read(3), session.read_depth_m(session.grasp_path("depth", 3)))
+    assert read(3) is read(3)  # kept
+    read(0), read(1)
+    assert read.cache_info().currsize == 2

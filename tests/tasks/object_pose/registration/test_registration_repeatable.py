@@ -64,7 +64,7 @@ def mug_stage1(tmp_path_factory):
     s = pipeline.run_stage(
         pipeline.STAGES["load_session"], d, pipeline.configs_for()["load_session"], {}
     )
-    V, F = pipeline.read_mesh(s)
+    V, F = s.read_mesh()
     return {
         "depth": s.read_depth_m(s.manifest.stage1.depth),
         "K": np.asarray(s.manifest.color_camera.K, float),

@@ -1,11 +1,11 @@
-"""pipeline.depth_lookup: the median of the non-zero depth in a window around each pixel,
+"""metric_scale.depth_lookup: the median of the non-zero depth in a window around each pixel,
 checked against a plain per-pixel loop (windows clipped at the border, no depth -> 0)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from graspcap.tasks.pipeline import depth_lookup
+from graspcap.tasks.hand_sfm.metric_scale import depth_lookup
 
 
 def _reference(depth: np.ndarray, uv: np.ndarray, window_px: int) -> np.ndarray:
@@ -30,8 +30,8 @@ def test_matches_a_per_pixel_loop():
         [[15, 15], [0, 0], [63, 47], [64, 47], [-0.4, 3], [63.6, 10]],
     ])  # fmt: skip
     for window_px in (0, 2, 3):
-        got = depth_lookup(None, window_px, read=lambda _: depth)(0, uv)
+        got = depth_lookup(lambda _: depth, window_px)(0, uv)
         np.testing.assert_array_equal(got, _reference(depth, uv, window_px))
-    got = depth_lookup(None, 2, read=lambda _: depth)(0, uv)
+    got = depth_lookup(lambda _: depth, 2)(0, uv)
     assert got[-6] == 0.0 and got[-3] == 0.0  # inside the hole; outside the image
     assert (got > 0).sum() > 1000
