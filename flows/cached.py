@@ -4,10 +4,13 @@ The cache key of a stage run is ours, not Prefect's::
 
     key = sha256(stage.version, config.digest(),
                  digests of the bytes of the session files in ``stage.reads``,
+                 code digest (``flows/code_digest.py``: the AST of every graspcap module on
+                 the stage's import path and its glue, versions of computing libraries),
                  content digests of the upstream results)
 
-so a changed algorithm (its ``STAGE_VERSION``), a changed parameter, a changed input file or a
-changed upstream result each give a new key, and nothing else does. On a hit the stored
+so a changed algorithm (its code, or its ``STAGE_VERSION`` for what the code cannot show), a
+changed library, a changed parameter, a changed input file or a changed upstream result each
+give a new key, and nothing else does. On a hit the stored
 :class:`ResultRef` is returned and no stage body runs; on a miss the stage runs, its result is
 stored and every attempt is appended to ``executions.jsonl``.
 
@@ -29,6 +32,7 @@ from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
 
+from graspcap.flows.code_digest import stage_code
 from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.schemas.session import DEFAULT_LIMITS, SESSION_ID_RE, SessionManifest
 from graspcap.tasks.core.config import StageConfig
@@ -107,10 +111,10 @@ def session_id_of(session_dir: Path) -> str:
 
 
 def stage_key(version: str, config: StageConfig, reads_digest: str,
-              upstream: Mapping[str, ResultRef]) -> str:
+              upstream: Mapping[str, ResultRef], code_digest: str = "") -> str:
     """The cache key of one stage run (module docstring)."""
     h = hashlib.sha256()
-    for part in (version, config.digest(), reads_digest):
+    for part in (version, config.digest(), reads_digest, code_digest):
         h.update(part.encode())
         h.update(b"\0")
     for name in sorted(upstream):
@@ -170,7 +174,7 @@ def cache_key(stage_name: str, session_dir: Path | str, config: StageConfig,
     try:
         return stage_key(stage.version, config,
                          reads_digest(work, files, stage.reads, role_digests),
-                         {k: upstream[k] for k in stage.upstream})
+                         {k: upstream[k] for k in stage.upstream}, stage_code(stage).digest)
     except OSError:  # missing, not a regular file, a symlink loop: load_session says which
         return None
 
