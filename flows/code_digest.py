@@ -31,7 +31,7 @@ import json
 import sys
 import threading
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from types import ModuleType
 
@@ -85,7 +85,7 @@ def ast_digest(tree: ast.AST) -> str:
         ast.dump(_strip_docstrings(tree), include_attributes=False).encode()).hexdigest()
 
 
-@lru_cache(maxsize=None)
+@cache
 def _parsed(name: str) -> tuple[ast.Module, bool] | None:
     """The AST of module ``name`` and whether it is a package; None when it has no source."""
     spec = importlib.util.find_spec(name)
@@ -94,7 +94,7 @@ def _parsed(name: str) -> tuple[ast.Module, bool] | None:
     return ast.parse(Path(spec.origin).read_bytes()), spec.submodule_search_locations is not None
 
 
-@lru_cache(maxsize=None)
+@cache
 def _module_digest(name: str) -> str:
     parsed = _parsed(name)
     return "no-source" if parsed is None else ast_digest(parsed[0])
@@ -105,7 +105,7 @@ def module_digest(name: str) -> str:
     return _OVERRIDES.get(name) or _module_digest(name)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _is_module(name: str) -> bool:
     try:
         return importlib.util.find_spec(name) is not None
@@ -122,7 +122,7 @@ def _resolve(base: str, is_package: bool, node: ast.ImportFrom) -> str:
     return ".".join(parts + ([node.module] if node.module else []))
 
 
-@lru_cache(maxsize=None)
+@cache
 def _imports(name: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """The ``graspcap`` modules and the top-level third-party names module ``name`` imports
     (anywhere in it), sorted."""
