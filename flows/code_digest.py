@@ -85,13 +85,19 @@ def ast_digest(tree: ast.AST) -> str:
         ast.dump(_strip_docstrings(tree), include_attributes=False).encode()).hexdigest()
 
 
-@cache
-def _parsed(name: str) -> tuple[ast.Module, bool] | None:
-    """The AST of module ``name`` and whether it is a package; None when it has no source."""
+def _source(name: str) -> tuple[bytes, bool] | None:
+    """The source of module ``name`` and whether it is a package; None when it has none."""
     spec = importlib.util.find_spec(name)
     if spec is None or not spec.origin or not spec.origin.endswith(".py"):
         return None
-    return ast.parse(Path(spec.origin).read_bytes()), spec.submodule_search_locations is not None
+    return Path(spec.origin).read_bytes(), spec.submodule_search_locations is not None
+
+
+@cache
+def _parsed(name: str) -> tuple[ast.Module, bool] | None:
+    """The AST of module ``name`` and whether it is a package; None when it has no source."""
+    found = _source(name)
+    return None if found is None else (ast.parse(found[0]), found[1])
 
 
 @cache

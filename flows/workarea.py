@@ -102,6 +102,8 @@ class WorkArea:
     _MEMO_MAX = 200_000
     _swept: set[Path] = set()
     """Roots whose stale temporary files this process has removed."""
+    readonly: bool = False
+    """True for :meth:`reader`: nothing is written (a build plan writes nothing)."""
 
     def __init__(self, root: Path | str):
         self.root = Path(root).expanduser().resolve()
@@ -112,6 +114,16 @@ class WorkArea:
         if self.root not in self._swept:
             self._swept.add(self.root)
             self.remove_stale_temp()
+
+    @classmethod
+    def reader(cls, root: Path | str) -> WorkArea:
+        """The work area at ``root`` opened to read only: no folder is made, no temporary file
+        swept, no digest remembered on disk (``graspcap build --plan``)."""
+        work = cls.__new__(cls)
+        work.root = Path(root).expanduser().resolve()
+        work._digest_index = work.root / "digests"
+        work.readonly = True
+        return work
 
     def remove_stale_temp(self) -> list[Path]:
         """Delete the temporary files of writers that are gone (killed builds); return them."""
@@ -168,7 +180,7 @@ class WorkArea:
             digest = sha256_file(Path(path))
             if time.time_ns() - st.st_mtime_ns < RACY_S * 1e9:
                 return digest  # may change again within the same mtime tick: not remembered
-            if big:
+            if big and not self.readonly:
                 _atomic_write(memo, digest.encode())
         if len(self._memo) >= self._MEMO_MAX:
             self._memo.clear()
@@ -275,6 +287,25 @@ class WorkArea:
 
     def _failure_path(self, stage: str, key: str) -> Path:
         return self.root / "results" / stage / f"{key}.failed.json"
+
+    # --- key manifests: what the latest key of (stage, session) was made of ----------------
+    def save_manifest(self, stage: str, session_id: str, record: dict) -> None:
+        """Remember the key manifest of the latest run of ``stage`` for ``session_id`` (key,
+        parts, ok, build): what the next plan diffs the current parts against. The file is
+        named by a digest of the id (ids never reach a path)."""
+        _atomic_write(self._manifest_path(stage, session_id), canonical_json(record).encode())
+
+    def latest_manifest(self, stage: str, session_id: str) -> dict | None:
+        """The key manifest :meth:`save_manifest` last stored for (stage, session), or None."""
+        try:
+            record = json.loads(self._manifest_path(stage, session_id).read_text())
+        except (OSError, ValueError):
+            return None
+        return record if isinstance(record, dict) else None
+
+    def _manifest_path(self, stage: str, session_id: str) -> Path:
+        name = hashlib.sha256(session_id.encode()).hexdigest()[:32]
+        return self.root / "results" / stage / "latest" / f"{name}.json"
 
     # --- the side channel of executions -----------------------------------------------------
     def record_execution(self, **fields: Any) -> None:

@@ -93,6 +93,11 @@ BUILD_EXIT_CODES = """exit status:
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
+    if args.plan:
+        from graspcap.flows.plan import run_plan
+
+        return run_plan(args.roots, args.catalog, args.preset, retry_failed=args.retry_failed,
+                        settings=args.settings)
     from graspcap.flows.commands import run_build
 
     return run_build(args.roots, args.catalog, args.preset, dask=args.dask,
@@ -168,6 +173,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run on a Dask scheduler, or a local cluster of N worker processes")
     p.add_argument("--retry-failed", action="store_true",
                    help="re-run only the sessions that failed in the last build")
+    p.add_argument("--plan", action="store_true",
+                   help="run and write nothing: print per session and stage whether the build "
+                        "would use the cache or run, and why (changed file, config field, "
+                        "code module, library, upstream, failed last time)")
     p.set_defaults(func=_cmd_build)
 
     p = sub.add_parser("status", help="recent builds, failures with reasons, stage runs")

@@ -1,0 +1,160 @@
+# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
+"""Code in the cache key and ``graspcap build --plan``, with real Prefect builds and counted
+stage executions (not timing).
+
+A changed helper module is simulated by handing the code digest an edited copy of its source
+(``code_digest._source`` patched for that one module): the digest is computed from that text
+exactly as from the file, and the installed tree, which other tests and engineers share, is
+never edited. Because the module that actually runs is unchanged, the re-run stages produce
+byte-identical results, so their downstream stages are cache hits again (early cutoff): the
+executions are exactly the stages whose own key changed, while the plan, which cannot know a
+result before it is computed, lists the downstream stages as "upstream changed"."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from graspcap.flows import code_digest
+from graspcap.flows.build import build_dataset
+from graspcap.flows.plan import plan_build
+from tests.flow_fixtures import (  # noqa: F401
+    PRESET,
+    copy_catalog,
+    executions,
+    prefect_harness,
+    synth_root,
+    warm,
+)
+
+HELPER = "graspcap.tasks.object_pose.registration.engine"
+
+
+def _ids(root: Path) -> list[str]:
+    return sorted(json.loads(p.read_text())["session_id"] for p in root.glob("*/session.json"))
+
+
+def _importers(module: str) -> set[str]:
+    from graspcap.tasks.pipeline import STAGES
+
+    return {n for n, s in STAGES.items() if module in dict(code_digest.stage_code(s).modules)}
+
+
+def _downstream(of: set[str]) -> set[str]:
+    from graspcap.tasks.pipeline import STAGES
+
+    out = set(of)
+    for name, stage in STAGES.items():  # topological order
+        if out & set(stage.upstream):
+            out.add(name)
+    return out
+
+
+def _tree(root: Path) -> dict[str, tuple[int, int]]:
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in root.rglob("*")}
+
+
+@pytest.fixture
+def edited_source(monkeypatch):
+    """``edit(module, change)``: the code digest sees ``change(source)`` for ``module``."""
+    real = code_digest._source
+
+    def edit(module: str, change) -> None:
+        def source(name: str):
+            found = real(name)
+            return (change(found[0]), found[1]) if name == module and found else found
+
+        monkeypatch.setattr(code_digest, "_source", source)
+        code_digest.forget()
+
+    yield edit
+    monkeypatch.undo()
+    code_digest._OVERRIDES.clear()
+    code_digest.forget()
+
+
+def test_plan_of_an_unchanged_catalog_is_all_cached_and_writes_nothing(warm, synth_root,
+                                                                       tmp_path, capsys):
+    from graspcap.cli import main
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    before = _tree(catalog)
+    assert main(["build", str(synth_root), "--catalog", str(catalog), "--preset", PRESET,
+                 "--plan"]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[-1].startswith("plan: all cached (28 stages of 2 sessions)")
+    assert _tree(catalog) == before  # no result, digest, manifest or catalog file written
+    # a catalog that does not exist is not created: every stage runs for a new session
+    fresh = tmp_path / "none"
+    plans = plan_build([synth_root], fresh, PRESET)
+    assert not fresh.exists()
+    assert {p.action for p in plans} == {"run"}
+    assert all(("new session", "") in p.reasons for p in plans)
+
+
+def test_changed_helper_reruns_its_family_and_the_plan_names_it(warm, synth_root, tmp_path,
+                                                                edited_source):
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    family = _importers(HELPER)
+    assert family == {"register_object", "register_scan", "estimate_adjustment"}
+    edited_source(HELPER, lambda src: src + b"\n_CHANGED_BODY = 1\n")
+    plans = plan_build([synth_root], catalog, PRESET)
+    named = {(p.session_id, p.stage) for p in plans if ("changed code", HELPER) in p.reasons}
+    ids = _ids(synth_root)
+    assert named == {(s, st) for s in ids for st in family}
+    assert {(p.session_id, p.stage) for p in plans if p.action == "run"} == {
+        (s, st) for s in ids for st in _downstream(family)}
+    build_dataset([synth_root], catalog, PRESET, build_id="helper")
+    assert executions(catalog, "helper") == sorted((s, st) for s in ids for st in family)
+    recs = [json.loads(x) for x in (catalog / "work" / "executions.jsonl").read_text()
+            .splitlines() if '"helper"' in x]
+    assert {tuple(r["why"]) for r in recs} == {(f"changed code: {HELPER}",)}
+    # and now the plan is all cached again
+    assert {p.action for p in plan_build([synth_root], catalog, PRESET)} == {"cached"}
+
+
+def test_docstring_only_change_reruns_nothing(warm, synth_root, tmp_path, edited_source):
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    edited_source(HELPER, lambda src: src.replace(b'"""', b'"""Reworded. ', 1)
+                  + b"\n# a comment\n")
+    assert {p.action for p in plan_build([synth_root], catalog, PRESET)} == {"cached"}
+    build_dataset([synth_root], catalog, PRESET, build_id="doc")
+    assert executions(catalog, "doc") == []
+
+
+def test_faked_open3d_upgrade_reruns_the_stages_that_import_it(warm, synth_root, tmp_path,
+                                                               edited_source):
+    from graspcap.tasks.pipeline import STAGES
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    users = {n for n, s in STAGES.items() if "open3d" in dict(code_digest.stage_code(s).libraries)}
+    assert "register_object" in users and "fit_hand" not in users
+    real = code_digest.library_version("open3d")
+    code_digest.override("lib:open3d", "0.0-fake")
+    plans = plan_build([synth_root], catalog, PRESET)
+    why = ("changed library", f"open3d {real} -> 0.0-fake")
+    ids = _ids(synth_root)
+    assert {(p.session_id, p.stage) for p in plans if why in p.reasons} == {
+        (s, st) for s in ids for st in users}
+    build_dataset([synth_root], catalog, PRESET, build_id="o3d")
+    assert executions(catalog, "o3d") == sorted((s, st) for s in ids for st in users)
+
+
+def test_plan_says_which_file_and_config_field_changed(warm, synth_root, tmp_path):
+    """A changed config field is named by the plan (which runs and writes nothing)."""
+    from graspcap.tasks.pipeline import configs_for
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    before = _tree(catalog)
+    cfg = configs_for(PRESET)["register_scan"]
+    name, value = next((k, v) for k, v in cfg.model_dump().items()
+                       if isinstance(v, float) and v != 0)
+    plans = plan_build([synth_root], catalog, PRESET,
+                       overrides={"register_scan": {name: value * 1.1}})
+    scan = [p for p in plans if p.stage == "register_scan"]
+    assert {p.reasons for p in scan} == {(("changed config", name),)}
+    assert {p.action for p in plans if p.stage in ("register_object", "fit_hand")} == {"cached"}
+    assert _tree(catalog) == before
