@@ -34,7 +34,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from graspcap.flows.code_digest import stage_code
-from graspcap.flows.workarea import ResultRef, WorkArea
+from graspcap.flows.workarea import RACY_S, ResultRef, WorkArea
 from graspcap.schemas.session import DEFAULT_LIMITS, SESSION_ID_RE, SessionManifest
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
@@ -148,13 +148,54 @@ def reads_digest(work: WorkArea, files: Mapping[str, list[Path]], roles: tuple[s
     h = hashlib.sha256()
     for role in roles:
         if role_digests is None or role not in role_digests:
-            digest = work.files_digest(_regular(list(files.get(role, []))))
+            paths = _regular(list(files.get(role, [])))
+            digest = (work.files_digest(paths) if role != MANIFEST_ROLE else _digest_of(
+                [(str(p), manifest_digest(work, p)) for p in paths]))
             if role_digests is not None:
                 role_digests[role] = digest
         else:
             digest = role_digests[role]
         h.update(f"{role}:{digest}\0".encode())
     return h.hexdigest()
+
+
+MANIFEST_ROLE = "manifest"
+"""The role of ``session.json``: digested by meaning (:func:`manifest_digest`), not bytes."""
+_MANIFEST_DIGESTS: OrderedDict[str, str] = OrderedDict()
+
+
+def _digest_of(pairs: list[tuple[str, str]]) -> str:
+    h = hashlib.sha256()
+    for name, digest in pairs:
+        h.update(name.encode())
+        h.update(digest.encode())
+    return h.hexdigest()
+
+
+def manifest_digest(work: WorkArea, path: Path) -> str:
+    """sha256 of ``session.json`` as canonical JSON (keys sorted, no whitespace), so
+    re-indenting or re-ordering it changes no key; its byte digest when it does not parse
+    (then ``load_session`` reports why). Remembered by (path, size, mtime_ns, inode)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return work.file_digest(path)
+    ident = f"{os.path.abspath(path)}|{st.st_size}|{st.st_mtime_ns}|{st.st_ino}"
+    with _FILES_LOCK:
+        if (found := _MANIFEST_DIGESTS.get(ident)) is not None:
+            return found
+    raw = load_json(Path(path), DEFAULT_LIMITS.max_manifest_bytes, DEFAULT_LIMITS.max_json_depth)
+    if isinstance(raw, JsonSyntaxError):
+        return work.file_digest(path)
+    digest = hashlib.sha256(("json:" + json.dumps(
+        raw, sort_keys=True, separators=(",", ":"), ensure_ascii=False)).encode()).hexdigest()
+    if time.time_ns() - st.st_mtime_ns < RACY_S * 1e9:
+        return digest  # may change again within the same mtime tick: not remembered
+    with _FILES_LOCK:
+        _MANIFEST_DIGESTS[ident] = digest
+        while len(_MANIFEST_DIGESTS) > _FILES_MAX:
+            _MANIFEST_DIGESTS.popitem(last=False)
+    return digest
 
 
 def cache_key(stage_name: str, session_dir: Path | str, config: StageConfig,
@@ -199,7 +240,8 @@ def key_parts(stage_name: str, session_dir: Path | str, config: StageConfig,
         return None
     base = Path(session_dir).resolve()
     try:
-        by_role = {role: {_relative(p, base): work.file_digest(p)
+        by_role = {role: {_relative(p, base): (manifest_digest(work, p) if role == MANIFEST_ROLE
+                                               else work.file_digest(p))
                           for p in _regular(list(files.get(role, [])))}
                    for role in stage.reads}
     except OSError:

@@ -112,6 +112,13 @@ def test_changed_helper_reruns_its_family_and_the_plan_names_it(warm, synth_root
     recs = [json.loads(x) for x in (catalog / "work" / "executions.jsonl").read_text()
             .splitlines() if '"helper"' in x]
     assert {tuple(r["why"]) for r in recs} == {(f"changed code: {HELPER}",)}
+    # graspcap status shows why they ran: one line per session
+    from graspcap.flows.commands import status_text
+
+    why = [line.strip() for line in status_text(catalog).splitlines()
+           if line.strip().endswith(f": changed code: {HELPER}")]
+    assert len(why) == len(ids)
+    assert all(set(line[4:].partition(":")[0].split(", ")) == family for line in why), why
     # and now the plan is all cached again
     assert {p.action for p in plan_build([synth_root], catalog, PRESET)} == {"cached"}
 
@@ -158,3 +165,55 @@ def test_plan_says_which_file_and_config_field_changed(warm, synth_root, tmp_pat
     assert {p.reasons for p in scan} == {(("changed config", name),)}
     assert {p.action for p in plans if p.stage in ("register_object", "fit_hand")} == {"cached"}
     assert _tree(catalog) == before
+
+
+def _reindent(session: Path) -> None:
+    manifest = session / "session.json"
+    raw = json.loads(manifest.read_text())
+    manifest.write_text(json.dumps(dict(reversed(list(raw.items()))), indent=7) + "\n")
+
+
+def test_a_reindented_session_json_keeps_every_key(synth_root, tmp_path):
+    """session.json is digested as canonical JSON: formatting and key order change no key,
+    a changed value does."""
+    import shutil
+
+    from graspcap.flows.cached import cache_key, reads_digest, session_files
+    from graspcap.flows.workarea import WorkArea
+    from graspcap.tasks.pipeline import configs_for
+
+    session = tmp_path / "s"
+    shutil.copytree(next(p.parent for p in sorted(synth_root.glob("*/session.json"))), session)
+    work = WorkArea(tmp_path / "work")
+    config = configs_for(PRESET)["load_session"]
+
+    def keys() -> tuple:
+        files = session_files(session)
+        return (cache_key("load_session", session, config, {}, work),
+                reads_digest(work, files, ("manifest",)))
+
+    before = keys()
+    _reindent(session)
+    assert keys() == before
+    raw = json.loads((session / "session.json").read_text())
+    raw["intent"] = str(raw.get("intent")) + "-edited"
+    (session / "session.json").write_text(json.dumps(raw))
+    assert keys()[1] != before[1]
+
+
+@pytest.mark.slow
+def test_a_reindented_session_json_runs_nothing_and_makes_no_version(synth_root, tmp_path,
+                                                                     prefect_harness):
+    import shutil
+
+    root = tmp_path / "sessions"
+    for p in sorted(synth_root.glob("*/session.json")):
+        shutil.copytree(p.parent, root / p.parent.name)
+    catalog = tmp_path / "catalog"
+    assert build_dataset([root], catalog, PRESET, build_id="b1").catalog_version == 1
+    for p in sorted(root.glob("*/session.json")):
+        _reindent(p.parent)
+    assert {p.action for p in plan_build([root], catalog, PRESET)} == {"cached"}
+    report = build_dataset([root], catalog, PRESET, build_id="b2")
+    assert executions(catalog, "b2") == []
+    assert report.catalog_version is None
