@@ -217,3 +217,28 @@ def test_a_reindented_session_json_runs_nothing_and_makes_no_version(synth_root,
     report = build_dataset([root], catalog, PRESET, build_id="b2")
     assert executions(catalog, "b2") == []
     assert report.catalog_version is None
+
+
+def test_a_stored_result_of_a_renamed_class_is_a_miss_and_the_build_completes(
+        warm, synth_root, tmp_path):
+    """The stored fit_hand results name a class the code no longer has (as after a rename:
+    their records are edited to the old name): the plan says so, the build re-runs fit_hand
+    (only: its new result is byte-identical, so downstream stays cached) and completes."""
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    records = sorted((catalog / "work" / "results" / "fit_hand").glob("*[0-9a-f].json"))
+    assert len(records) == 2
+    for path in records:
+        record = json.loads(path.read_text())
+        record["types"] = {k.replace(":", ":Old", 1) if k.startswith("graspcap.tasks.hand")
+                           else k: v for k, v in record["types"].items()}
+        path.write_text(json.dumps(record))
+    plans = [p for p in plan_build([synth_root], catalog, PRESET) if p.stage == "fit_hand"]
+    assert {p.action for p in plans} == {"run"}
+    for p in plans:
+        (reason, note), = p.reasons
+        assert reason == "stored result unusable"
+        assert note.startswith("the stored fit_hand result cannot be used: its type "
+                               "graspcap.tasks.hand.") and note.endswith(" no longer exists")
+    report = build_dataset([synth_root], catalog, PRESET, build_id="renamed")
+    assert report.failed == {}
+    assert executions(catalog, "renamed") == sorted((s, "fit_hand") for s in _ids(synth_root))
