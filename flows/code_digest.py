@@ -5,7 +5,8 @@ third-party library that computes for it is upgraded. :func:`stage_code` finds b
 import graph, never from a hand list:
 
 - the stage's glue function in ``tasks/pipeline.py`` (``Stage.run``) and the module-level
-  helpers of that file it calls, transitively (``read_mesh``, ``_K``, ``final_pose`` ...): the
+  helpers and constants of that file it uses, transitively (``read_mesh``, ``_K``,
+  ``final_pose`` ...): the
   glue of one stage is attributed to that stage only, so editing another stage's glue re-runs
   nothing here; the names the glue uses that the file imports lead to modules;
 - every ``graspcap`` module reached from those, transitively through ``import`` and
@@ -178,14 +179,31 @@ def _closure(roots: set[str]) -> tuple[set[str], set[str]]:
     return seen, libs
 
 
+def _definitions(tree: ast.Module) -> dict[str, ast.AST]:
+    """The module-level functions, classes and simple assignments of a module, by name."""
+    out: dict[str, ast.AST] = {}
+    for node in tree.body:
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            out[node.name] = node
+        elif isinstance(node, ast.Assign | ast.AnnAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            for target in targets:
+                if isinstance(target, ast.Name):
+                    out[target.id] = node
+    return out
+
+
 def _glue(func) -> tuple[str, str, set[str], set[str]]:
-    """The glue function ``func`` and the module-level helpers of its file that it calls,
-    transitively: (``module:function``, digest of their ASTs, the ``graspcap`` modules and
-    third-party names its names lead to)."""
+    """The glue function ``func`` and the module-level definitions of its file that it uses
+    (helpers, constants), transitively: (``module:function``, digest of their ASTs, the
+    ``graspcap`` modules and third-party names its names lead to). A function that is not
+    defined at module level (a lambda) counts its whole module instead."""
     module: ModuleType = sys.modules[func.__module__]
     tree = _parsed(module.__name__)[0]
-    functions = {n.name: n for n in tree.body
-                 if isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef)}
+    defs = _definitions(tree)
+    glue_name = f"{module.__name__}:{func.__name__}"
+    if func.__name__ not in defs or func.__name__ == "<lambda>":
+        return glue_name, "", {module.__name__}, set()
     ours: set[str] = set()
     libs: set[str] = set()
     used: list[str] = []
@@ -195,13 +213,15 @@ def _glue(func) -> tuple[str, str, set[str], set[str]]:
         if fname in used:
             continue
         used.append(fname)
-        args = functions[fname].args  # a parameter named like a module is not that module
-        params = {a.arg for a in [*args.posonlyargs, *args.args, *args.kwonlyargs,
-                                  *filter(None, [args.vararg, args.kwarg])]}
-        for node in ast.walk(functions[fname]):
+        params: set[str] = set()
+        if isinstance(defs[fname], ast.FunctionDef | ast.AsyncFunctionDef):
+            args = defs[fname].args  # a parameter named like a module is not that module
+            params = {a.arg for a in [*args.posonlyargs, *args.args, *args.kwonlyargs,
+                                      *filter(None, [args.vararg, args.kwarg])]}
+        for node in ast.walk(defs[fname]):
             if not isinstance(node, ast.Name) or node.id in params:
                 continue
-            if node.id in functions:
+            if node.id in defs:
                 todo.append(node.id)
                 continue
             value = vars(module).get(node.id)
@@ -215,8 +235,8 @@ def _glue(func) -> tuple[str, str, set[str], set[str]]:
                 libs.add(origin.split(".")[0])
     h = hashlib.sha256()
     for fname in sorted(used):
-        h.update(f"{fname}={ast_digest(functions[fname])}\0".encode())
-    return f"{module.__name__}:{func.__name__}", h.hexdigest(), ours, libs
+        h.update(f"{fname}={ast_digest(defs[fname])}\0".encode())
+    return glue_name, h.hexdigest(), ours, libs
 
 
 def library_version(name: str) -> str:
@@ -241,9 +261,9 @@ def stage_code(stage) -> StageCode:
         roots.add(type(stage.presets["default"]).__module__)
         modules, more = _closure(roots)
         libs |= more
+        glue = [(glue_name, _OVERRIDES.get(glue_name) or glue_digest)] if glue_digest else []
         code = StageCode(
-            modules=tuple(sorted([(glue_name, _OVERRIDES.get(glue_name) or glue_digest),
-                                  *((m, module_digest(m)) for m in modules)])),
+            modules=tuple(sorted([*glue, *((m, module_digest(m)) for m in modules)])),
             libraries=tuple(sorted((lib, library_version(lib))
                                    for lib in libs if lib in COMPUTING_LIBRARIES)),
         )

@@ -100,3 +100,31 @@ def test_an_override_changes_exactly_the_stages_that_import_the_module(restore_o
     code_digest.override("lib:open3d", "99.0")
     libs = {n for n, s in STAGES.items() if "open3d" in dict(stage_code(s).libraries)}
     assert {n for n, s in STAGES.items() if stage_code(s).digest != before[n]} == libs
+
+
+def test_glue_counts_for_its_own_stage_and_a_shared_helper_for_its_users(monkeypatch,
+                                                                         restore_overrides):
+    """Edited copies of tasks/pipeline.py's source (the file itself is never touched)."""
+    real = code_digest._source
+    before = {n: stage_code(s).digest for n, s in STAGES.items()}
+
+    def changed(edit) -> set[str]:
+        def source(name):
+            found = real(name)
+            return (edit(found[0]), found[1]) if name == "graspcap.tasks.pipeline" else found
+
+        monkeypatch.setattr(code_digest, "_source", source)
+        code_digest.forget()
+        return {n for n, s in STAGES.items() if stage_code(s).digest != before[n]}
+
+    assert changed(lambda src: src.replace(b"def _pictures(session, config, **up):",
+                                           b"def _pictures(session, config, **up):\n    pass",
+                                           1)) == {"pictures"}
+    users_of_K = {n for n, s in STAGES.items()
+                  if "_K(" in __import__("inspect").getsource(s.run)}
+    k_changed = changed(lambda src: src.replace(
+        b"return np.asarray(session.manifest.color_camera.K, dtype=float)",
+        b"return np.asarray(session.manifest.color_camera.K, dtype=float) * 1", 1))
+    assert users_of_K and users_of_K <= k_changed
+    assert not k_changed & {"load_session", "detect_keypoints", "fit_hand", "qa_metrics"}
+    assert changed(lambda src: src.replace(b"# --- the DAG", b"# --- the graph", 1)) == set()
