@@ -242,3 +242,41 @@ def test_a_stored_result_of_a_renamed_class_is_a_miss_and_the_build_completes(
     report = build_dataset([synth_root], catalog, PRESET, build_id="renamed")
     assert report.failed == {}
     assert executions(catalog, "renamed") == sorted((s, "fit_hand") for s in _ids(synth_root))
+
+
+def test_plan_replays_a_remembered_failure_and_retry_failed_runs_it(warm, synth_root,
+                                                                    tmp_path, monkeypatch):
+    import dataclasses
+    import shutil
+
+    from graspcap.flows.plan import plan_text
+    from graspcap.tasks import pipeline
+    from graspcap.tasks.core.errors import StageError
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    shutil.rmtree(catalog / "work" / "results" / "fit_hand")
+    good, bad = _ids(synth_root)
+    original = pipeline.STAGES["fit_hand"]
+
+    def broken_for_one(session, config, **kw):
+        if session.session_id == bad:
+            raise StageError("fit_hand", "did not converge (injected)", session=bad)
+        return original.run(session, config, **kw)
+
+    with monkeypatch.context() as m:
+        m.setitem(pipeline.STAGES, "fit_hand", dataclasses.replace(original, run=broken_for_one))
+        assert set(build_dataset([synth_root], catalog, PRESET, build_id="half").failed) == {bad}
+    plans = {(p.session_id, p.stage): p for p in plan_build([synth_root], catalog, PRESET)}
+    assert {p.action for (s, _), p in plans.items() if s == good} == {"cached"}
+    fit = plans[(bad, "fit_hand")]
+    assert fit.action == "fails again"
+    assert fit.reasons == (("failed last time", "did not converge (injected)"),)
+    after = _downstream({"fit_hand"}) - {"fit_hand"}
+    assert {st for (s, st), p in plans.items() if s == bad and p.action == "not ready"} == after
+    text = plan_text(list(plans.values()))
+    assert text.splitlines()[-1] == (f"plan: 28 stages of 2 sessions: {28 - 1 - len(after)} "
+                                     f"cached, 0 run, 1 fails again, {len(after)} not ready")
+    retry = [p for p in plan_build([synth_root], catalog, PRESET, retry_failed=True)
+             if (p.session_id, p.stage) == (bad, "fit_hand")]
+    assert retry[0].action == "run"
+    assert ("failed last time", "did not converge (injected)") in retry[0].reasons
