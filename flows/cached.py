@@ -258,7 +258,7 @@ def _relative(path: Path, base: Path) -> str:
         return str(path)
 
 
-REASONS = ("new session", "changed input file", "changed config", "changed code",
+REASONS = ("new session", "not run before", "changed input file", "changed config", "changed code",
            "changed library", "changed stage version", "upstream changed", "failed last time",
            "stored result unusable", "stored result gone")
 """The reasons a plan gives for a stage that runs, in the order its summary counts them."""
@@ -389,6 +389,13 @@ def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config
     return ref
 
 
+def first_run(work: WorkArea, session_id: str) -> tuple[str, str]:
+    """Why a stage with no key manifest for ``session_id`` runs: "new session", or "not run
+    before" when the session's ``load_session`` ran (an upstream failed until now)."""
+    seen = work.latest_manifest("load_session", session_id) is not None
+    return ("not run before", "") if seen else ("new session", "")
+
+
 def run_reasons(work: WorkArea, stage_name: str, session_id: str, key: str | None,
                 parts: dict | None, replay_failures: bool = True) -> list[tuple[str, str]]:
     """Why ``stage_name`` must run for ``session_id`` under ``key`` (its result is not held):
@@ -404,7 +411,7 @@ def run_reasons(work: WorkArea, stage_name: str, session_id: str, key: str | Non
         out.append(("failed last time", str(failure.get("reason", ""))))
     latest = work.latest_manifest(stage_name, session_id)
     if latest is None:
-        return out or [("new session", "")]
+        return out or [first_run(work, session_id)]
     if latest.get("key") != key:
         out += diff_parts(latest.get("parts") or {}, parts)
     if not out:

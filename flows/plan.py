@@ -11,8 +11,9 @@ the upstream results the work area holds, and says:
 - ``run``: and why (:data:`~graspcap.flows.cached.REASONS`), from a diff of the key's parts
   against the key manifest of the stage's latest run for that session: new session, changed
   input file (role: file), changed config (field), changed code (module), changed library
-  (name: old -> new), changed stage version, upstream changed (which stages), failed last time,
-  stored result unusable (why), stored result gone. A stage whose upstream would run cannot
+  (name: old -> new), changed stage version, not run before (an upstream failed until now),
+  upstream changed (which stages), failed last time, stored result unusable (why), stored
+  result gone. A stage whose upstream would run cannot
   know its own key before that upstream has run (an unchanged upstream result is a cache hit
   downstream: early cutoff), so it is planned as ``run`` for "upstream changed", with what else
   changed in its own parts.
@@ -33,6 +34,7 @@ from graspcap.flows.cached import (
     REASONS,
     cache_key,
     diff_parts,
+    first_run,
     key_parts,
     run_reasons,
     session_id_of,
@@ -74,7 +76,7 @@ def plan_session(session_dir: Path, session_id: str, configs: Mapping[str, Stage
             parts = key_parts(name, session_dir, configs[name], refs, work)
             latest = work.latest_manifest(name, session_id)
             if latest is None:
-                reasons.insert(0, ("new session", ""))
+                reasons.insert(0, first_run(work, session_id))
             elif parts is not None:
                 reasons += diff_parts(latest.get("parts") or {}, parts)
             action[name] = "run"

@@ -280,3 +280,27 @@ def test_plan_replays_a_remembered_failure_and_retry_failed_runs_it(warm, synth_
              if (p.session_id, p.stage) == (bad, "fit_hand")]
     assert retry[0].action == "run"
     assert ("failed last time", "did not converge (injected)") in retry[0].reasons
+
+
+def test_first_run_reasons_tell_a_new_session_from_a_stage_that_never_ran(tmp_path):
+    from graspcap.flows.cached import diff_parts, run_reasons
+    from graspcap.flows.workarea import WorkArea
+
+    work = WorkArea(tmp_path)
+    assert run_reasons(work, "fit_hand", "s1", "k", {}) == [("new session", "")]
+    work.save_manifest("load_session", "s1", {"key": "k0", "parts": {}, "ok": True})
+    assert run_reasons(work, "fit_hand", "s1", "k", {}) == [("not run before", "")]
+    old = {"version": "1", "config": {"a": 1, "n": {"b": 2}}, "files": {"depth": {"x.png": "1"}},
+           "modules": {"m": "1", "gone": "1"}, "libraries": {"numpy": "2.0"},
+           "upstream": {"load_session": "1"}}
+    new = {"version": "2", "config": {"a": 1, "n": {"b": 3}}, "files": {"depth": {"x.png": "2",
+                                                                                 "y.png": "1"}},
+           "modules": {"m": "2", "new": "1"}, "libraries": {"numpy": "2.1"},
+           "upstream": {"load_session": "2"}}
+    assert diff_parts(old, new) == [
+        ("changed stage version", "1 -> 2"), ("changed config", "n.b"),
+        ("changed input file", "depth: x.png (changed)"),
+        ("changed input file", "depth: y.png (new)"),
+        ("changed code", "gone (no longer used)"), ("changed code", "m"),
+        ("changed code", "new (new)"), ("changed library", "numpy 2.0 -> 2.1"),
+        ("upstream changed", "load_session")]
