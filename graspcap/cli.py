@@ -93,6 +93,11 @@ BUILD_EXIT_CODES = """exit status:
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
+    if args.verify is not None:
+        from graspcap.flows.verify_cache import run_verify
+
+        return run_verify(args.roots, args.catalog, args.verify, args.preset,
+                          settings=args.settings)
     if args.plan:
         from graspcap.flows.plan import run_plan
 
@@ -177,6 +182,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run and write nothing: print per session and stage whether the build "
                         "would use the cache or run, and why (changed file, config field, "
                         "code module, library, upstream, failed last time)")
+    p.add_argument("--verify", type=int, default=None, metavar="N",
+                   help="write nothing: re-run N randomly chosen cached stages and compare "
+                        "their results with the stored ones (finds a key that misses "
+                        "something); exit 1 on a mismatch")
     p.set_defaults(func=_cmd_build)
 
     p = sub.add_parser("status", help="recent builds, failures with reasons, stage runs")
