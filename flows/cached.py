@@ -4,10 +4,13 @@ The cache key of a stage run is ours, not Prefect's::
 
     key = sha256(stage.version, config.digest(),
                  digests of the bytes of the session files in ``stage.reads``,
+                 code digest (``flows/code_digest.py``: the AST of every graspcap module on
+                 the stage's import path and its glue, versions of computing libraries),
                  content digests of the upstream results)
 
-so a changed algorithm (its ``STAGE_VERSION``), a changed parameter, a changed input file or a
-changed upstream result each give a new key, and nothing else does. On a hit the stored
+so a changed algorithm (its code, or its ``STAGE_VERSION`` for what the code cannot show), a
+changed library, a changed parameter, a changed input file or a changed upstream result each
+give a new key, and nothing else does. On a hit the stored
 :class:`ResultRef` is returned and no stage body runs; on a miss the stage runs, its result is
 stored and every attempt is appended to ``executions.jsonl``.
 
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import json
 import os
 import re
 import stat
@@ -29,7 +33,8 @@ from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
 
-from graspcap.flows.workarea import ResultRef, WorkArea
+from graspcap.flows.code_digest import stage_code
+from graspcap.flows.workarea import RACY_S, ResultRef, WorkArea
 from graspcap.schemas.session import DEFAULT_LIMITS, SESSION_ID_RE, SessionManifest
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
@@ -107,10 +112,10 @@ def session_id_of(session_dir: Path) -> str:
 
 
 def stage_key(version: str, config: StageConfig, reads_digest: str,
-              upstream: Mapping[str, ResultRef]) -> str:
+              upstream: Mapping[str, ResultRef], code_digest: str = "") -> str:
     """The cache key of one stage run (module docstring)."""
     h = hashlib.sha256()
-    for part in (version, config.digest(), reads_digest):
+    for part in (version, config.digest(), reads_digest, code_digest):
         h.update(part.encode())
         h.update(b"\0")
     for name in sorted(upstream):
@@ -143,13 +148,54 @@ def reads_digest(work: WorkArea, files: Mapping[str, list[Path]], roles: tuple[s
     h = hashlib.sha256()
     for role in roles:
         if role_digests is None or role not in role_digests:
-            digest = work.files_digest(_regular(list(files.get(role, []))))
+            paths = _regular(list(files.get(role, [])))
+            digest = (work.files_digest(paths) if role != MANIFEST_ROLE else _digest_of(
+                [(str(p), manifest_digest(work, p)) for p in paths]))
             if role_digests is not None:
                 role_digests[role] = digest
         else:
             digest = role_digests[role]
         h.update(f"{role}:{digest}\0".encode())
     return h.hexdigest()
+
+
+MANIFEST_ROLE = "manifest"
+"""The role of ``session.json``: digested by meaning (:func:`manifest_digest`), not bytes."""
+_MANIFEST_DIGESTS: OrderedDict[str, str] = OrderedDict()
+
+
+def _digest_of(pairs: list[tuple[str, str]]) -> str:
+    h = hashlib.sha256()
+    for name, digest in pairs:
+        h.update(name.encode())
+        h.update(digest.encode())
+    return h.hexdigest()
+
+
+def manifest_digest(work: WorkArea, path: Path) -> str:
+    """sha256 of ``session.json`` as canonical JSON (keys sorted, no whitespace), so
+    re-indenting or re-ordering it changes no key; its byte digest when it does not parse
+    (then ``load_session`` reports why). Remembered by (path, size, mtime_ns, inode)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return work.file_digest(path)
+    ident = f"{os.path.abspath(path)}|{st.st_size}|{st.st_mtime_ns}|{st.st_ino}"
+    with _FILES_LOCK:
+        if (found := _MANIFEST_DIGESTS.get(ident)) is not None:
+            return found
+    raw = load_json(Path(path), DEFAULT_LIMITS.max_manifest_bytes, DEFAULT_LIMITS.max_json_depth)
+    if isinstance(raw, JsonSyntaxError):
+        return work.file_digest(path)
+    digest = hashlib.sha256(("json:" + json.dumps(
+        raw, sort_keys=True, separators=(",", ":"), ensure_ascii=False)).encode()).hexdigest()
+    if time.time_ns() - st.st_mtime_ns < RACY_S * 1e9:
+        return digest  # may change again within the same mtime tick: not remembered
+    with _FILES_LOCK:
+        _MANIFEST_DIGESTS[ident] = digest
+        while len(_MANIFEST_DIGESTS) > _FILES_MAX:
+            _MANIFEST_DIGESTS.popitem(last=False)
+    return digest
 
 
 def cache_key(stage_name: str, session_dir: Path | str, config: StageConfig,
@@ -161,18 +207,105 @@ def cache_key(stage_name: str, session_dir: Path | str, config: StageConfig,
     from graspcap.tasks.pipeline import STAGES
 
     stage = STAGES[stage_name]
-    if stage_name == "load_session":
-        files = session_files(Path(session_dir))
-    else:
-        files = loaded_session_files(upstream["load_session"])
+    files = _stage_files(stage_name, session_dir, upstream)
     if files is None:
         return None
     try:
         return stage_key(stage.version, config,
                          reads_digest(work, files, stage.reads, role_digests),
-                         {k: upstream[k] for k in stage.upstream})
+                         {k: upstream[k] for k in stage.upstream}, stage_code(stage).digest)
     except OSError:  # missing, not a regular file, a symlink loop: load_session says which
         return None
+
+
+def _stage_files(stage_name: str, session_dir: Path | str,
+                 upstream: Mapping[str, ResultRef]) -> dict[str, list[Path]] | None:
+    if stage_name == "load_session" or "load_session" not in upstream:
+        return session_files(Path(session_dir))
+    return loaded_session_files(upstream["load_session"])
+
+
+def key_parts(stage_name: str, session_dir: Path | str, config: StageConfig,
+              upstream: Mapping[str, ResultRef], work: WorkArea) -> dict | None:
+    """What the key of ``stage_name`` is made of, for a person (the key manifest): the
+    stage version, the config's fields, the digest of every file it reads by role (names
+    relative to the session), the digest of every module of its code, the versions of its
+    libraries, and the digests of the upstream results given (all of them, or some when a plan
+    does not know the others). None when the session's files cannot be listed or read."""
+    from graspcap.tasks.pipeline import STAGES
+
+    stage = STAGES[stage_name]
+    files = _stage_files(stage_name, session_dir, upstream)
+    if files is None:
+        return None
+    base = Path(session_dir).resolve()
+    try:
+        by_role = {role: {_relative(p, base): (manifest_digest(work, p) if role == MANIFEST_ROLE
+                                               else work.file_digest(p))
+                          for p in _regular(list(files.get(role, [])))}
+                   for role in stage.reads}
+    except OSError:
+        return None
+    return {"version": stage.version, "config": json.loads(config.canonical_json()),
+            "files": by_role, **stage_code(stage).as_dict(),
+            "upstream": {k: upstream[k].digest for k in stage.upstream if k in upstream}}
+
+
+def _relative(path: Path, base: Path) -> str:
+    try:
+        return str(Path(path).relative_to(base))
+    except ValueError:
+        return str(path)
+
+
+REASONS = ("new session", "not run before", "changed input file", "changed config", "changed code",
+           "changed library", "changed stage version", "upstream changed", "failed last time",
+           "stored result unusable", "stored result gone")
+"""The reasons a plan gives for a stage that runs, in the order its summary counts them."""
+
+
+def diff_parts(old: Mapping, new: Mapping) -> list[tuple[str, str]]:
+    """Why the key made of ``new`` differs from the one made of ``old`` (key manifests):
+    (reason, detail) pairs, a reason from :data:`REASONS`; parts ``new`` lacks (an upstream
+    digest a plan does not know) are not compared."""
+    out: list[tuple[str, str]] = []
+    if old.get("version") != new.get("version"):
+        out.append(("changed stage version", f"{old.get('version')} -> {new.get('version')}"))
+    for field in _changed_fields(old.get("config"), new.get("config")):
+        out.append(("changed config", field))
+    old_files, new_files = old.get("files") or {}, new.get("files") or {}
+    for role in sorted(set(old_files) | set(new_files)):
+        was, now = old_files.get(role) or {}, new_files.get(role) or {}
+        for name in sorted(set(was) | set(now)):
+            if was.get(name) != now.get(name):
+                what = "new" if name not in was else "gone" if name not in now else "changed"
+                out.append(("changed input file", f"{role}: {name} ({what})"))
+    old_code, new_code = old.get("modules") or {}, new.get("modules") or {}
+    for module in sorted(set(old_code) | set(new_code)):
+        if old_code.get(module) != new_code.get(module):
+            what = ("new" if module not in old_code else "no longer used"
+                    if module not in new_code else "changed")
+            out.append(("changed code", f"{module}" + ("" if what == "changed" else f" ({what})")))
+    old_libs, new_libs = old.get("libraries") or {}, new.get("libraries") or {}
+    for lib in sorted(set(old_libs) | set(new_libs)):
+        if old_libs.get(lib) != new_libs.get(lib):
+            out.append(("changed library",
+                        f"{lib} {old_libs.get(lib, 'absent')} -> {new_libs.get(lib, 'absent')}"))
+    old_up = old.get("upstream") or {}
+    for name, digest in sorted((new.get("upstream") or {}).items()):
+        if old_up.get(name) != digest:
+            out.append(("upstream changed", name))
+    return out
+
+
+def _changed_fields(old: object, new: object, prefix: str = "") -> list[str]:
+    """The dotted names of the config fields that differ between two config dumps."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new)):
+            out += _changed_fields(old.get(k), new.get(k), f"{prefix}{k}.")
+        return out
+    return [] if old == new else [prefix.rstrip(".") or "(whole config)"]
 
 
 def lookup_cached(stage_name: str, session_dir: Path | str, config: StageConfig,
@@ -227,9 +360,12 @@ def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config
         raise held
     if held is not None:
         return held
+    parts = key_parts(stage_name, session_dir, config, upstream, work) if key else None
+    why = run_reasons(work, stage_name, session_id, key, parts, replay_failures)
     results = {k: WorkArea.load(upstream[k]) for k in stage.upstream}
     t0, clocks = time.perf_counter(), _cpu_clocks()
-    record = {"stage": stage_name, "session_id": session_id, "key": key, "build_id": build_id}
+    record = {"stage": stage_name, "session_id": session_id, "key": key, "build_id": build_id,
+              "why": [f"{reason}: {detail}" if detail else reason for reason, detail in why]}
     try:
         result = run_stage(stage, session_dir, config, results)
     except BaseException as exc:
@@ -237,12 +373,48 @@ def run_cached(stage_name: str, session_dir: Path | str, session_id: str, config
                               error=f"{type(exc).__name__}: {exc}"[:2000], **_cpu_since(clocks))
         if key is not None and isinstance(exc, StageError):
             work.save_failure(stage_name, key, exc.stage, exc.reason, exc.session, build_id)
+            work.save_manifest(stage_name, session_id, {"key": key, "parts": parts, "ok": False,
+                                                        "build_id": build_id})
         raise
     seconds = round(time.perf_counter() - t0, 4)
     work.record_execution(**record, seconds=seconds, ok=True, error=None, **_cpu_since(clocks))
     if key is None:  # no trustworthy key: never stored, but handed on
         key = "uncached-" + hashlib.sha256(f"{session_dir}{time.time_ns()}".encode()).hexdigest()
     ref = work.save(stage_name, key, result, build_id, seconds=seconds)
+    if parts is not None:
+        work.save_manifest(stage_name, session_id, {"key": key, "parts": parts, "ok": True,
+                                                    "build_id": build_id})
     if not replay_failures:
         work.forget_failure(stage_name, key)
     return ref
+
+
+def first_run(work: WorkArea, session_id: str) -> tuple[str, str]:
+    """Why a stage with no key manifest for ``session_id`` runs: "new session", or "not run
+    before" when the session's ``load_session`` ran (an upstream failed until now)."""
+    seen = work.latest_manifest("load_session", session_id) is not None
+    return ("not run before", "") if seen else ("new session", "")
+
+
+def run_reasons(work: WorkArea, stage_name: str, session_id: str, key: str | None,
+                parts: dict | None, replay_failures: bool = True) -> list[tuple[str, str]]:
+    """Why ``stage_name`` must run for ``session_id`` under ``key`` (its result is not held):
+    (reason, detail) pairs from :data:`REASONS`, found by diffing ``parts`` against the key
+    manifest of the stage's latest run for the session. Reads only."""
+    if key is None or parts is None:
+        return [("changed input file", "the session's files cannot all be read")]
+    out: list[tuple[str, str]] = []
+    _, note = work.check(stage_name, key)
+    if note:
+        out.append(("stored result unusable", note))
+    if not replay_failures and (failure := work.lookup_failure(stage_name, key)):
+        out.append(("failed last time", str(failure.get("reason", ""))))
+    latest = work.latest_manifest(stage_name, session_id)
+    if latest is None:
+        return out or [first_run(work, session_id)]
+    if latest.get("key") != key:
+        out += diff_parts(latest.get("parts") or {}, parts)
+    if not out:
+        out.append(("stored result gone", f"{stage_name} result of build "
+                                          f"{latest.get('build_id')} is no longer stored"))
+    return out

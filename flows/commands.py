@@ -110,7 +110,11 @@ def status_text(catalog: Path, limit: int = 5) -> str:
     if not records:
         return "\n".join([f"catalog {cat.layout.root}: no builds yet", *out])
     out.insert(0, f"catalog {cat.layout.root}: latest version {cat.latest_version()}")
+    from graspcap.flows.workarea import WorkArea
+
+    work = WorkArea.reader(cat.layout.root / "work")
     for rec in records[::-1][:limit]:
+        why = _run_reasons(work, rec["build_id"])
         s = rec["summary"]
         version = rec.get("catalog_version")
         where = (f"version {version}" if version is not None
@@ -129,6 +133,8 @@ def status_text(catalog: Path, limit: int = 5) -> str:
                 line += f" ran: {', '.join(x['ran'])}"
             if x["retries"]:
                 line += f" retries: {x['retries']}"
+            for reasons, stages in why.get(x["session_id"], {}).items():
+                line += f"\n{' ' * 46}why {', '.join(stages)}: {reasons}"
             if x["error"]:
                 line += f" ERROR: {x['error'].splitlines()[0]}"
                 line += "".join(f"\n{' ' * 46}{e}" for e in x["error"].splitlines()[1:6])
@@ -138,6 +144,19 @@ def status_text(catalog: Path, limit: int = 5) -> str:
                 line += f"\n{' ' * 46}{x['status']}; pictures: {pictures}"
             out.append(line)
     return "\n".join(out)
+
+
+def _run_reasons(work, build_id: str) -> dict[str, dict[str, list[str]]]:
+    """Why the stages of ``build_id`` ran (the ``why`` of their executions): by session, the
+    stages by their reasons (``"; "``-joined), in the order they ran."""
+    out: dict[str, dict[str, list[str]]] = {}
+    for rec in work.executions(build_id):
+        if rec.get("why"):
+            stages = out.setdefault(str(rec.get("session_id")), {}).setdefault(
+                "; ".join(rec["why"]), [])
+            if rec.get("stage") not in stages:
+                stages.append(str(rec.get("stage")))
+    return out
 
 
 BUILD_RECORD_KEYS = frozenset({"build_id", "summary", "sessions", "seconds"})

@@ -5,12 +5,15 @@ result store: a stage's result is pickled (protocol 5, numpy buffers written
 as they are) into ``<root>/results/<stage>/<key>.pkl`` and tasks hand each
 other a small :class:`ResultRef` (path + content digest). Writes are atomic
 (temporary file, then rename) and the result's small JSON record
-(``<key>.json``: digest, size, build, seconds, modules) is written after the pickle, so a
+(``<key>.json``: digest, size, build, seconds, modules, types) is written after the pickle, so a
 killed build never leaves a half result that a later lookup would trust (a lookup also
 takes a result only when its pickle has the size its record names). The record lists the
 modules the pickle names (classes, functions); a result whose modules cannot be imported any
 more (a module moved, as in the ``tasks/`` sub-package layout) is a cache miss, not a crash,
-and so is a record from before the list. Temporary
+and so is a record from before the list. The record also names every dataclass and pydantic
+type in the result (``module:qualname``) with its field set: a type that is gone or whose
+fields changed (renamed, moved, a field added the code would expect) is a miss with a note
+(:meth:`WorkArea.check`), never a result missing a field. Temporary
 files are named ``.tmp-<host>-<pid>-*``; those of a writer that is gone (same host, pid not
 running, or older than ``STALE_TEMP_S``) are removed when a process first opens the area.
 
@@ -26,6 +29,7 @@ attempt (stage, session, key, build, seconds, CPU seconds, pid, ok, error), appe
 from __future__ import annotations
 
 import hashlib
+import importlib
 import importlib.util
 import io
 import json
@@ -98,6 +102,8 @@ class WorkArea:
     _MEMO_MAX = 200_000
     _swept: set[Path] = set()
     """Roots whose stale temporary files this process has removed."""
+    readonly: bool = False
+    """True for :meth:`reader`: nothing is written (a build plan writes nothing)."""
 
     def __init__(self, root: Path | str):
         self.root = Path(root).expanduser().resolve()
@@ -108,6 +114,16 @@ class WorkArea:
         if self.root not in self._swept:
             self._swept.add(self.root)
             self.remove_stale_temp()
+
+    @classmethod
+    def reader(cls, root: Path | str) -> WorkArea:
+        """The work area at ``root`` opened to read only: no folder is made, no temporary file
+        swept, no digest remembered on disk (``graspcap build --plan``)."""
+        work = cls.__new__(cls)
+        work.root = Path(root).expanduser().resolve()
+        work._digest_index = work.root / "digests"
+        work.readonly = True
+        return work
 
     def remove_stale_temp(self) -> list[Path]:
         """Delete the temporary files of writers that are gone (killed builds); return them."""
@@ -164,7 +180,7 @@ class WorkArea:
             digest = sha256_file(Path(path))
             if time.time_ns() - st.st_mtime_ns < RACY_S * 1e9:
                 return digest  # may change again within the same mtime tick: not remembered
-            if big:
+            if big and not self.readonly:
                 _atomic_write(memo, digest.encode())
         if len(self._memo) >= self._MEMO_MAX:
             self._memo.clear()
@@ -187,13 +203,13 @@ class WorkArea:
              seconds: float = 0.0) -> ResultRef:
         """Store ``result`` under ``(stage, key)``; the record is written last. The result
         stays in this process's memory under its digest (``load`` of its ref needs no read)."""
-        data, modules = _pickle_with_modules(result)
+        data, modules, result_types = _pickle_with_modules(result)
         path = self.result_path(stage, key)
         _atomic_write(path, data)
         ref = ResultRef(stage, key, str(path), hashlib.sha256(data).hexdigest(), build_id,
                         cached=False, seconds=seconds)
         record = {"digest": ref.digest, "bytes": len(data), "build_id": build_id,
-                  "seconds": seconds, "modules": modules}
+                  "seconds": seconds, "modules": modules, "types": result_types}
         _atomic_write(path.with_suffix(".json"), canonical_json(record).encode())
         self._remember(ref.digest, result)
         return ref
@@ -201,7 +217,13 @@ class WorkArea:
     def lookup(self, stage: str, key: str) -> ResultRef | None:
         """The stored result of ``(stage, key)`` as a cached ref, or None: also when the
         record is unreadable, or the pickle has another size than it records (a build was
-        killed between replacing the pickle and its record)."""
+        killed between replacing the pickle and its record), or its types do not load as
+        the current code defines them (:meth:`check` says why)."""
+        return self.check(stage, key)[0]
+
+    def check(self, stage: str, key: str) -> tuple[ResultRef | None, str | None]:
+        """:meth:`lookup`'s ref, and when a stored result exists but cannot be used, why
+        (a note for the plan and the build record): a miss, never a crash."""
         path = self.result_path(stage, key)
         record_path = path.with_suffix(".json")
         try:
@@ -210,13 +232,17 @@ class WorkArea:
                             str(record["build_id"]), cached=True,
                             seconds=float(record.get("seconds", 0.0)))
             pickled = path.stat()
+        except FileNotFoundError:
+            return None, None
         except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
-            return None
+            return None, f"the stored {stage} result's record is unreadable"
         if "bytes" in record and record["bytes"] != pickled.st_size:
-            return None
-        if not _importable(record.get("modules")):
-            return None  # a result the code cannot unpickle (a module moved) is a miss
-        return ref
+            return None, f"the stored {stage} result is incomplete"
+        if not _importable(record.get("modules")):  # a module moved: a miss, not a crash
+            return None, f"the stored {stage} result names modules that no longer import"
+        if (why := type_problem(record.get("types"))) is not None:
+            return None, f"the stored {stage} result cannot be used: {why}"
+        return ref, None
 
     @classmethod
     def load(cls, ref: ResultRef) -> Any:
@@ -262,6 +288,25 @@ class WorkArea:
     def _failure_path(self, stage: str, key: str) -> Path:
         return self.root / "results" / stage / f"{key}.failed.json"
 
+    # --- key manifests: what the latest key of (stage, session) was made of ----------------
+    def save_manifest(self, stage: str, session_id: str, record: dict) -> None:
+        """Remember the key manifest of the latest run of ``stage`` for ``session_id`` (key,
+        parts, ok, build): what the next plan diffs the current parts against. The file is
+        named by a digest of the id (ids never reach a path)."""
+        _atomic_write(self._manifest_path(stage, session_id), canonical_json(record).encode())
+
+    def latest_manifest(self, stage: str, session_id: str) -> dict | None:
+        """The key manifest :meth:`save_manifest` last stored for (stage, session), or None."""
+        try:
+            record = json.loads(self._manifest_path(stage, session_id).read_text())
+        except (OSError, ValueError):
+            return None
+        return record if isinstance(record, dict) else None
+
+    def _manifest_path(self, stage: str, session_id: str) -> Path:
+        name = hashlib.sha256(session_id.encode()).hexdigest()[:32]
+        return self.root / "results" / stage / "latest" / f"{name}.json"
+
     # --- the side channel of executions -----------------------------------------------------
     def record_execution(self, **fields: Any) -> None:
         """Append one JSON line to ``executions.jsonl`` (one ``write`` on an O_APPEND fd)."""
@@ -293,26 +338,70 @@ class WorkArea:
 
 
 class _ModulePickler(pickle.Pickler):
-    """A pickler that notes the module of every class and function its output names."""
+    """A pickler that notes the module of every class and function its output names, and the
+    qualified name and field set of every dataclass and pydantic model instance in it."""
 
     def __init__(self, file: io.BytesIO):
         super().__init__(file, protocol=5)
         self.modules: set[str] = set()
+        self.types: dict[str, list[str]] = {}
 
     def reducer_override(self, obj: Any) -> Any:
         named = isinstance(obj, type | types.FunctionType | types.BuiltinFunctionType)
         module = getattr(obj, "__module__", None) if named else type(obj).__module__
         if isinstance(module, str):
             self.modules.add(module)
+        if not named and (fields := _field_names(type(obj))) is not None:
+            self.types.setdefault(_type_name(type(obj)), fields)
         return NotImplemented
 
 
-def _pickle_with_modules(result: Any) -> tuple[bytes, list[str]]:
-    """``result`` pickled (protocol 5) and the modules unpickling it imports."""
+def _type_name(cls: type) -> str:
+    return f"{cls.__module__}:{cls.__qualname__}"
+
+
+def _field_names(cls: type) -> list[str] | None:
+    """The sorted field names of a dataclass or pydantic model class; None for other types."""
+    fields = getattr(cls, "__dataclass_fields__", None)
+    if not isinstance(fields, dict):
+        fields = getattr(cls, "__pydantic_fields__", None)
+    return sorted(fields) if isinstance(fields, dict) else None
+
+
+def _pickle_with_modules(result: Any) -> tuple[bytes, list[str], dict[str, list[str]]]:
+    """``result`` pickled (protocol 5), the modules unpickling it imports, and the field sets
+    of its dataclass and pydantic types by qualified name (``module:qualname``)."""
     buf = io.BytesIO()
     pickler = _ModulePickler(buf)
     pickler.dump(result)
-    return buf.getvalue(), sorted(pickler.modules)
+    return buf.getvalue(), sorted(pickler.modules), dict(sorted(pickler.types.items()))
+
+
+def type_problem(stored: object) -> str | None:
+    """Why the result types a record names (``{"module:qualname": [fields]}``) do not match
+    the current code: a type that is gone, or whose field set changed (a field the current
+    code expects missing from the stored one, or one it no longer has); None when they all
+    match. A record without the list predates it and is not trusted."""
+    if not isinstance(stored, dict):
+        return "its record predates the result type check"
+    for name, fields in sorted(stored.items()):
+        module, _, qualname = str(name).partition(":")
+        try:
+            obj: Any = importlib.import_module(module)
+            for part in qualname.split("."):
+                obj = getattr(obj, part)
+        except Exception:  # noqa: BLE001 - any failure to find the type means it is gone
+            return f"its type {module}.{qualname} no longer exists"
+        current = _field_names(obj) if isinstance(obj, type) else None
+        if current is None:
+            return f"{module}.{qualname} is no longer a dataclass or pydantic model"
+        if current != sorted(fields):
+            missing = sorted(set(current) - set(fields))
+            extra = sorted(set(fields) - set(current))
+            what = ([f"lacks field(s) {', '.join(missing)}"] if missing else []) + (
+                [f"has field(s) {', '.join(extra)} the code no longer has"] if extra else [])
+            return f"its type {module}.{qualname} {' and '.join(what)}"
+    return None
 
 
 def _importable(modules: list[str] | None) -> bool:

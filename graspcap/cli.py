@@ -93,6 +93,16 @@ BUILD_EXIT_CODES = """exit status:
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
+    if args.verify is not None:
+        from graspcap.flows.verify_cache import run_verify
+
+        return run_verify(args.roots, args.catalog, args.verify, args.preset,
+                          settings=args.settings)
+    if args.plan:
+        from graspcap.flows.plan import run_plan
+
+        return run_plan(args.roots, args.catalog, args.preset, retry_failed=args.retry_failed,
+                        settings=args.settings)
     from graspcap.flows.commands import run_build
 
     return run_build(args.roots, args.catalog, args.preset, dask=args.dask,
@@ -168,6 +178,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run on a Dask scheduler, or a local cluster of N worker processes")
     p.add_argument("--retry-failed", action="store_true",
                    help="re-run only the sessions that failed in the last build")
+    p.add_argument("--plan", action="store_true",
+                   help="run and write nothing: print per session and stage whether the build "
+                        "would use the cache or run, and why (changed file, config field, "
+                        "code module, library, upstream, failed last time)")
+    p.add_argument("--verify", type=int, default=None, metavar="N",
+                   help="write nothing: re-run N randomly chosen cached stages and compare "
+                        "their results with the stored ones (finds a key that misses "
+                        "something); exit 1 on a mismatch")
     p.set_defaults(func=_cmd_build)
 
     p = sub.add_parser("status", help="recent builds, failures with reasons, stage runs")

@@ -1,0 +1,130 @@
+"""The code part of a stage's cache key (flows/code_digest.py): found from the import graph,
+blind to docstrings, comments and formatting, the same in every process."""
+
+from __future__ import annotations
+
+import ast
+import json
+import subprocess
+import sys
+
+import pytest
+
+from graspcap.flows import code_digest
+from graspcap.flows.code_digest import ast_digest, stage_code
+from graspcap.tasks.pipeline import STAGES
+from tests.conftest import REPO
+
+HELPER = "graspcap.tasks.object_pose.registration.engine"
+
+SOURCE = '''
+"""Module docstring."""
+import numpy as np
+
+SCALE = 2.0
+"""An attribute docstring."""
+
+
+def f(x):
+    """Docstring."""
+    # a comment
+    return np.asarray(x) * SCALE
+'''
+
+
+def _code(src: str) -> str:
+    return ast_digest(ast.parse(src))
+
+
+def test_docstrings_comments_and_formatting_do_not_count_but_code_does():
+    reformatted = SOURCE.replace('"""Docstring."""', '"""Another text, longer."""').replace(
+        "# a comment", "# another comment\n\n").replace("np.asarray(x) * SCALE",
+                                                       "(np.asarray( x )\n            * SCALE)")
+    reformatted = reformatted.replace('"""Module docstring."""', "").replace(
+        '"""An attribute docstring."""', "")
+    assert _code(reformatted) == _code(SOURCE)
+    assert _code(SOURCE.replace("* SCALE", "* SCALE + 1")) != _code(SOURCE)
+    # a function whose whole body is its docstring still digests (as ``pass``)
+    assert _code('def g():\n    """Only this."""\n') == _code("def g():\n    pass\n")
+
+
+def test_each_stage_covers_its_import_graph_and_its_own_glue_only():
+    modules = {name: dict(stage_code(stage).modules) for name, stage in STAGES.items()}
+    registration = {n for n, mods in modules.items() if HELPER in mods}
+    # the registration engine is imported by the object-pose stages, found from the imports
+    assert {"register_object", "register_scan"} <= registration
+    assert "detect_keypoints" not in registration and "fit_hand" not in registration
+    for name, mods in modules.items():
+        glue = [m for m in mods if m.startswith("graspcap.tasks.pipeline:")]
+        assert glue == [f"graspcap.tasks.pipeline:{STAGES[name].run.__name__}"], name
+        assert "graspcap.tasks.pipeline" not in mods, name  # not every stage's glue at once
+        assert STAGES[name].run.__module__ == "graspcap.tasks.pipeline"
+    libs = {n: dict(stage_code(s).libraries) for n, s in STAGES.items()}
+    assert "open3d" in libs["register_object"] and "open3d" not in libs["fit_hand"]
+    assert "mediapipe" in libs["detect_keypoints"]
+    assert "pycolmap" in libs["crosscheck_sfm"]
+
+
+def test_stage_codes_are_the_same_in_another_process():
+    here = {n: stage_code(s).digest for n, s in STAGES.items()}
+    out = subprocess.run(
+        [sys.executable, "-c",
+         "import json; from graspcap.tasks.pipeline import STAGES; "
+         "from graspcap.flows.code_digest import stage_code; "
+         "print(json.dumps({n: stage_code(s).digest for n, s in STAGES.items()}))"],
+        cwd=REPO, capture_output=True, text=True, check=True, env={"PYTHONHASHSEED": "123",
+                                                                   **_env()})
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == here
+
+
+def _env() -> dict[str, str]:
+    import os
+
+    return {k: v for k, v in os.environ.items() if k != "PYTHONHASHSEED"}
+
+
+@pytest.fixture
+def restore_overrides():
+    yield
+    code_digest._OVERRIDES.clear()
+    code_digest.forget()
+
+
+def test_an_override_changes_exactly_the_stages_that_import_the_module(restore_overrides):
+    before = {n: stage_code(s).digest for n, s in STAGES.items()}
+    code_digest.override(HELPER, "changed")
+    after = {n: stage_code(s).digest for n, s in STAGES.items()}
+    changed = {n for n in STAGES if before[n] != after[n]}
+    assert changed == {n for n, s in STAGES.items() if HELPER in dict(stage_code(s).modules)}
+    code_digest.override(HELPER, None)
+    code_digest.override("lib:open3d", "99.0")
+    libs = {n for n, s in STAGES.items() if "open3d" in dict(stage_code(s).libraries)}
+    assert {n for n, s in STAGES.items() if stage_code(s).digest != before[n]} == libs
+
+
+def test_glue_counts_for_its_own_stage_and_a_shared_helper_for_its_users(monkeypatch,
+                                                                         restore_overrides):
+    """Edited copies of tasks/pipeline.py's source (the file itself is never touched)."""
+    real = code_digest._source
+    before = {n: stage_code(s).digest for n, s in STAGES.items()}
+
+    def changed(edit) -> set[str]:
+        def source(name):
+            found = real(name)
+            return (edit(found[0]), found[1]) if name == "graspcap.tasks.pipeline" else found
+
+        monkeypatch.setattr(code_digest, "_source", source)
+        code_digest.forget()
+        return {n for n, s in STAGES.items() if stage_code(s).digest != before[n]}
+
+    assert changed(lambda src: src.replace(b"def _pictures(session, config, **up):",
+                                           b"def _pictures(session, config, **up):\n    pass",
+                                           1)) == {"pictures"}
+    users_of_K = {n for n, s in STAGES.items()
+                  if "_K(" in __import__("inspect").getsource(s.run)}
+    k_changed = changed(lambda src: src.replace(
+        b"return np.asarray(session.manifest.color_camera.K, dtype=float)",
+        b"return np.asarray(session.manifest.color_camera.K, dtype=float) * 1", 1))
+    assert users_of_K and users_of_K <= k_changed
+    assert not k_changed & {"load_session", "detect_keypoints", "fit_hand", "qa_metrics"}
+    assert changed(lambda src: src.replace(b"# --- the DAG", b"# --- the graph", 1)) == set()
