@@ -117,14 +117,13 @@ def test_glue_counts_for_its_own_stage_and_a_shared_helper_for_its_users(monkeyp
         code_digest.forget()
         return {n for n, s in STAGES.items() if stage_code(s).digest != before[n]}
 
-    assert changed(lambda src: src.replace(b"def _pictures(session, config, **up):",
-                                           b"def _pictures(session, config, **up):\n    pass",
-                                           1)) == {"pictures"}
-    users_of_K = {n for n, s in STAGES.items()
-                  if "_K(" in __import__("inspect").getsource(s.run)}
-    k_changed = changed(lambda src: src.replace(
-        b"return np.asarray(session.manifest.color_camera.K, dtype=float)",
-        b"return np.asarray(session.manifest.color_camera.K, dtype=float) * 1", 1))
-    assert users_of_K and users_of_K <= k_changed
-    assert not k_changed & {"load_session", "detect_keypoints", "fit_hand", "qa_metrics"}
+    assert changed(lambda src: src.replace(b"def _pictures(session: Session, config, **up):",
+                                           b"def _pictures(session: Session, config, **up):\n"
+                                           b"    pass", 1)) == {"pictures"}
+    users = {n for n, s in STAGES.items()
+             if "_final_hand(" in __import__("inspect").getsource(s.run)}
+    shared_changed = changed(lambda src: src.replace(
+        b'up.get("refine_grasp"), up["estimate_adjustment"].T_w_o)',
+        b'up.get("refine_grasp"), up["estimate_adjustment"].T_w_o * 1)', 1))
+    assert users == {"qa_metrics", "pictures"} == shared_changed
     assert changed(lambda src: src.replace(b"# --- the DAG", b"# --- the graph", 1)) == set()
