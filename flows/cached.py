@@ -22,6 +22,7 @@ failed session runs nothing). ``replay_failures=False`` (``--retry-failed``) run
 from __future__ import annotations
 
 import errno
+import functools
 import hashlib
 import json
 import os
@@ -32,6 +33,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Annotated
 
 from graspcap.flows.code_digest import stage_code
 from graspcap.flows.workarea import RACY_S, ResultRef, WorkArea
@@ -247,13 +249,22 @@ def _parsed_manifest(session_dir: Path) -> dict | None:
     return raw if isinstance(raw, dict) else None
 
 
+@functools.cache
+def _label_type(name: str):
+    """A pydantic ``TypeAdapter`` of the manifest field ``name`` (its type and constraints)."""
+    from pydantic import TypeAdapter
+
+    info = SessionManifest.model_fields[name]
+    return TypeAdapter(Annotated[info.annotation, *info.metadata])
+
+
 def _label_key(name: str, value: object) -> object:
     """A label (``pipeline.LABEL_FIELDS``) as ``load_session``'s key takes it: only that it is
     valid (no stage reads it), or the value itself when it is not (its problem line names it)."""
-    from pydantic import TypeAdapter, ValidationError
+    from pydantic import ValidationError
 
     try:
-        TypeAdapter(SessionManifest.model_fields[name].annotation).validate_python(value)
+        _label_type(name).validate_python(value)
     except ValidationError:
         return value
     return "(a valid label)"

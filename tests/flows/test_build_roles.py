@@ -70,7 +70,7 @@ def test_one_grasp_depth_pixel_reruns_only_the_stages_that_read_grasp_depth(
            and any(r == "changed input file" for r, _ in p.reasons)}
     assert own == readers
     for p in plans:
-        if p.stage in own:
+        if p.stage in own and p.session_id == sid:
             assert ("changed input file", f"grasp_depth: {frame.relative_to(session)} "
                                           "(changed)") in p.reasons
     for name in ("register_object", "register_scan", "build_contactmap", "detect_keypoints",
@@ -131,10 +131,16 @@ def test_a_stage_reading_an_undeclared_manifest_field_fails_loudly(synth_root):
     configs = configs_for(PRESET)
     loaded = run_stage(STAGES["load_session"], session, configs["load_session"], {})
     fit = STAGES["fit_hand"]
-    # fit_hand declares "hand" only: reading the steady frame is not allowed
+    # fit_hand declares "hand" only: reading the steady frame is not allowed (the section
+    # above it is named: nothing in it is declared)
     sneaky = dataclasses.replace(fit, run=lambda s, c, **up: s.manifest.grasp.steady_from)
     with pytest.raises(UndeclaredManifestField, match=r"fit_hand: reads session.json field "
-                                                      r"'grasp.steady_from'"):
+                                                      r"'grasp', which its Stage.fields"):
+        run_stage(sneaky, session, configs["fit_hand"], {"load_session": loaded,
+                                                          "reconstruct_hand": None})
+    sneaky = dataclasses.replace(fit, fields=("grasp.count",),
+                                 run=lambda s, c, **up: s.manifest.grasp.steady_from)
+    with pytest.raises(UndeclaredManifestField, match=r"'grasp.steady_from'"):
         run_stage(sneaky, session, configs["fit_hand"], {"load_session": loaded,
                                                           "reconstruct_hand": None})
     # a method of a section reads through the guard too: frame_path needs grasp.count
@@ -160,7 +166,7 @@ def test_every_stage_key_takes_its_declared_fields_only(synth_root, tmp_path, ed
 
     _, session = _sessions(synth_root)[0]
     work, configs = WorkArea(tmp_path / "work"), configs_for(PRESET)
-    fake = {n: ResultRef(n, "k", "p", f"digest-{n}", "b") for n in STAGES}
+    fake = {n: ResultRef(n, "k", "p", f"digest-{n}", "b") for n in STAGES if n != "load_session"}
 
     def keys() -> dict[str, str | None]:
         return {n: cache_key(n, session, configs[n], fake, work) for n in STAGES}
@@ -186,5 +192,10 @@ def test_every_stage_key_takes_its_declared_fields_only(synth_root, tmp_path, ed
     new = {**raw, "intent": raw["intent"] + "!", "participant": raw["participant"] + "!"}
     edited(manifest, json.dumps(new).encode())
     assert keys() == before
-    edited(manifest, json.dumps({**raw, "intent": ""}).encode())  # invalid: load_session sees it
-    assert {n for n, k in keys().items() if k != before[n]} == {"load_session"}
+    # an invalid label: no key at all (every stage runs uncached; load_session reports it)
+    edited(manifest, json.dumps({**raw, "intent": ""}).encode())
+    assert keys() == dict.fromkeys(STAGES)
+    from graspcap.flows.cached import _label_key
+
+    assert _label_key("intent", "pour") == _label_key("intent", "cut")
+    assert _label_key("intent", "") == "" and _label_key("participant", 3) == 3
