@@ -4,9 +4,14 @@ The cache key of a stage run is ours, not Prefect's::
 
     key = sha256(stage.version, config.digest(),
                  digests of the bytes of the session files in ``stage.reads``,
+                 canonical JSON of the ``session.json`` fields in ``stage.fields``,
                  code digest (``flows/code_digest.py``: the AST of every graspcap module on
                  the stage's import path and its glue, versions of computing libraries),
-                 content digests of the upstream results)
+                 content digests of the upstream results but ``load_session``'s)
+
+A stage reads the session only through its roles and fields (the session its glue gets
+raises on any other manifest field: ``load_session.restricted``), so ``load_session``'s result
+digest, which changes with every file, is in no downstream key.
 
 so a changed algorithm (its code, or its ``STAGE_VERSION`` for what the code cannot show), a
 changed library, a changed parameter, a changed input file or a changed upstream result each
