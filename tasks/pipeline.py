@@ -42,7 +42,7 @@ WHOLE_MANIFEST = ("*",)
 LABEL_FIELDS = ("participant", "object_id", "intent")
 """``session.json`` labels no stage reads: the rows take them from the current manifest, and
 ``load_session``'s key covers only whether each is valid, so editing one runs no stage."""
-ALL_FILES = (  # "manifest" first: load_session reads the rest, the manifest by its fields
+ALL_FILES = (  # load_session reads all but "manifest" by bytes, the manifest by its fields
     "manifest", "object_mesh", "stage1", "grasp_color", "grasp_depth", "grasp_keypoints",
     "scan_thermal", "scan_depth",
 )  # fmt: skip
@@ -225,7 +225,7 @@ STAGES: dict[str, Stage] = {
     s.name: s
     for s in [
         Stage("load_session", load_session.STAGE_VERSION, load_session.PRESETS, (),
-              ALL_FILES[1:], _load, fields=WHOLE_MANIFEST),
+              tuple(r for r in ALL_FILES if r != "manifest"), _load, fields=WHOLE_MANIFEST),
         Stage("register_object", register_object.STAGE_VERSION, register_object.PRESETS,
               ("load_session",), ("object_mesh", "stage1"), _register_object,
               fields=("stage1.depth", _DEPTH_SCALE, _K, _T_TT, _MESH)),
