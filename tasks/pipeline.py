@@ -296,6 +296,27 @@ def _check_presets() -> None:
 _check_presets()
 
 
+def _check_fields() -> None:
+    """Every declared manifest field (``Stage.fields``) is a field of ``SessionManifest``: a
+    misspelt one would key on nothing."""
+    from pydantic import BaseModel
+
+    from graspcap.schemas.session import SessionManifest
+
+    for stage in STAGES.values():
+        for path in () if stage.fields == WHOLE_MANIFEST else stage.fields:
+            model: Any = SessionManifest
+            for part in path.split("."):
+                if model is None or part not in model.model_fields:
+                    raise RuntimeError(f"{stage.name}: Stage.fields names {path!r}, which is "
+                                       "not a field of session.json (schemas/session.py)")
+                kind = model.model_fields[part].annotation
+                model = kind if isinstance(kind, type) and issubclass(kind, BaseModel) else None
+
+
+_check_fields()
+
+
 def preset_stages(preset: str) -> tuple[str, ...]:
     """The stages whose config ``preset`` sets (the others run their default)."""
     if preset not in PIPELINE_PRESETS:

@@ -118,7 +118,7 @@ def test_an_edited_intent_runs_no_stage_and_makes_one_version_naming_it(
     assert executions(catalog, "label2") == [] and again.catalog_version is None
 
 
-def test_a_stage_reading_an_undeclared_manifest_field_fails_loudly(synth_root):
+def test_a_stage_reading_an_undeclared_manifest_field_fails_loudly(synth_root, monkeypatch):
     """A glue that reads a field its ``Stage.fields`` does not declare raises naming the stage
     and the field (its key would not cover the field: a change would serve a stale result)."""
     import dataclasses
@@ -155,6 +155,11 @@ def test_a_stage_reading_an_undeclared_manifest_field_fails_loudly(synth_root):
                      {"load_session": loaded, "reconstruct_hand": None}).is_file()
     # the labels are not in load_session's result at all
     assert loaded.manifest.intent == pipeline.LABEL_PLACEHOLDER
+    # a misspelt declaration is refused when the pipeline is imported
+    monkeypatch.setitem(pipeline.STAGES, "fit_hand",
+                        dataclasses.replace(fit, fields=("grasp.steady",)))
+    with pytest.raises(RuntimeError, match=r"fit_hand: Stage.fields names 'grasp.steady'"):
+        pipeline._check_fields()
 
 
 def test_every_stage_key_takes_its_declared_fields_only(synth_root, tmp_path, edited):
