@@ -50,7 +50,13 @@ from graspcap.catalog.validate import check_commit
 from graspcap.flows.cached import reads_digest, session_files, session_id_of
 from graspcap.flows.progress import ProgressFn, Tracker, reporting_to
 from graspcap.flows.report import BuildFailed, BuildReport, Outcome, SessionReport
-from graspcap.flows.rows import NEWEST_COLUMNS, failed_row, predates_columns, session_rows
+from graspcap.flows.rows import (
+    NEWEST_COLUMNS,
+    failed_row,
+    manifest_labels,
+    predates_columns,
+    session_rows,
+)
 from graspcap.flows.runtime import build_settings, task_runner, worker_api
 from graspcap.flows.session import InSession, Settled, failure_text, submit_session
 from graspcap.flows.workarea import ResultRef, WorkArea
@@ -365,7 +371,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                 by_index[i] = SessionReport(outcome=Outcome.UNCHANGED,
                                             status=prev["status"], **info)
                 continue
-            sr = session_rows({k: WorkArea.load(r) for k, r in refs.items()}, **common)
+            sr = session_rows({k: WorkArea.load(r) for k, r in refs.items()},
+                              labels=manifest_labels(d), **common)
             if sr.session["session_id"] != sid:
                 raise ValueError(f"its rows are for session_id {sr.session['session_id']!r}")
         except Exception as exc:  # noqa: BLE001 - one session's bug never loses the build

@@ -4,9 +4,14 @@ The cache key of a stage run is ours, not Prefect's::
 
     key = sha256(stage.version, config.digest(),
                  digests of the bytes of the session files in ``stage.reads``,
+                 canonical JSON of the ``session.json`` fields in ``stage.fields``,
                  code digest (``flows/code_digest.py``: the AST of every graspcap module on
                  the stage's import path and its glue, versions of computing libraries),
-                 content digests of the upstream results)
+                 content digests of the upstream results but ``load_session``'s)
+
+A stage reads the session only through its roles and fields (the session its glue gets
+raises on any other manifest field: ``load_session.restricted``), so ``load_session``'s result
+digest, which changes with every file, is in no downstream key.
 
 so a changed algorithm (its code, or its ``STAGE_VERSION`` for what the code cannot show), a
 changed library, a changed parameter, a changed input file or a changed upstream result each
@@ -22,6 +27,7 @@ failed session runs nothing). ``replay_failures=False`` (``--retry-failed``) run
 from __future__ import annotations
 
 import errno
+import functools
 import hashlib
 import json
 import os
@@ -32,6 +38,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Annotated
 
 from graspcap.flows.code_digest import stage_code
 from graspcap.flows.workarea import RACY_S, ResultRef, WorkArea
@@ -201,21 +208,102 @@ def manifest_digest(work: WorkArea, path: Path) -> str:
 def cache_key(stage_name: str, session_dir: Path | str, config: StageConfig,
               upstream: Mapping[str, ResultRef], work: WorkArea,
               role_digests: dict[str, str] | None = None) -> str | None:
-    """The cache key of ``stage_name`` for one session given its upstream refs; None when the
-    session's files cannot be listed or one is missing (then the stage runs, uncached, and
-    ``load_session`` reports what is wrong)."""
+    """The cache key of ``stage_name`` for one session given its upstream refs (those of
+    ``Stage.key_upstream``: ``load_session``'s is not needed); None when the session's files
+    cannot be listed or one is missing (then the stage runs, uncached, and ``load_session``
+    reports what is wrong)."""
     from graspcap.tasks.pipeline import STAGES
 
     stage = STAGES[stage_name]
     files = _stage_files(stage_name, session_dir, upstream)
-    if files is None:
+    fields = manifest_fields(Path(session_dir), stage.fields)
+    if files is None or fields is None:
         return None
     try:
-        return stage_key(stage.version, config,
-                         reads_digest(work, files, stage.reads, role_digests),
-                         {k: upstream[k] for k in stage.upstream}, stage_code(stage).digest)
+        reads = reads_digest(work, files, stage.reads, role_digests)
     except OSError:  # missing, not a regular file, a symlink loop: load_session says which
         return None
+    return stage_key(stage.version, config, f"{reads}:{_fields_digest(fields)}",
+                     {k: upstream[k] for k in stage.key_upstream}, stage_code(stage).digest)
+
+
+_ABSENT = {"(absent)": True}
+"""A declared manifest field the manifest does not hold, in a key."""
+_MANIFESTS: OrderedDict[str, object] = OrderedDict()
+
+
+def _parsed_manifest(session_dir: Path) -> dict | None:
+    """The parsed ``session.json`` (None when it is not a JSON object), remembered by (path,
+    size, mtime_ns, inode) as :func:`manifest_digest` is."""
+    path = os.path.abspath(Path(session_dir) / MANIFEST)
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    ident = f"{path}|{st.st_size}|{st.st_mtime_ns}|{st.st_ino}"
+    with _FILES_LOCK:
+        if ident in _MANIFESTS:
+            found = _MANIFESTS[ident]
+            return found if isinstance(found, dict) else None
+    raw = _manifest(Path(session_dir))
+    if time.time_ns() - st.st_mtime_ns >= RACY_S * 1e9:
+        with _FILES_LOCK:
+            _MANIFESTS[ident] = raw
+            while len(_MANIFESTS) > _FILES_MAX:
+                _MANIFESTS.popitem(last=False)
+    return raw if isinstance(raw, dict) else None
+
+
+@functools.cache
+def _label_type(name: str):
+    """A pydantic ``TypeAdapter`` of the manifest field ``name`` (its type and constraints)."""
+    from pydantic import TypeAdapter
+
+    info = SessionManifest.model_fields[name]
+    return TypeAdapter(Annotated[info.annotation, *info.metadata])
+
+
+def _label_key(name: str, value: object) -> object:
+    """A label (``pipeline.LABEL_FIELDS``) as ``load_session``'s key takes it: only that it is
+    valid (no stage reads it), or the value itself when it is not (its problem line names it)."""
+    from pydantic import ValidationError
+
+    try:
+        _label_type(name).validate_python(value)
+    except ValidationError:
+        return value
+    return "(a valid label)"
+
+
+def manifest_fields(session_dir: Path, fields: tuple[str, ...]) -> dict[str, object] | None:
+    """The values of the manifest ``fields`` (dotted paths) a stage's key takes, as parsed
+    from the session's current ``session.json``, with ``session_id`` (every stage may read it,
+    ``load_session.ALWAYS_FIELDS``); a field the manifest lacks is ``_ABSENT``. ``("*",)``:
+    every top-level field, labels by validity only (:func:`_label_key`). None when the
+    manifest is not a JSON object."""
+    from graspcap.tasks.pipeline import LABEL_FIELDS, WHOLE_MANIFEST
+    from graspcap.tasks.session.load_session import ALWAYS_FIELDS
+
+    raw = _parsed_manifest(session_dir)
+    if raw is None:
+        return None
+    if tuple(fields) == WHOLE_MANIFEST:
+        return {k: _label_key(k, v) if k in LABEL_FIELDS else v for k, v in raw.items()}
+    out: dict[str, object] = {}
+    for name in (*ALWAYS_FIELDS, *fields):
+        value: object = raw
+        for part in name.split("."):
+            value = value.get(part, _ABSENT) if isinstance(value, dict) else _ABSENT
+        out[name] = value
+    return out
+
+
+def _canonical(value: object) -> str:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
+
+
+def _fields_digest(fields: Mapping[str, object]) -> str:
+    return hashlib.sha256(("fields:" + _canonical(dict(fields))).encode()).hexdigest()
 
 
 def _stage_files(stage_name: str, session_dir: Path | str,
@@ -236,7 +324,8 @@ def key_parts(stage_name: str, session_dir: Path | str, config: StageConfig,
 
     stage = STAGES[stage_name]
     files = _stage_files(stage_name, session_dir, upstream)
-    if files is None:
+    fields = manifest_fields(Path(session_dir), stage.fields)
+    if files is None or fields is None:
         return None
     base = Path(session_dir).resolve()
     try:
@@ -247,8 +336,11 @@ def key_parts(stage_name: str, session_dir: Path | str, config: StageConfig,
     except OSError:
         return None
     return {"version": stage.version, "config": json.loads(config.canonical_json()),
-            "files": by_role, **stage_code(stage).as_dict(),
-            "upstream": {k: upstream[k].digest for k in stage.upstream if k in upstream}}
+            "files": by_role,
+            "fields": {k: hashlib.sha256(_canonical(v).encode()).hexdigest()[:16]
+                       for k, v in fields.items()},
+            **stage_code(stage).as_dict(),
+            "upstream": {k: upstream[k].digest for k in stage.key_upstream if k in upstream}}
 
 
 def _relative(path: Path, base: Path) -> str:
@@ -280,6 +372,10 @@ def diff_parts(old: Mapping, new: Mapping) -> list[tuple[str, str]]:
             if was.get(name) != now.get(name):
                 what = "new" if name not in was else "gone" if name not in now else "changed"
                 out.append(("changed input file", f"{role}: {name} ({what})"))
+    old_fields, new_fields = old.get("fields") or {}, new.get("fields") or {}
+    for name in sorted(set(old_fields) | set(new_fields)):
+        if old_fields.get(name) != new_fields.get(name):
+            out.append(("changed input file", f"{MANIFEST}: field {name}"))
     old_code, new_code = old.get("modules") or {}, new.get("modules") or {}
     for module in sorted(set(old_code) | set(new_code)):
         if old_code.get(module) != new_code.get(module):

@@ -16,7 +16,9 @@ the upstream results the work area holds, and says:
   result gone. A stage whose upstream would run cannot
   know its own key before that upstream has run (an unchanged upstream result is a cache hit
   downstream: early cutoff), so it is planned as ``run`` for "upstream changed", with what else
-  changed in its own parts.
+  changed in its own parts. ``load_session``'s result is in no downstream key (a stage takes
+  the files of its roles and its manifest fields itself), so a stage whose only running
+  upstream is ``load_session`` is planned from its own key.
 
 No catalog is opened or created, no Prefect run is started and the work area is opened to read
 only (:meth:`WorkArea.reader`).
@@ -70,7 +72,10 @@ def plan_session(session_dir: Path, session_id: str, configs: Mapping[str, Stage
             action[name] = "not ready"
             out.append(StagePlan(session_id, name, "not ready"))
             continue
-        running = [u for u in ups if action[u] == "run"]
+        # load_session's result is not in its downstream keys (they take their roles and
+        # manifest fields themselves): a stage whose only running upstream is load_session
+        # knows its key now
+        running = [u for u in stage.key_upstream if action[u] == "run"]
         if running:
             reasons = [("upstream changed", ", ".join(running))]
             parts = key_parts(name, session_dir, configs[name], refs, work)
@@ -82,8 +87,8 @@ def plan_session(session_dir: Path, session_id: str, configs: Mapping[str, Stage
             action[name] = "run"
             out.append(StagePlan(session_id, name, "run", tuple(reasons)))
             continue
-        key = cache_key(name, session_dir, configs[name], {u: refs[u] for u in ups}, work,
-                        role_digests)
+        held = {u: refs[u] for u in ups if u in refs}
+        key = cache_key(name, session_dir, configs[name], held, work, role_digests)
         ref = work.lookup(name, key) if key is not None else None
         if ref is not None:
             refs[name] = ref
@@ -96,7 +101,7 @@ def plan_session(session_dir: Path, session_id: str, configs: Mapping[str, Stage
             out.append(StagePlan(session_id, name, "fails again",
                                  (("failed last time", str(failure.get("reason", ""))),)))
             continue
-        parts = (key_parts(name, session_dir, configs[name], {u: refs[u] for u in ups}, work)
+        parts = (key_parts(name, session_dir, configs[name], held, work)
                  if key is not None else None)
         action[name] = "run"
         out.append(StagePlan(session_id, name, "run", tuple(

@@ -27,6 +27,9 @@ from graspcap.tasks.outputs.qa_metrics import QaReport, qa_metrics
 MANIFEST_MAX_BYTES = 1 << 20
 """A failed row reads its identity columns from a ``session.json`` up to this size."""
 IDENTITY_COLUMNS = ("participant", "object_id", "intent", "hand")
+LABEL_COLUMNS = ("participant", "object_id", "intent")
+"""Identity columns no stage reads (``pipeline.LABEL_FIELDS``): taken from the current
+``session.json`` (:func:`manifest_labels`), never from a cached stage result."""
 QA_COLUMNS = tuple(m.name for m in qa_columns())
 """``qa_<name>`` columns of ``sessions``, filled from ``QaReport.metrics[<name>]``."""
 FORMAT_3_QA = tuple(m.column for m in qa_columns() if m.column_format == 3)
@@ -66,9 +69,12 @@ def qa_report(results: Mapping[str, Any]) -> QaReport:
     return results.get("qa_metrics") or qa_metrics(results)
 
 
-def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version: str,
-                 build_id: str, config_digest: str) -> SessionRows:
-    """Rows and arrays of a session whose stages all completed (``results`` by stage name)."""
+def session_rows(results: Mapping[str, Any], *, labels: Mapping[str, str], input_digest: str,
+                 code_version: str, build_id: str, config_digest: str) -> SessionRows:
+    """Rows and arrays of a session whose stages all completed (``results`` by stage name).
+    ``labels``: the session's ``participant``, ``object_id`` and ``intent`` from its current
+    ``session.json`` (:func:`manifest_labels`): no stage reads them, so ``load_session``'s
+    result does not hold them and a label edit re-writes the rows without running a stage."""
     from graspcap.tasks.hand.final import final_hand, final_pose
 
     session = results["load_session"]
@@ -86,8 +92,8 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
     contact = results.get("build_contactmap")
     qa = qa_report(results)
     row = {
-        "session_id": m.session_id, "participant": m.participant, "object_id": m.object_id,
-        "intent": m.intent, "hand": str(m.hand),
+        "session_id": m.session_id, **{c: labels[c] for c in LABEL_COLUMNS},
+        "hand": str(m.hand),
         "status": Status(qa.verdict).value, "error": qa.error,
         "keypoint_backend": str(detected["backend"]),
         "keypoint_frames_detected": int(detected["frames_with_hand"]),
@@ -126,7 +132,41 @@ def session_rows(results: Mapping[str, Any], *, input_digest: str, code_version:
         hand_faces=np.asarray(hand.faces, np.int32), joints=np.asarray(hand.joints_o, np.float64),
     )
     mesh = ObjectMesh(V.astype(np.float32), F.astype(np.int32))
-    return SessionRows(row, frames, arrays, m.object_id, mesh)
+    return SessionRows(row, frames, arrays, labels["object_id"], mesh)
+
+
+def manifest_labels(session_dir: Path) -> dict[str, str]:
+    """The label columns (:data:`LABEL_COLUMNS`) of a session from its current
+    ``session.json``; raises ``ValueError`` naming the file and field when one is not a
+    non-empty string (``load_session`` checked them; the file changed since)."""
+    from graspcap.schemas.session import DEFAULT_LIMITS
+    from graspcap.tasks.session.files import load_json
+
+    raw = load_json(Path(session_dir) / "session.json", DEFAULT_LIMITS.max_manifest_bytes,
+                    DEFAULT_LIMITS.max_json_depth)
+    raw = raw if isinstance(raw, dict) else {}
+    out = {}
+    for c in LABEL_COLUMNS:
+        value = raw.get(c)
+        if not isinstance(value, str) or not value:
+            raise ValueError(f"{Path(session_dir) / 'session.json'}: field {c}: "
+                             f"{value!r} is not a non-empty string")
+        out[c] = value
+    return out
+
+
+def _read_manifest(session_dir: Path) -> dict[str, Any]:
+    """The parsed ``session.json`` as far as it can be read ({} otherwise): a regular file of
+    a sane size only, never a FIFO, a device, a 10 GB file."""
+    raw: Any = {}
+    path = Path(session_dir) / "session.json"
+    try:
+        st = os.stat(path)
+        if stat.S_ISREG(st.st_mode) and st.st_size <= MANIFEST_MAX_BYTES:
+            raw = json.loads(path.read_bytes())
+    except (OSError, ValueError, RecursionError):
+        raw = {}
+    return raw if isinstance(raw, dict) else {}
 
 
 def failed_row(session_dir: Path, session_id: str, error: str, *, input_digest: str,
@@ -135,15 +175,7 @@ def failed_row(session_dir: Path, session_id: str, error: str, *, input_digest: 
     can be read, every result column null, ``error`` the reason. ``qa_flags`` and ``qa_notes``
     are null too: ``qa_metrics`` needs every data stage, so it never ran on such a session (a
     session QA failed gets :func:`session_rows`, with its flags and notes)."""
-    raw: Any = {}
-    path = Path(session_dir) / "session.json"
-    try:  # a regular file of a sane size only: never a FIFO, a device, a 10 GB file
-        st = os.stat(path)
-        if stat.S_ISREG(st.st_mode) and st.st_size <= MANIFEST_MAX_BYTES:
-            raw = json.loads(path.read_bytes())
-    except (OSError, ValueError, RecursionError):
-        raw = {}
-    raw = raw if isinstance(raw, dict) else {}
+    raw = _read_manifest(Path(session_dir))
     from graspcap.schemas.tables import SESSIONS_SCHEMA
 
     row: dict[str, Any] = {name: None for name in SESSIONS_SCHEMA.names}

@@ -34,9 +34,15 @@ from graspcap.tasks.keypoints.detect_keypoints import why_missing
 from graspcap.tasks.object_pose import estimate_adjustment, register_object, register_scan
 from graspcap.tasks.outputs import pictures, propagate_poses, qa_metrics
 from graspcap.tasks.session import load_session
-from graspcap.tasks.session.load_session import Session
+from graspcap.tasks.session.load_session import Session, restricted
 
-ALL_FILES = (
+SESSION_STAGE = "load_session"
+WHOLE_MANIFEST = ("*",)
+"""``Stage.fields`` of a stage that reads all of ``session.json`` (``load_session``)."""
+LABEL_FIELDS = ("participant", "object_id", "intent")
+"""``session.json`` labels no stage reads: the rows take them from the current manifest, and
+``load_session``'s key covers only whether each is valid, so editing one runs no stage."""
+ALL_FILES = (  # load_session reads all but "manifest" by bytes, the manifest by its fields
     "manifest", "object_mesh", "stage1", "grasp_color", "grasp_depth", "grasp_keypoints",
     "scan_thermal", "scan_depth",
 )  # fmt: skip
@@ -53,6 +59,19 @@ class Stage:
     reads: tuple[str, ...]
     run: Callable[..., Any]
     """``run(session, config, **upstream_results) -> result``."""
+    fields: tuple[str, ...] = ()
+    """The ``session.json`` fields the stage reads (dotted paths: ``color_camera.K``,
+    ``grasp.steady_from``; a section name covers all of it), beside ``session_id``, which every
+    stage may read. Its cache key digests exactly these (canonical JSON), not the whole
+    manifest, and the session its glue gets lets no other field be read
+    (:func:`~graspcap.tasks.session.load_session.restricted` raises naming the field).
+    ``load_session`` reads the whole manifest: ``("*",)``."""
+
+    @property
+    def key_upstream(self) -> tuple[str, ...]:
+        """The upstream stages whose result digests are in the key: all but ``load_session``,
+        whose result a stage reads only through its declared roles and fields."""
+        return tuple(u for u in self.upstream if u != SESSION_STAGE)
 
     @property
     def config_type(self) -> type[StageConfig]:
@@ -64,9 +83,16 @@ class Stage:
 # a bare stage name below is always the stage's module, never its result.
 
 
+LABEL_PLACEHOLDER = "(a label: the catalog rows read it from session.json)"
+"""What a label (:data:`LABEL_FIELDS`) holds in ``load_session``'s result: its key covers only
+that the label is valid, so its result must not hold the value either."""
+
+
 def _load(session_dir: Path | str, config) -> Session:
-    return load_session.load_session(Path(session_dir), check_images=config.check_images,
-                                     limits=config.limits)
+    session = load_session.load_session(Path(session_dir), check_images=config.check_images,
+                                        limits=config.limits)
+    manifest = session.manifest.model_copy(update=dict.fromkeys(LABEL_FIELDS, LABEL_PLACEHOLDER))
+    return Session(root=session.root, manifest=manifest)
 
 
 def _register_object(session: Session, config, **up):
@@ -190,53 +216,64 @@ _REFINE: tuple[str, ...] = ("refine_grasp",)
 """``("refine_grasp",)`` once ``refine_grasp`` is in the DAG: propagate_poses, qa_metrics and
 pictures then use the refined hand (``final_hand``); until then ``fit_hand``'s."""
 
+_K, _T_TT, _DEPTH_SCALE, _MESH = ("color_camera.K", "turntable.T_color_turntable",
+                                  "depth_scale_m", "object_mesh")
+"""Manifest fields many stages read: ``Session.color_K``, ``T_color_turntable``,
+``read_depth_m`` and ``read_mesh``/``mesh_name``."""
+
 STAGES: dict[str, Stage] = {
     s.name: s
     for s in [
-        Stage("load_session", load_session.STAGE_VERSION, load_session.PRESETS, (), ALL_FILES,
-              _load),
+        Stage("load_session", load_session.STAGE_VERSION, load_session.PRESETS, (),
+              tuple(r for r in ALL_FILES if r != "manifest"), _load, fields=WHOLE_MANIFEST),
         Stage("register_object", register_object.STAGE_VERSION, register_object.PRESETS,
-              ("load_session",), ("manifest", "object_mesh", "stage1"), _register_object),
+              ("load_session",), ("object_mesh", "stage1"), _register_object,
+              fields=("stage1.depth", _DEPTH_SCALE, _K, _T_TT, _MESH)),
         Stage("detect_keypoints", detect_keypoints.STAGE_VERSION, detect_keypoints.PRESETS,
-              ("load_session",), ("manifest", "grasp_keypoints", "grasp_color"),
-              _detect_keypoints),
+              ("load_session",), ("grasp_keypoints", "grasp_color"), _detect_keypoints,
+              fields=("hand", "color_camera.width", "color_camera.height", "grasp.count",
+                      "grasp.keypoints", "grasp.color")),
         Stage("select_steady", select_steady.STAGE_VERSION, select_steady.PRESETS,
-              ("load_session", "detect_keypoints"), ("manifest",), _select_steady),
+              ("load_session", "detect_keypoints"), (), _select_steady,
+              fields=(_K, "grasp.steady_from")),
         Stage("reconstruct_hand", reconstruct_hand.STAGE_VERSION, reconstruct_hand.PRESETS,
-              ("load_session", "detect_keypoints", "select_steady"), ("manifest", "grasp_depth"),
-              _reconstruct_hand),
+              ("load_session", "detect_keypoints", "select_steady"), ("grasp_depth",),
+              _reconstruct_hand, fields=(_K, "grasp.count", "grasp.depth", _DEPTH_SCALE, _T_TT)),
         Stage("crosscheck_sfm", crosscheck_sfm.STAGE_VERSION, crosscheck_sfm.PRESETS,
-              ("load_session", "detect_keypoints", "reconstruct_hand"), ("manifest",),
-              _crosscheck_sfm),
+              ("load_session", "detect_keypoints", "reconstruct_hand"), (), _crosscheck_sfm,
+              fields=(_K,)),
         Stage("fit_hand", fit_hand.STAGE_VERSION, fit_hand.PRESETS,
-              ("load_session", "reconstruct_hand"), ("manifest",), _fit_hand),
+              ("load_session", "reconstruct_hand"), (), _fit_hand, fields=("hand",)),
         Stage("estimate_adjustment", estimate_adjustment.STAGE_VERSION,
               estimate_adjustment.PRESETS,
               ("load_session", "register_object", "detect_keypoints", "select_steady",
                "reconstruct_hand", "fit_hand"),
-              ("manifest", "object_mesh", "grasp_depth"), _estimate_adjustment),
+              ("object_mesh", "grasp_depth"), _estimate_adjustment,
+              fields=(_K, "grasp.count", "grasp.depth", _DEPTH_SCALE, _MESH)),
         Stage("register_scan", register_scan.STAGE_VERSION, register_scan.PRESETS,
-              ("load_session",), ("manifest", "object_mesh", "scan_depth"), _register_scan),
+              ("load_session",), ("object_mesh", "scan_depth"), _register_scan,
+              fields=("scan.views", _DEPTH_SCALE, _K, _T_TT, _MESH)),
         Stage("build_contactmap", build_contactmap.STAGE_VERSION, build_contactmap.PRESETS,
-              ("load_session", "register_scan"), ("manifest", "object_mesh", "scan_thermal"),
-              _build_contactmap),
+              ("load_session", "register_scan"), ("object_mesh", "scan_thermal"),
+              _build_contactmap, fields=("thermal_camera", "scan.views", _T_TT, _MESH)),
         Stage("refine_grasp", refine_grasp.STAGE_VERSION, refine_grasp.PRESETS,
               ("load_session", "fit_hand", "estimate_adjustment", "build_contactmap"),
-              ("manifest", "object_mesh"), _refine_grasp),
+              ("object_mesh",), _refine_grasp, fields=("hand", _MESH)),
         Stage("propagate_poses", propagate_poses.STAGE_VERSION, propagate_poses.PRESETS,
               ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
                "fit_hand", "register_object", "estimate_adjustment") + _REFINE,
-              ("manifest",), _propagate_poses),
+              (), _propagate_poses, fields=(_K, "grasp.count")),
         Stage("qa_metrics", qa_metrics.STAGE_VERSION, qa_metrics.PRESETS,
               ("load_session", "detect_keypoints", "reconstruct_hand", "crosscheck_sfm",
                "fit_hand", "register_object", "estimate_adjustment", "register_scan",
-               "build_contactmap", "propagate_poses") + _REFINE, ("manifest", "object_mesh"),
-              _qa_metrics),
+               "build_contactmap", "propagate_poses") + _REFINE, ("object_mesh",),
+              _qa_metrics, fields=(_MESH,)),
         Stage("pictures", pictures.STAGE_VERSION, pictures.PRESETS,
               ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
                "fit_hand", "estimate_adjustment", "register_scan", "build_contactmap",
                "qa_metrics") + _REFINE,
-              ("manifest", "object_mesh", "grasp_color", "grasp_depth"), _pictures),
+              ("object_mesh", "grasp_color", "grasp_depth"), _pictures,
+              fields=(_K, "grasp.count", "grasp.color", "grasp.depth", _DEPTH_SCALE, _MESH)),
     ]
 }  # fmt: skip
 
@@ -257,6 +294,27 @@ def _check_presets() -> None:
 
 
 _check_presets()
+
+
+def _check_fields() -> None:
+    """Every declared manifest field (``Stage.fields``) is a field of ``SessionManifest``: a
+    misspelt one would key on nothing."""
+    from pydantic import BaseModel
+
+    from graspcap.schemas.session import SessionManifest
+
+    for stage in STAGES.values():
+        for path in () if stage.fields == WHOLE_MANIFEST else stage.fields:
+            model: Any = SessionManifest
+            for part in path.split("."):
+                if model is None or part not in model.model_fields:
+                    raise RuntimeError(f"{stage.name}: Stage.fields names {path!r}, which is "
+                                       "not a field of session.json (schemas/session.py)")
+                kind = model.model_fields[part].annotation
+                model = kind if isinstance(kind, type) and issubclass(kind, BaseModel) else None
+
+
+_check_fields()
 
 
 def preset_stages(preset: str) -> tuple[str, ...]:
@@ -293,10 +351,13 @@ def settings_overrides(settings: list[str] | tuple[str, ...],
 def run_stage(
     stage: Stage, session_dir: Path | str, config: StageConfig, upstream: Mapping[str, Any]
 ) -> Any:
-    """Run one stage given its upstream results (``load_session`` gets the directory)."""
-    if stage.name == "load_session":
+    """Run one stage given its upstream results (``load_session`` gets the directory); the
+    session a stage gets reads only the manifest fields it declares (``Stage.fields``)."""
+    if stage.name == SESSION_STAGE:
         return stage.run(session_dir, config)
-    return stage.run(upstream["load_session"], config, **{k: upstream[k] for k in stage.upstream})
+    session = restricted(upstream[SESSION_STAGE], stage.fields, stage.name)
+    up = {k: session if k == SESSION_STAGE else upstream[k] for k in stage.upstream}
+    return stage.run(session, config, **up)
 
 
 NOTES = "notes"
