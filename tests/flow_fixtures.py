@@ -76,3 +76,21 @@ def executions(catalog: Path, build_id: str) -> list[tuple[str, str]]:
     recs = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     return sorted((r["session_id"], r["stage"]) for r in recs
                   if r["build_id"] == build_id and r["ok"])
+
+
+def fit_hand_failing_for(session_id: str):
+    """``pipeline.STAGES["fit_hand"]`` changed to fail (a ``StageError``) for ``session_id``
+    only; the other sessions run the real stage. Set it with ``monkeypatch.setitem``."""
+    import dataclasses
+
+    from graspcap.tasks import pipeline
+    from graspcap.tasks.core.errors import StageError
+
+    original = pipeline.STAGES["fit_hand"]
+
+    def broken_for_one(session, config, **kw):
+        if session.session_id == session_id:
+            raise StageError("fit_hand", "did not converge (injected)", session=session_id)
+        return original.run(session, config, **kw)
+
+    return dataclasses.replace(original, run=broken_for_one)

@@ -27,6 +27,7 @@ from tests.flow_fixtures import (  # noqa: F401
     PRESET,
     copy_catalog,
     executions,
+    fit_hand_failing_for,
     prefect_harness,
     require_pipeline_passes,
     synth_root,
@@ -459,15 +460,8 @@ def test_retry_failed_reruns_only_the_tasks_that_did_not_complete(warm, synth_ro
     for stage in ("crosscheck_sfm", "fit_hand", "estimate_adjustment", "propagate_poses"):
         shutil.rmtree(catalog / "work" / "results" / stage)
     good, bad = _ids(synth_root)
-    original = pipeline.STAGES["fit_hand"]
-
-    def broken_for_one(session, config, **kw):
-        if session.session_id == bad:
-            raise StageError("fit_hand", "did not converge (injected)", session=bad)
-        return original.run(session, config, **kw)
-
     with monkeypatch.context() as m:
-        m.setitem(pipeline.STAGES, "fit_hand", dataclasses.replace(original, run=broken_for_one))
+        m.setitem(pipeline.STAGES, "fit_hand", fit_hand_failing_for(bad))
         first = build_dataset([synth_root], catalog, PRESET, build_id="half")
     assert set(first.failed) == {bad}
     ran_first = executions(catalog, "half")

@@ -24,6 +24,7 @@ from tests.flow_fixtures import (  # noqa: F401
     PRESET,
     copy_catalog,
     executions,
+    fit_hand_failing_for,
     prefect_harness,
     synth_root,
     warm,
@@ -246,25 +247,16 @@ def test_a_stored_result_of_a_renamed_class_is_a_miss_and_the_build_completes(
 
 def test_plan_replays_a_remembered_failure_and_retry_failed_runs_it(warm, synth_root,
                                                                     tmp_path, monkeypatch):
-    import dataclasses
     import shutil
 
     from graspcap.flows.plan import plan_text
     from graspcap.tasks import pipeline
-    from graspcap.tasks.core.errors import StageError
 
     catalog = copy_catalog(warm[0], tmp_path / "catalog")
     shutil.rmtree(catalog / "work" / "results" / "fit_hand")
     good, bad = _ids(synth_root)
-    original = pipeline.STAGES["fit_hand"]
-
-    def broken_for_one(session, config, **kw):
-        if session.session_id == bad:
-            raise StageError("fit_hand", "did not converge (injected)", session=bad)
-        return original.run(session, config, **kw)
-
     with monkeypatch.context() as m:
-        m.setitem(pipeline.STAGES, "fit_hand", dataclasses.replace(original, run=broken_for_one))
+        m.setitem(pipeline.STAGES, "fit_hand", fit_hand_failing_for(bad))
         assert set(build_dataset([synth_root], catalog, PRESET, build_id="half").failed) == {bad}
     plans = {(p.session_id, p.stage): p for p in plan_build([synth_root], catalog, PRESET)}
     assert {p.action for (s, _), p in plans.items() if s == good} == {"cached"}
