@@ -101,7 +101,7 @@ def main() -> None:
     from graspcap.flows.build import build_dataset
     from graspcap.tasks.core.errors import StageError
     from graspcap.tasks.pipeline import configs_for, run_session
-    from graspcap.tasks.session.load_session import discover_sessions
+    from graspcap.tasks.session.discover import discover_sessions
 
     configs = configs_for(args.preset)
     dirs = discover_sessions([root])

@@ -2,7 +2,7 @@
 
     report = build_dataset(["captures/"], "catalog/")
 
-1. discover the sessions under the roots (``load_session.discover``; folders beside them
+1. discover the sessions under the roots (``session.discover.discover``; folders beside them
    without ``session.json`` are named in the report, not skipped without a word);
 2. submit every session's stage tasks into this one flow run (not a subflow per session:
    measured in ``docs/architecture.md``), so sessions run concurrently on the task runner;
@@ -62,7 +62,7 @@ from graspcap.flows.session import InSession, Settled, failure_text, submit_sess
 from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.schemas.tables import Status
 from graspcap.tasks.core.config import StageConfig
-from graspcap.tasks.session.load_session import discover
+from graspcap.tasks.session.discover import discover
 
 BUILDS_LOG = "builds.jsonl"
 __all__ = ["BuildFailed", "ProgressFn", "build_dataset", "build_flow"]

@@ -10,7 +10,7 @@ The cache key of a stage run is ours, not Prefect's::
                  content digests of the upstream results but ``load_session``'s)
 
 A stage reads the session only through its roles and fields (the session its glue gets
-raises on any other manifest field: ``load_session.restricted``), so ``load_session``'s result
+raises on any other manifest field: ``manifest_guard.restricted``), so ``load_session``'s result
 digest, which changes with every file, is in no downstream key.
 
 so a changed algorithm (its code, or its ``STAGE_VERSION`` for what the code cannot show), a
@@ -278,11 +278,11 @@ def _label_key(name: str, value: object) -> object:
 def manifest_fields(session_dir: Path, fields: tuple[str, ...]) -> dict[str, object] | None:
     """The values of the manifest ``fields`` (dotted paths) a stage's key takes, as parsed
     from the session's current ``session.json``, with ``session_id`` (every stage may read it,
-    ``load_session.ALWAYS_FIELDS``); a field the manifest lacks is ``_ABSENT``. ``("*",)``:
+    ``manifest_guard.ALWAYS_FIELDS``); a field the manifest lacks is ``_ABSENT``. ``("*",)``:
     every top-level field, labels by validity only (:func:`_label_key`). None when the
     manifest is not a JSON object."""
     from graspcap.tasks.pipeline import LABEL_FIELDS, WHOLE_MANIFEST
-    from graspcap.tasks.session.load_session import ALWAYS_FIELDS
+    from graspcap.tasks.session.manifest_guard import ALWAYS_FIELDS
 
     raw = _parsed_manifest(session_dir)
     if raw is None:

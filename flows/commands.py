@@ -50,7 +50,7 @@ def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
     from graspcap.catalog.errors import CatalogError
     from graspcap.flows.report import BuildFailed
     from graspcap.tasks.pipeline import settings_overrides
-    from graspcap.tasks.session.load_session import discover_sessions
+    from graspcap.tasks.session.discover import discover_sessions
 
     try:
         overrides = settings_overrides(list(settings), preset)

@@ -116,7 +116,7 @@ def plan_build(roots: Sequence[Path | str], catalog: Path | str, preset: str = "
     ``retry_failed`` plans as ``--retry-failed`` would run: remembered failures run again (the
     build's choice of sessions from the last build's record is not applied)."""
     from graspcap.flows.build import resolve_configs
-    from graspcap.tasks.session.load_session import discover
+    from graspcap.tasks.session.discover import discover
 
     work = WorkArea.reader(work_root or Path(catalog).expanduser().resolve() / "work")
     configs = resolve_configs(preset, overrides)

@@ -6,7 +6,7 @@ import json
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
 
-from graspcap.tasks.session.load_session import NOT_A_SESSION
+from graspcap.tasks.session.discover import NOT_A_SESSION
 
 
 class BuildFailed(RuntimeError):

@@ -117,7 +117,7 @@ def verify_build(roots: Sequence[Path | str], catalog: Path | str, count: int,
     compare each with its stored result (module docstring); writes nothing."""
     from graspcap.flows.build import resolve_configs
     from graspcap.tasks.pipeline import STAGES, run_stage
-    from graspcap.tasks.session.load_session import discover
+    from graspcap.tasks.session.discover import discover
 
     work = WorkArea.reader(work_root or Path(catalog).expanduser().resolve() / "work")
     configs = resolve_configs(preset, overrides)

@@ -37,7 +37,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from graspcap.tasks.session.load_session import NOT_A_SESSION, discover, validate_session
+    from graspcap.tasks.session.discover import NOT_A_SESSION, discover
+    from graspcap.tasks.session.load_session import validate_session
 
     found = discover(args.dirs)
     for folder in found.not_sessions:

@@ -34,7 +34,8 @@ from graspcap.tasks.keypoints.detect_keypoints import why_missing
 from graspcap.tasks.object_pose import estimate_adjustment, register_object, register_scan
 from graspcap.tasks.outputs import pictures, propagate_poses, qa_metrics
 from graspcap.tasks.session import load_session
-from graspcap.tasks.session.load_session import Session, restricted
+from graspcap.tasks.session.load_session import Session
+from graspcap.tasks.session.manifest_guard import restricted
 
 SESSION_STAGE = "load_session"
 WHOLE_MANIFEST = ("*",)
@@ -64,7 +65,7 @@ class Stage:
     ``grasp.steady_from``; a section name covers all of it), beside ``session_id``, which every
     stage may read. Its cache key digests exactly these (canonical JSON), not the whole
     manifest, and the session its glue gets lets no other field be read
-    (:func:`~graspcap.tasks.session.load_session.restricted` raises naming the field).
+    (:func:`~graspcap.tasks.session.manifest_guard.restricted` raises naming the field).
     ``load_session`` reads the whole manifest: ``("*",)``."""
 
     @property

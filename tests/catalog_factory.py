@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
-import numpy as np
+from pathlib import Path
 
+import numpy as np
+import pyarrow as pa
+
+import graspcap.catalog as gc
 from graspcap.catalog import BuildCommit, BuildInfo, ObjectMesh, SessionArrays
 from graspcap.schemas.tables import FRAMES_SCHEMA
 from graspcap.tasks.core.geometry import from_rotvec
@@ -104,3 +108,40 @@ def make_build(session_ids: list[str], *, seed: int, build_id: str = "b1", frame
                      parameters={"seed": seed})
     return BuildCommit(build=info, sessions=rows, frames=frame_cols, session_arrays=arrays,
                        object_meshes=objects, remove=remove)
+
+
+# --- a small committed catalog to damage (tests/catalog/test_catalog_damage*.py) ----------
+
+DAMAGE_IDS = [["p01-mug-use-00", "p02-drill-use-00"], ["p03-bowl-use-00"], ["p04-mug-use-00"]]
+DATA_TABLES = ("sessions", "frames", "builds")
+
+
+def commit_three(root: Path) -> gc.Catalog:
+    """A new catalog at ``root`` with three committed versions (:data:`DAMAGE_IDS`)."""
+    cat = gc.open(root, create=True)
+    for i, ids in enumerate(DAMAGE_IDS):
+        assert cat.commit(make_build(ids, seed=i + 1, build_id=f"b{i + 1}")) == i + 1
+    return cat
+
+
+def snapshot(cat: gc.Catalog, version: int) -> dict[str, pa.Table]:
+    """The data tables of ``version``."""
+    return {name: cat.table(name, version) for name in DATA_TABLES}
+
+
+def log_entry(root: Path, table: str, n: int) -> Path:
+    """The Delta log entry ``n`` of ``table``."""
+    return root / "tables" / table / "_delta_log" / f"{n:020d}.json"
+
+
+def delta_logs(root: Path) -> list[str]:
+    """Every Delta log file of the catalog: what a writer would add to."""
+    return sorted(str(p.relative_to(root)) for p in root.glob("tables/*/_delta_log/*"))
+
+
+def assert_reads_back(root: Path, snapshots: dict[int, dict[str, pa.Table]]) -> None:
+    """Every version of ``snapshots`` reads back identically from a fresh ``open``."""
+    fresh = gc.open(root)
+    for version, tables in snapshots.items():
+        for name, table in snapshot(fresh, version).items():
+            assert table.equals(tables[name]), (version, name)

@@ -48,6 +48,7 @@ from graspcap.schemas.session import (
 )
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.session.discover import MANIFEST
 from graspcap.tasks.session.files import (
     ImageKind,
     JsonSyntaxError,
@@ -74,7 +75,6 @@ class LoadSessionConfig(StageConfig):
 
 
 PRESETS = {"default": LoadSessionConfig(), "fast": LoadSessionConfig(check_images=False)}
-MANIFEST = "session.json"
 WHOLE_FILE = "(file)"
 """The ``field`` of a problem that concerns a whole file (missing manifest, JSON syntax)."""
 MISSING = "file does not exist"
@@ -117,60 +117,6 @@ class SessionInvalid(StageError):
         lines = "\n".join(f"  file {p.file}: field {p.field}: {p.message}" for p in self.problems)
         reason = f"{len(self.problems)} problem(s)\n{lines}"
         super().__init__("load_session", reason, session=session)
-
-
-NOT_A_SESSION = "not a session: no session.json"
-"""What ``graspcap validate`` says of a folder in :attr:`Discovery.not_sessions`."""
-
-
-@dataclass(frozen=True)
-class Discovery:
-    """What :func:`discover` found under the roots."""
-
-    sessions: list[Path]
-    """Session directories (holding ``session.json``), sorted, without duplicates."""
-    not_sessions: list[Path]
-    """Folders without ``session.json`` and without a session below them that sit beside
-    sessions (their parent holds a session at or below it): most likely a session whose
-    manifest is missing. A folder holding other sessions' parents is not one, nor anything
-    inside a reported folder, nor a folder whose name starts with ``.``; sorted."""
-
-
-def discover(roots: Sequence[Path]) -> Discovery:
-    """Session directories at or below ``roots``, and the folders among them that are not
-    sessions (see :class:`Discovery`).
-
-    A directory holding ``session.json`` is a session (nothing below it is searched);
-    otherwise its subdirectories are. A root without sessions (or that is not a directory)
-    contributes nothing.
-    """
-    found: dict[Path, Path] = {}
-    walked: list[tuple[Path, Path]] = []  # (directory, its root), directories without manifest
-    for root in map(Path, roots):
-        for current, dirs, files in os.walk(root):
-            if MANIFEST in files:
-                found.setdefault(Path(current).resolve(), Path(current))
-                dirs.clear()
-            else:
-                walked.append((Path(current), root))
-            dirs.sort()
-    holding: set[Path] = set()  # directories with a session at or below them
-    for session in found.values():
-        holding.update(session.parents)
-    lonely = {d for d, root in walked
-              if d != root and d not in holding and d.parent in holding
-              and not d.name.startswith(".")}
-    not_sessions = {d.resolve(): d for d in lonely}
-    for real in list(not_sessions):
-        if real in found:
-            del not_sessions[real]
-    return Discovery(sorted(found.values()), sorted(not_sessions.values()))
-
-
-def discover_sessions(roots: Sequence[Path]) -> list[Path]:
-    """Session directories at or below ``roots``, sorted and without duplicates
-    (:attr:`Discovery.sessions` of :func:`discover`)."""
-    return discover(roots).sessions
 
 
 class _Resolver:
@@ -560,56 +506,3 @@ def load_session(directory: Path, *, check_images: bool = True,
     if errors or manifest is None:
         raise SessionInvalid(errors)
     return Session(root=Path(directory).resolve(), manifest=manifest)
-
-
-class UndeclaredManifestField(RuntimeError):
-    """A stage read a ``session.json`` field its ``Stage.fields`` does not declare: its cache
-    key would not cover that field, so a change to it would serve a stale result."""
-
-
-ALWAYS_FIELDS = ("session_id",)
-"""Fields every stage may read (messages name the session), so every stage's key covers them."""
-
-
-class _FieldGuard:
-    """A read-only view of a manifest model that lets through only the declared dotted fields
-    (and anything below one); a model above a declared field is itself a guarded view, and its
-    methods run on the view, so what they read is checked too."""
-
-    __slots__ = ("_model", "_prefix", "_fields", "_stage")
-
-    def __init__(self, model: BaseModel, prefix: str, fields: frozenset[str], stage: str):
-        object.__setattr__(self, "_model", model)
-        object.__setattr__(self, "_prefix", prefix)
-        object.__setattr__(self, "_fields", fields)
-        object.__setattr__(self, "_stage", stage)
-
-    def __getattr__(self, name: str) -> Any:
-        model = object.__getattribute__(self, "_model")
-        if name not in type(model).model_fields:
-            attr = getattr(type(model), name, None)
-            if callable(attr) and not name.startswith("__"):
-                return attr.__get__(self)  # a method: its reads go through this view
-            raise AttributeError(name)
-        path = object.__getattribute__(self, "_prefix") + name
-        fields = object.__getattribute__(self, "_fields")
-        value = getattr(model, name)
-        if path in fields or any(path.startswith(f + ".") for f in fields):
-            return value
-        if isinstance(value, BaseModel) and any(f.startswith(path + ".") for f in fields):
-            return _FieldGuard(value, path + ".", fields, object.__getattribute__(self, "_stage"))
-        raise UndeclaredManifestField(
-            f"{object.__getattribute__(self, '_stage')}: reads session.json field {path!r}, "
-            f"which its Stage.fields in tasks/pipeline.py does not declare (declared: "
-            f"{', '.join(sorted(fields))})")
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        raise AttributeError("a session's manifest is read-only")
-
-
-def restricted(session: Session, fields: Sequence[str], stage: str) -> Session:
-    """``session`` with manifest access limited to ``fields`` (dotted paths, e.g.
-    ``turntable.T_color_turntable``) and :data:`ALWAYS_FIELDS`: reading any other field raises
-    :class:`UndeclaredManifestField` naming the stage and the field."""
-    guard = _FieldGuard(session.manifest, "", frozenset((*ALWAYS_FIELDS, *fields)), stage)
-    return Session(root=session.root, manifest=guard)  # type: ignore[arg-type]

@@ -125,7 +125,7 @@ def test_a_stage_reading_an_undeclared_manifest_field_fails_loudly(synth_root, m
 
     from graspcap.tasks import pipeline
     from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
-    from graspcap.tasks.session.load_session import UndeclaredManifestField
+    from graspcap.tasks.session.manifest_guard import UndeclaredManifestField
 
     _, session = _sessions(synth_root)[0]
     configs = configs_for(PRESET)

@@ -13,7 +13,7 @@ from pathlib import Path
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
 from graspcap.flows.report import Outcome
-from graspcap.tasks.session.load_session import NOT_A_SESSION
+from graspcap.tasks.session.discover import NOT_A_SESSION
 from tests.flow_fixtures import PRESET, prefect_harness, synth_root  # noqa: F401
 from tests.reliability_corpus import DUPLICATE_ID, KINDS, Builds, Fails, Invalid, prepare
 

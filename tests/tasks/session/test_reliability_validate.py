@@ -19,14 +19,12 @@ import pytest
 from graspcap.flows.cached import NotARegularFile, reads_digest, session_files, session_id_of
 from graspcap.flows.workarea import WorkArea
 from graspcap.schemas.session import SESSION_ID_RE, SessionLimits
+from graspcap.tasks.session.discover import NOT_A_SESSION, discover, discover_sessions
 from graspcap.tasks.session.load_session import (
-    NOT_A_SESSION,
     LoadSessionConfig,
     Problem,
     SessionInvalid,
     Severity,
-    discover,
-    discover_sessions,
     load_session,
     validate_session,
 )

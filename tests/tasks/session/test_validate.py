@@ -13,12 +13,12 @@ import cv2
 import numpy as np
 import pytest
 
+from graspcap.tasks.session.discover import discover_sessions
 from graspcap.tasks.session.load_session import (
     Problem,
     Session,
     SessionInvalid,
     Severity,
-    discover_sessions,
     load_session,
     validate_session,
 )
