@@ -13,12 +13,16 @@ the upstream results the work area holds, and says:
   input file (role: file), changed config (field), changed code (module), changed library
   (name: old -> new), changed stage version, not run before (an upstream failed until now),
   upstream changed (which stages), failed last time, stored result unusable (why), stored
-  result gone. A stage whose upstream would run cannot
-  know its own key before that upstream has run (an unchanged upstream result is a cache hit
-  downstream: early cutoff), so it is planned as ``run`` for "upstream changed", with what else
-  changed in its own parts. ``load_session``'s result is in no downstream key (a stage takes
-  the files of its roles and its manifest fields itself), so a stage whose only running
-  upstream is ``load_session`` is planned from its own key.
+  result gone;
+- ``runs if upstream changes``: an upstream would run and nothing of the stage's own parts
+  changed. Its key is not known before that upstream has run (an unchanged upstream result is
+  a cache hit downstream: early cutoff), so whether it runs is decided then. A stage with an
+  upstream that would run *and* a change of its own is ``run``, with both reasons.
+
+So the ``run`` lines are exactly the stages that will run; the conditional ones are the most
+that may run besides. ``load_session``'s result is in no downstream key (a stage takes the
+files of its roles and its manifest fields itself), so a stage whose only running upstream is
+``load_session`` is planned from its own key.
 
 No catalog is opened or created, no Prefect run is started and the work area is opened to read
 only (:meth:`WorkArea.reader`).
@@ -44,6 +48,12 @@ from graspcap.flows.cached import (
 from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.tasks.core.config import StageConfig
 
+RUN = "run"
+IF_UPSTREAM = "runs if upstream changes"
+"""A stage whose own key parts are unchanged but which waits on an upstream that runs: it runs
+only when that upstream's new result differs from the one its key holds (early cutoff), which
+no plan can know before the upstream has run (terraform's "known after apply")."""
+
 
 @dataclass(frozen=True)
 class StagePlan:
@@ -52,9 +62,10 @@ class StagePlan:
     session_id: str
     stage: str
     action: str
-    """``cached``, ``run``, ``fails again`` or ``not ready``."""
+    """``cached``, ``run``, ``runs if upstream changes``, ``fails again`` or ``not ready``."""
     reasons: tuple[tuple[str, str], ...] = field(default=())
-    """(reason, detail) pairs for ``run`` (a reason from ``REASONS``)."""
+    """(reason, detail) pairs for ``run`` and ``runs if upstream changes`` (a reason from
+    ``REASONS``)."""
 
 
 def plan_session(session_dir: Path, session_id: str, configs: Mapping[str, StageConfig],
@@ -75,17 +86,18 @@ def plan_session(session_dir: Path, session_id: str, configs: Mapping[str, Stage
         # load_session's result is not in its downstream keys (they take their roles and
         # manifest fields themselves): a stage whose only running upstream is load_session
         # knows its key now
-        running = [u for u in stage.key_upstream if action[u] == "run"]
+        running = [u for u in stage.key_upstream if action[u] in (RUN, IF_UPSTREAM)]
         if running:
-            reasons = [("upstream changed", ", ".join(running))]
+            own: list[tuple[str, str]] = []
             parts = key_parts(name, session_dir, configs[name], refs, work)
             latest = work.latest_manifest(name, session_id)
             if latest is None:
-                reasons.insert(0, first_run(work, session_id))
+                own.append(first_run(work, session_id))
             elif parts is not None:
-                reasons += diff_parts(latest.get("parts") or {}, parts)
-            action[name] = "run"
-            out.append(StagePlan(session_id, name, "run", tuple(reasons)))
+                own += diff_parts(latest.get("parts") or {}, parts)
+            action[name] = RUN if own else IF_UPSTREAM
+            out.append(StagePlan(session_id, name, action[name],
+                                 (*own, ("upstream changed", ", ".join(running)))))
             continue
         held = {u: refs[u] for u in ups if u in refs}
         key = cache_key(name, session_dir, configs[name], held, work, role_digests)
@@ -103,8 +115,8 @@ def plan_session(session_dir: Path, session_id: str, configs: Mapping[str, Stage
             continue
         parts = (key_parts(name, session_dir, configs[name], held, work)
                  if key is not None else None)
-        action[name] = "run"
-        out.append(StagePlan(session_id, name, "run", tuple(
+        action[name] = RUN
+        out.append(StagePlan(session_id, name, RUN, tuple(
             run_reasons(work, name, session_id, key, parts, replay_failures=not retry_failed))))
     return out
 
@@ -157,11 +169,12 @@ def summary_line(plans: Sequence[StagePlan]) -> str:
     sessions = len({p.session_id for p in plans})
     if actions.get("cached", 0) == len(plans):
         return f"plan: all cached ({len(plans)} stages of {sessions} sessions); nothing runs"
-    reasons = Counter(r for p in plans if p.action == "run" for r in {r for r, _ in p.reasons})
+    reasons = Counter(r for p in plans if p.action == RUN for r in {r for r, _ in p.reasons})
     counted = ", ".join(f"{r}: {reasons[r]}" for r in REASONS if reasons.get(r))
-    parts = [f"{actions.get('cached', 0)} cached", f"{actions.get('run', 0)} run"
+    parts = [f"{actions.get('cached', 0)} cached", f"{actions.get(RUN, 0)} run"
              + (f" ({counted})" if counted else "")]
-    parts += [f"{actions[a]} {a}" for a in ("fails again", "not ready") if actions.get(a)]
+    parts += [f"{actions[a]} {a}" for a in (IF_UPSTREAM, "fails again", "not ready")
+              if actions.get(a)]
     return f"plan: {len(plans)} stages of {sessions} sessions: " + ", ".join(parts)
 
 

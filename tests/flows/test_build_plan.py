@@ -106,8 +106,9 @@ def test_changed_helper_reruns_its_family_and_the_plan_names_it(warm, synth_root
     named = {(p.session_id, p.stage) for p in plans if ("changed code", HELPER) in p.reasons}
     ids = _ids(synth_root)
     assert named == {(s, st) for s in ids for st in family}
-    assert {(p.session_id, p.stage) for p in plans if p.action == "run"} == {
-        (s, st) for s in ids for st in _downstream(family)}
+    assert {(p.session_id, p.stage) for p in plans if p.action == "run"} == named
+    assert {(p.session_id, p.stage) for p in plans if p.action == "runs if upstream changes"} == {
+        (s, st) for s in ids for st in _downstream(family) - family}
     build_dataset([synth_root], catalog, PRESET, build_id="helper")
     assert executions(catalog, "helper") == sorted((s, st) for s in ids for st in family)
     recs = [json.loads(x) for x in (catalog / "work" / "executions.jsonl").read_text()
