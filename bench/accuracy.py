@@ -1,13 +1,17 @@
-"""Accuracy of the pose stages against synthetic ground truth, one table per difficulty.
+"""Accuracy of the pipeline against synthetic ground truth, one table per profile.
 
-    .venv/bin/python bench/accuracy.py [--sessions 12] [--frames 120] [--difficulty realistic hard]
-        [--seed 9000]
+    .venv/bin/python bench/accuracy.py [--sessions 12] [--frames 120] [--profile realistic hard]
+        [--seed 9000] [--jobs 2]
+    .venv/bin/python bench/accuracy.py --profile wild --seed S --sessions 30 --frames 60 --jobs 2
 
 Session i is generated with seed ``[seed, i]`` (9000 by default; the tests use small seeds;
-another seed gives a held-out set of sessions nobody tuned on), every stage
-runs bare (``graspcap.tasks.pipeline.run_session``), and each metric is reported as the
-median over sessions next to its target. A session a stage rejects is counted as failed
-with its reason, never dropped silently.
+a report set is a seed drawn once and written down before the run, never tuned on afterwards:
+``docs/benchmarks.md`` names the tuning and report seeds of every figure), every stage runs
+bare (``graspcap.tasks.pipeline.run_session``), and per profile it prints the share of sessions
+built, the median and p90 of every metric next to its target, the QA confusion table (good /
+not good by ``graspcap.synth.evaluate.GOOD_IF`` x ok / flagged / failed, with precision and
+yield) and the failures per reason. A session a stage rejects is counted as failed with its
+reason, never dropped silently.
 """
 
 from __future__ import annotations
@@ -20,7 +24,14 @@ from pathlib import Path
 import numpy as np
 
 from graspcap.synth import config_for, generate_session
-from graspcap.synth.evaluate import estimate_from_results, evaluate, load_truth
+from graspcap.synth.evaluate import (
+    confusion_markdown,
+    estimate_from_results,
+    evaluate,
+    good_session,
+    load_truth,
+    qa_confusion,
+)
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.pipeline import STAGES, run_session
 
@@ -66,23 +77,38 @@ POSE_STAGES = ("register_object", "select_steady", "reconstruct_hand", "crossche
 """The stages of issue 3, whose total per session has the 6 s target."""
 
 
-def _sessions(
-    root: Path, difficulty: str, sessions: int, frames: int, seed: int
-) -> tuple[list[Path], int]:
-    """Session i of seed ``[seed, i]``, one at a time (a rig that cannot place a grasp for a
-    seed raises; in a process pool that error would take the whole pool down)."""
-    cfg = config_for(difficulty, frames)
-    dirs, skipped = [], 0
-    for i in range(sessions):
-        try:
-            dirs.append(generate_session(root / difficulty, [seed, i], cfg, None))
-        except StageError:
-            skipped += 1
-    return dirs, skipped
+def _session(root: Path, profile: str, frames: int, seed: int, i: int) -> dict | None:
+    """Session ``[seed, i]`` of ``profile`` generated and run bare: its errors, timings, QA
+    verdict, or the stage's failure; None when the rig cannot stage the seed."""
+    try:
+        d = generate_session(root / profile, [seed, i], config_for(profile, frames), None)
+    except StageError:
+        return None
+    t: dict[str, float] = {}
+    try:
+        results = run_session(d, timings_s=t)
+    except StageError as e:
+        return {"name": d.name, "failed": f"{e.stage}: {e.reason[:80]}"}
+    qa = results["qa_metrics"]
+    return {"name": d.name, "failed": None, "timings": t, "verdict": str(qa.verdict),
+            "notes": list(qa.notes), "reasons": list(qa.reasons),
+            "metrics": evaluate(d, estimate_from_results(results, timings_s=t)),
+            "steady_error": results["select_steady"].steady_from
+            - int(load_truth(d)["steady_from"])}
 
 
-def run(difficulty: str, sessions: int, frames: int, root: Path, seed: int = SEED) -> None:
-    dirs, skipped = _sessions(root, difficulty, sessions, frames, seed)
+def run(profile: str, sessions: int, frames: int, root: Path, seed: int = SEED,
+        jobs: int = 1) -> None:
+    from concurrent.futures import ProcessPoolExecutor
+
+    args = [(root, profile, frames, seed, i) for i in range(sessions)]
+    if jobs <= 1:
+        done = [_session(*a) for a in args]
+    else:
+        with ProcessPoolExecutor(jobs) as pool:
+            done = list(pool.map(_session, *zip(*args, strict=True)))
+    skipped = sum(r is None for r in done)
+    ran = [r for r in done if r is not None]
     metrics: dict[str, list[float]] = defaultdict(list)
     timings: dict[str, list[float]] = defaultdict(list)
     failures: Counter[str] = Counter()
@@ -90,41 +116,41 @@ def run(difficulty: str, sessions: int, frames: int, root: Path, seed: int = SEE
     steady_errors = []
     per_session = []
     verdicts: Counter[str] = Counter()
+    judged: list[tuple[bool, str]] = []
+    not_good: Counter[str] = Counter()
     silent: list[str] = []  # QA ok, but off by OFF_LIMITS
-    for d in dirs:
-        t: dict[str, float] = {}
-        try:
-            results = run_session(d, timings_s=t)
-        except StageError as e:
-            failures[f"{e.stage}: {e.reason[:80]}"] += 1
+    for r in ran:
+        if r["failed"]:
+            failures[r["failed"]] += 1
+            judged.append((False, "failed"))
             continue
-        verdicts[str(results["qa_metrics"].verdict)] += 1
-        session_metrics = evaluate(d, estimate_from_results(results, timings_s=t))
+        verdicts[r["verdict"]] += 1
+        session_metrics, t = r["metrics"], r["timings"]
+        good, why = good_session(session_metrics)
+        judged.append((good, r["verdict"]))
+        not_good.update(w.split(" ")[0] for w in why.split("; ") if w)
         for k, v in session_metrics.items():
             metrics[k].append(v)
         off = [k for k, lim in OFF_LIMITS.items() if session_metrics.get(k, 0.0) > lim]
-        qa = results["qa_metrics"]
-        if off and str(qa.verdict) == "ok":
-            noted = f"; QA notes: {' / '.join(qa.notes)}" if qa.notes else "; no QA note"
-            silent.append(f"{d.name} ({', '.join(off)}{noted})")
-        steady_within_3.append(metrics["steady_from_err_frames"][-1] <= 3)
-        steady_errors.append(
-            results["select_steady"].steady_from - int(load_truth(d)["steady_from"])
-        )
+        if off and r["verdict"] == "ok":
+            noted = f"; QA notes: {' / '.join(r['notes'])}" if r["notes"] else "; no QA note"
+            silent.append(f"{r['name']} ({', '.join(off)}{noted})")
+        steady_within_3.append(session_metrics["steady_from_err_frames"] <= 3)
+        steady_errors.append(r["steady_error"])
         for k, v in t.items():
             timings[k].append(v)
-        m = {k: v[-1] for k, v in metrics.items()}
+        m = session_metrics
         per_session.append(
-            f"| {d.name} | {steady_errors[-1]} | {m.get('joints_mpjpe_mm', np.nan):.2f} "
+            f"| {r['name']} | {steady_errors[-1]} | {m.get('joints_mpjpe_mm', np.nan):.2f} "
             f"| {m.get('camera_rot_deg', np.nan):.2f} / {m.get('camera_trans_mm', np.nan):.1f} "
             f"| {m.get('frame_object_rot_deg', np.nan):.2f} "
             f"/ {m.get('frame_object_trans_mm', np.nan):.1f} "
-            f"| {sum(t[n] for n in POSE_STAGES):.2f} | {results['qa_metrics'].verdict} |"
+            f"| {sum(t[n] for n in POSE_STAGES):.2f} | {r['verdict']} "
+            f"| {'good' if good else why[:60]} |"
         )
-
-    ok = len(dirs) - sum(failures.values())
+    ok = len(ran) - sum(failures.values())
     print(
-        f"\n### {difficulty}: {len(dirs)} sessions x {frames} frames (seed {seed}), "
+        f"\n### {profile}: {len(ran)} sessions x {frames} frames (seed {seed}), "
         f"{ok} ran every stage"
         + (f" ({skipped} seeds the rig could not stage)" if skipped else "")
         + "\n"
@@ -149,7 +175,12 @@ def run(difficulty: str, sessions: int, frames: int, root: Path, seed: int = SEE
             "| | >= 90 % | |"
         )
         print(f"\nsteady_from detected - true, per session: {steady_errors}")
+    print(f"\nbuilt (every stage ran): {ok} of {len(ran)} ({100 * ok / max(len(ran), 1):.0f} %)")
     print(f"\nQA verdicts of the sessions that ran every stage: {dict(sorted(verdicts.items()))}")
+    print("\nQA confusion (a session a stage refused counts as not good and failed):\n")
+    print(confusion_markdown(qa_confusion(judged)))
+    print("not good because (sessions per quantity): "
+          + ", ".join(f"{k} {n}" for k, n in not_good.most_common()))
     print(f"QA ok although off ({OFF_LIMITS}): {len(silent)}")
     for line in silent:
         print(f"- {line}")
@@ -169,9 +200,9 @@ def run(difficulty: str, sessions: int, frames: int, root: Path, seed: int = SEE
         print(f"\nfailed x{n}: {reason}")
     print(
         "\n| session | steady error | MPJPE mm | cameras deg / mm | T_c_o deg / mm "
-        "| pose stages s | QA |"
+        "| pose stages s | QA | good |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     print("\n".join(per_session))
 
 
@@ -179,12 +210,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sessions", type=int, default=12)
     parser.add_argument("--frames", type=int, default=120)
-    parser.add_argument("--difficulty", nargs="+", default=["easy", "realistic", "hard"])
+    parser.add_argument("--profile", "--difficulty", nargs="+", dest="profile",
+                        default=["easy", "realistic", "hard"])
     parser.add_argument("--seed", type=int, default=SEED)
+    parser.add_argument("--jobs", type=int, default=1, help="sessions at a time (processes)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        for difficulty in args.difficulty:
-            run(difficulty, args.sessions, args.frames, Path(tmp), args.seed)
+        for profile in args.profile:
+            run(profile, args.sessions, args.frames, Path(tmp), args.seed, args.jobs)
 
 
 if __name__ == "__main__":

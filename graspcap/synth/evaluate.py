@@ -272,3 +272,68 @@ def _per_frame_object_errors(
         "frame_object_rot_p95_deg": float(np.percentile(e[:, 0], 95)),
         "frame_object_trans_p95_mm": 1e3 * float(np.percentile(e[:, 1], 95)),
     }
+
+
+GOOD_IF: dict[str, tuple[float, str]] = {
+    "final_joints_mm": (5.0, "<="),
+    "camera_rot_deg": (1.0, "<="),
+    "camera_trans_mm": (8.0, "<="),
+    "frame_object_rot_deg": (2.0, "<="),
+    "frame_object_trans_mm": (6.0, "<="),
+    "object_stage1_rot_deg": (2.0, "<="),
+    "contact_near_hand_refined": (0.8, ">="),
+}
+"""What a *good* session is (``docs/qa.md``): every error against the truth within its
+tolerance. ``final_joints_mm`` is the hand the catalog holds (refined, else fitted), the poses
+are medians over the session's frames, ``contact_near_hand_refined`` the share of truly
+contacted vertices within 3 mm of that hand."""
+
+
+def good_session(errors: Mapping[str, float], stage_error: str | None = None
+                 ) -> tuple[bool, str]:
+    """(whether the session is good by :data:`GOOD_IF`, why not): a session a stage refused
+    is not good, nor one missing a quantity (it could not be measured)."""
+    if stage_error:
+        return False, f"stage failed: {stage_error}"
+    errors = dict(errors)
+    final = errors.get("refined_joints_mm", errors.get("fit_joints_mm"))
+    if final is not None:
+        errors["final_joints_mm"] = final
+    why = []
+    for name, (limit, op) in GOOD_IF.items():
+        value = errors.get(name)
+        if value is None or not np.isfinite(value):
+            why.append(f"{name} not measured")
+        elif not (value <= limit if op == "<=" else value >= limit):
+            why.append(f"{name} {value:.2f} (good {op} {limit:g})")
+    return not why, "; ".join(why)
+
+
+def qa_confusion(rows: list[tuple[bool, str]]) -> dict[str, Any]:
+    """The QA confusion table of (good, verdict) pairs: counts per (good / not good) x (ok /
+    flagged / failed), **precision** (share of ``ok`` sessions that are good) and **yield**
+    (share of good sessions marked ``ok``); None where the denominator is 0."""
+    table = {g: {v: 0 for v in ("ok", "flagged", "failed")} for g in ("good", "not good")}
+    for good, verdict in rows:
+        table["good" if good else "not good"][verdict] += 1
+    ok = table["good"]["ok"] + table["not good"]["ok"]
+    good = sum(table["good"].values())
+    return {"table": table,
+            "precision": table["good"]["ok"] / ok if ok else None,
+            "yield": table["good"]["ok"] / good if good else None}
+
+
+def confusion_markdown(confusion: Mapping[str, Any]) -> str:
+    """:func:`qa_confusion` as a markdown table and a line with precision and yield."""
+    t = confusion["table"]
+    lines = ["| truth \\ QA | ok | flagged | failed | sessions |", "|---|---|---|---|---|"]
+    for g in ("good", "not good"):
+        lines.append(f"| {g} | {t[g]['ok']} | {t[g]['flagged']} | {t[g]['failed']} "
+                     f"| {sum(t[g].values())} |")
+
+    def share(x: float | None) -> str:
+        return "-" if x is None else f"{x:.2f}"
+
+    lines.append(f"\nprecision (good among ok) {share(confusion['precision'])}, "
+                 f"yield (ok among good) {share(confusion['yield'])}")
+    return "\n".join(lines)
