@@ -353,10 +353,11 @@ def run_stage(
     stage: Stage, session_dir: Path | str, config: StageConfig, upstream: Mapping[str, Any]
 ) -> Any:
     """Run one stage given its upstream results (``load_session`` gets the directory); the
-    session a stage gets reads only the manifest fields it declares (``Stage.fields``)."""
+    session a stage gets reads only the manifest fields and file roles it declares
+    (``Stage.fields``, ``Stage.reads``)."""
     if stage.name == SESSION_STAGE:
         return stage.run(session_dir, config)
-    session = restricted(upstream[SESSION_STAGE], stage.fields, stage.name)
+    session = restricted(upstream[SESSION_STAGE], stage.fields, stage.name, stage.reads)
     up = {k: session if k == SESSION_STAGE else upstream[k] for k in stage.upstream}
     return stage.run(session, config, **up)
 

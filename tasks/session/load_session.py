@@ -161,6 +161,9 @@ class Session:
 
     root: Path
     manifest: SessionManifest
+    check_read: Callable[[Path], None] | None = field(default=None, repr=False, compare=False)
+    """Called with every path the session resolves for reading (``manifest_guard``: a stage
+    reads only the files of the roles it declares); None lets every file through."""
     _resolve: _Resolver = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -175,6 +178,8 @@ class Session:
         path, why = self._resolve(rel)
         if path is None:
             raise SessionInvalid([Problem(self.session_id, str(rel), WHOLE_FILE, why or "")])
+        if self.check_read is not None:
+            self.check_read(path)
         return path
 
     def _any(self, rel_or_path: str | Path) -> Path:

@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel
@@ -56,9 +58,35 @@ class _FieldGuard:
         raise AttributeError("a session's manifest is read-only")
 
 
-def restricted(session: Session, fields: Sequence[str], stage: str) -> Session:
+class UndeclaredFileRole(RuntimeError):
+    """A stage opened a session file of a role its ``Stage.reads`` does not declare: its cache
+    key would not cover that file's bytes, so a change to it would serve a stale result."""
+
+
+def _file_guard(session: Session, roles: Sequence[str], stage: str):
+    """``check(path)``: raises :class:`UndeclaredFileRole` unless ``path`` is a file of one of
+    ``roles`` (``Session.input_files``; ``session.json`` is read through the field guard)."""
+    role_of = {p: r for r, paths in session.input_files().items() for p in paths}
+    allowed = frozenset((*roles, "manifest"))
+
+    def check(path: Path) -> None:
+        role = role_of.get(path)
+        if role not in allowed:
+            rel = os.path.relpath(path, session.root)
+            what = f"a {role} file" if role else "a file of no role"
+            raise UndeclaredFileRole(
+                f"{stage}: reads {rel} ({what}), which its Stage.reads in tasks/pipeline.py "
+                f"does not declare (declared: {', '.join(sorted(roles)) or 'none'})")
+
+    return check
+
+
+def restricted(session: Session, fields: Sequence[str], stage: str,
+               roles: Sequence[str] | None = None) -> Session:
     """``session`` with manifest access limited to ``fields`` (dotted paths, e.g.
     ``turntable.T_color_turntable``) and :data:`ALWAYS_FIELDS`: reading any other field raises
-    :class:`UndeclaredManifestField` naming the stage and the field."""
+    :class:`UndeclaredManifestField` naming the stage and the field; with ``roles``
+    (``Stage.reads``), opening a file of another role raises :class:`UndeclaredFileRole`."""
     guard = _FieldGuard(session.manifest, "", frozenset((*ALWAYS_FIELDS, *fields)), stage)
-    return Session(root=session.root, manifest=guard)  # type: ignore[arg-type]
+    check = None if roles is None else _file_guard(session, roles, stage)
+    return Session(root=session.root, manifest=guard, check_read=check)  # type: ignore[arg-type]

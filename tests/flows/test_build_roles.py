@@ -155,6 +155,7 @@ def test_a_stage_reading_an_undeclared_manifest_field_fails_loudly(synth_root, m
         run_stage(grasp_only, session, configs["fit_hand"], {"load_session": loaded,
                                                               "reconstruct_hand": None})
     declared = dataclasses.replace(fit, fields=("grasp.depth", "grasp.count"),
+                                   reads=("grasp_depth",),
                                    run=lambda s, c, **up: s.grasp_path("depth", 0))
     assert run_stage(declared, session, configs["fit_hand"],
                      {"load_session": loaded, "reconstruct_hand": None}).is_file()
@@ -209,3 +210,35 @@ def test_every_stage_key_takes_its_declared_fields_only(synth_root, tmp_path, ed
 
     assert _label_key("intent", "pour") == _label_key("intent", "cut")
     assert _label_key("intent", "") == "" and _label_key("participant", 3) == 3
+
+
+def test_a_stage_opening_a_file_of_an_undeclared_role_fails_loudly(synth_root):
+    """A glue that opens a file of a role its ``Stage.reads`` does not declare raises naming
+    the stage, the file and its role (its key would not cover the file's bytes)."""
+    import dataclasses
+
+    from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
+    from graspcap.tasks.session.manifest_guard import UndeclaredFileRole
+
+    _, session = _sessions(synth_root)[0]
+    configs = configs_for(PRESET)
+    loaded = run_stage(STAGES["load_session"], session, configs["load_session"], {})
+    up = {"load_session": loaded, "reconstruct_hand": None}
+    fit = STAGES["fit_hand"]
+    depth = dataclasses.replace(fit, fields=("grasp.depth", "grasp.count"),
+                                run=lambda s, c, **up: s.read_depth_m(s.grasp_path("depth", 0)))
+    rel = loaded.manifest.grasp.depth.format(index=0)
+    with pytest.raises(UndeclaredFileRole, match=rf"fit_hand: reads {rel} \(a grasp_depth "
+                                                 r"file\), which its Stage.reads"):
+        run_stage(depth, session, configs["fit_hand"], up)
+    mesh = dataclasses.replace(fit, fields=("object_mesh",), run=lambda s, c, **up: s.read_mesh())
+    with pytest.raises(UndeclaredFileRole, match=r"\(a object_mesh file\)"):
+        run_stage(mesh, session, configs["fit_hand"], up)
+    vertices, _ = run_stage(dataclasses.replace(mesh, reads=("object_mesh",)), session,
+                            configs["fit_hand"], up)
+    assert len(vertices) > 0
+    # every stage of the pipeline reads only what it declares: a real build of every stage
+    # runs under the guard (tests/flows/test_build.py and the others), this checks the roles
+    # the guard knows are the roles the stages declare
+    known = set(loaded.input_files())
+    assert all(set(st.reads) <= known for st in STAGES.values())
