@@ -3,7 +3,8 @@
     OMP_NUM_THREADS=1 .venv/bin/python bench/plan_speed.py [--sessions 8] [--frames 40]
         [--preset fast] [--repeat 3]
 
-Writes ``--sessions`` synthetic sessions (seed 11, easy), builds them once (cold, untimed
+Writes ``--sessions`` synthetic sessions (seeds [11, i], easy; a seed the rig cannot stage is
+skipped), builds them once (cold, untimed
 beyond its own line), then runs ``graspcap build ROOT --catalog C --plan`` ``--repeat`` times,
 each in a new Python process (imports, code digests of the 14 stages, every key: the cost a
 person pays before a rebuild), and prints the wall times, their median per session, and the
@@ -35,10 +36,18 @@ def main() -> None:
     from graspcap.flows.runtime import configure
 
     configure(tmp / "prefect-work")
-    from graspcap.synth import generate
+    from graspcap.synth import config_for, generate_session
+    from graspcap.tasks.core.errors import StageError
 
     root, catalog = tmp / "sessions", tmp / "catalog"
-    generate(root, sessions=args.sessions, seed=11, difficulty="easy", frames=args.frames)
+    cfg, made, i = config_for("easy", args.frames), 0, 0
+    while made < args.sessions:  # seeds the rig cannot stage are skipped
+        try:
+            generate_session(root, [11, i], cfg, None)
+            made += 1
+        except StageError:
+            pass
+        i += 1
     from graspcap.flows.build import build_dataset
 
     t = time.perf_counter()
