@@ -106,40 +106,41 @@ class FrameValidity:
 
 
 class SupportScene:
-    """The object mesh and (optionally) the hand, both in the object frame, in one ray-casting
-    scene; :meth:`cast` renders them from any camera pose without rebuilding it."""
-
-    OBJECT, HAND = 0, 1
+    """The object mesh and (optionally) the hand, both in the object frame, each in a
+    ray-casting scene built once; :meth:`cast` renders them from any camera pose."""
 
     def __init__(self, object_mesh: tuple[np.ndarray, np.ndarray],
                  hand_mesh_o: tuple[np.ndarray, np.ndarray] | None = None):
         self.vertices_o = np.asarray(object_mesh[0], dtype=float)
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._ids = {}
-        for kind, mesh in ((self.OBJECT, object_mesh), (self.HAND, hand_mesh_o)):
-            if mesh is not None:
-                v = np.ascontiguousarray(mesh[0], dtype=np.float32)
-                f = np.ascontiguousarray(mesh[1], dtype=np.uint32)
-                self._ids[kind] = self._scene.add_triangles(v, f)
+        self._object = self._scene(object_mesh)
+        self._hand = None if hand_mesh_o is None else self._scene(hand_mesh_o)
+
+    @staticmethod
+    def _scene(mesh: tuple[np.ndarray, np.ndarray]) -> o3d.t.geometry.RaycastingScene:
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(np.ascontiguousarray(mesh[0], dtype=np.float32),
+                            np.ascontiguousarray(mesh[1], dtype=np.uint32))
+        return scene
 
     def cast(self, K: np.ndarray, T_c_o: np.ndarray, width: int, height: int
-             ) -> tuple[np.ndarray, np.ndarray]:
-        """(depth (h, w) float, 0 where nothing is hit; which (h, w) int: ``OBJECT``,
-        ``HAND`` or -1) of a pinhole camera ``K`` at ``T_c_o``."""
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Of a pinhole camera ``K`` at ``T_c_o``: the object's depth (h, w), 0 where it is
+        not hit (as if nothing covered it); where it is hit (h, w) bool; where the hand is the
+        nearer surface (h, w) bool (in front of the object, or where it is not)."""
         u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
         d_c = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
         d_c /= np.linalg.norm(d_c, axis=-1, keepdims=True)
         T_o_c = inv_T(np.asarray(T_c_o, dtype=float))
         d_o = d_c @ T_o_c[:3, :3].T
-        rays = np.concatenate([np.broadcast_to(T_o_c[:3, 3], d_o.shape), d_o], axis=-1)
-        ans = self._scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays, np.float32)))
-        t_hit = ans["t_hit"].numpy()
-        hit = np.isfinite(t_hit)
-        geom = ans["geometry_ids"].numpy().astype(np.int64)
-        which = np.full(t_hit.shape, -1, dtype=np.int64)
-        for kind, gid in self._ids.items():
-            which[hit & (geom == gid)] = kind
-        return np.where(hit, t_hit * d_c[..., 2], 0.0), which
+        rays = o3d.core.Tensor(np.ascontiguousarray(np.concatenate(
+            [np.broadcast_to(T_o_c[:3, 3], d_o.shape), d_o], axis=-1), dtype=np.float32))
+        t_obj = self._object.cast_rays(rays)["t_hit"].numpy()
+        seen = np.isfinite(t_obj)
+        hand = np.zeros_like(seen)
+        if self._hand is not None:
+            t_hand = self._hand.cast_rays(rays)["t_hit"].numpy()
+            hand = np.isfinite(t_hand) & ~(t_obj <= t_hand)
+        return np.where(seen, t_obj * d_c[..., 2], 0.0), seen, hand
 
 
 def object_support(
@@ -170,13 +171,11 @@ def object_support(
     K_box[:2] /= s  # pixel (u0 + s i, v0 + s j) of the image is pixel (i, j) of the grid
     K_box[2] = (0.0, 0.0, 1.0)
     measured = depth_m[v0:v1:s, u0:u1:s]
-    rendered, which = scene.cast(K_box, T_c_o, measured.shape[1], measured.shape[0])
-    model = which == SupportScene.OBJECT
+    rendered, model, hand = scene.cast(K_box, T_c_o, measured.shape[1], measured.shape[0])
     n_model = int(model.sum())
     if n_model < need:
         return ObjectSupport(None, f"object barely in view: {n_model} pixels (need {need})",
                              float("nan"), 0, float("nan"))
-    hand = which == SupportScene.HAND
     if keypoints is not None:
         kp = np.asarray(keypoints, dtype=float)
         bones = hand_mask_from_keypoints(kp[:, :2], kp[:, 2], (h, w), config.bone_radius_px,
