@@ -76,8 +76,10 @@ class ObjectSupport:
     """Whether one frame's depth supports the object pose.
 
     supported : True, False, or None when the frame cannot say; reason : why not (None when
-    supported); agreement : share of the judged pixels that agree (NaN when not judged);
-    pixels : pixels judged; median_diff_m : median |measured - rendered| depth (NaN when none).
+    supported); agreement : share of the judged pixels that agree (NaN without a verdict);
+    pixels : object pixels outside the hand with a depth reading, on the ``stride_px`` grid
+    (the judged ones; fewer than ``min_pixels`` without a verdict); median_diff_m : their
+    median |measured - rendered| depth (NaN without a verdict).
     """
 
     supported: bool | None
@@ -184,12 +186,12 @@ def object_support(
     hand = grow_mask(hand, int(np.ceil(config.hand_margin_px / s)))
     visible = model & ~hand
     n_visible = int(visible.sum())
+    judged = visible & (measured > 0)
+    n = int(judged.sum())
     if n_visible < need:
         return ObjectSupport(None, f"too few object pixels visible: {n_visible} of {n_model} "
                              f"outside the hand (need {need}; the hand covers it)",
-                             float("nan"), n_visible, float("nan"))
-    judged = visible & (measured > 0)
-    n = int(judged.sum())
+                             float("nan"), n, float("nan"))
     if n < need:
         return ObjectSupport(None, f"too few object pixels with depth: {n} of {n_visible} "
                              f"visible (need {need})", float("nan"), n, float("nan"))
