@@ -65,6 +65,9 @@ def make_build(ids: list[str], frames: int, seed: int, build_id: str) -> gc.Buil
         "frame": np.tile(np.arange(frames), len(ids)),
         **{c: rng.normal(size=(n_f, 16)) for c in ("T_w_c", "T_c_o", "T_c_p")},
         "camera_solved": np.ones(n_f, dtype=bool),
+        **dict.fromkeys(("camera_reason", "hand_reason", "object_reason"), [None] * n_f),
+        "hand_used": np.ones(n_f, dtype=bool), "object_supported": np.ones(n_f, dtype=bool),
+        "object_depth_agreement": np.full(n_f, 0.97),  # no draw: the stream stays as it was
         "joints_2d_px": rng.normal(size=(n_f, 42)), "keypoint_conf": rng.uniform(size=(n_f, 21)),
         "joints_c": rng.normal(size=(n_f, 63)), "reproj_err_px": rng.uniform(size=(n_f, 21)),
         "build_id": [build_id] * n_f,

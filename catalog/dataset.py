@@ -6,7 +6,12 @@ joints) and the session's own object mesh (the one its contact map indexes; sess
 ``object_id`` may carry different meshes). QA's flag reasons and notes (``qa_flags``,
 ``qa_notes``: lists of strings of any length, which a batch collate cannot stack) are not in
 the items:
-``session_qa(session_id)`` gives them. The dataset pickles as its catalog root, pinned version
+``session_qa(session_id)`` gives them. Frame items come only from frames whose validity
+(catalog format 6) no flag denies: ``hand_used``, ``camera_solved`` and ``object_supported``
+each True or null (null: not applicable, not decidable from that frame, or not recorded before
+format 6), so a frame with an unused hand detection, an interpolated camera or an object pose
+its depth contradicts is left out; ``valid_only=False`` keeps every frame (the reasons are in
+the items' ``*_reason`` columns). The dataset pickles as its catalog root, pinned version
 and item keys; tables and arrays are opened lazily in whichever process indexes it, so it works
 with a torch ``DataLoader`` with workers.
 """
@@ -46,6 +51,8 @@ _SESSION_FIELDS = ["session_id", "participant", "object_id", "intent", "hand", "
                    "steady_from", "T_w_o_stage1", "T_adj", "T_w_p", "T_turntable_o_scan",
                    "hand_scale", "joint_angles_rad", "joints_w", "joints_fit_w"]
 _QA_FIELDS = ["status", "qa_flags", "qa_notes"]
+VALIDITY_FLAGS = ("hand_used", "camera_solved", "object_supported")
+"""``frames`` columns a frame item needs to be True or null in (``valid_only``)."""
 _CACHE_SESSIONS = 64
 _CACHE_MESHES = 64
 """Object meshes kept per process, by digest (sessions of one object usually share one; with
@@ -85,15 +92,19 @@ class GraspDataset:
     version : catalog version or tag; None pins the latest at construction
     unit : "frames" (one item per frame row) or "sessions"
     status, objects, participants, intents : keep only sessions with these values (None = all)
+    valid_only : frame items only from frames none of whose :data:`VALIDITY_FLAGS` is False
+        (True or null: see the module docstring); False keeps every frame. Sessions as items
+        are not filtered by it.
     """
 
     def __init__(self, catalog: Catalog | str | Path, version: int | str | None = None,
                  unit: str = "frames", status: tuple[str, ...] = ("ok",),
                  objects: list[str] | None = None, participants: list[str] | None = None,
-                 intents: list[str] | None = None):
+                 intents: list[str] | None = None, valid_only: bool = True):
         self._catalog = catalog if isinstance(catalog, Catalog) else open_catalog(catalog)
         self.version = self._catalog.resolve(version)
         self.unit = Unit(unit)
+        self.valid_only = valid_only
         sessions = self._catalog.table("sessions", self.version)
         for col, allowed in (("status", status), ("object_id", objects),
                              ("participant", participants), ("intent", intents)):
@@ -114,9 +125,19 @@ class GraspDataset:
                         strict=True))
 
     def _frames_table(self, columns: list[str] | None = None) -> pa.Table:
-        frames = self._catalog.table("frames", self.version, columns=columns)
-        frames = frames.filter(pc.is_in(frames["session_id"],
-                                        pa.array(self.session_ids, pa.string())))
+        """The dataset's frame rows (``columns``, None = all), sorted by session and frame:
+        the item keys and the items' frame columns both come from here, in the same order."""
+        read = columns
+        if columns is not None and self.valid_only:
+            read = list(dict.fromkeys([*columns, *VALIDITY_FLAGS]))
+        frames = self._catalog.table("frames", self.version, columns=read)
+        keep = pc.is_in(frames["session_id"], pa.array(self.session_ids, pa.string()))
+        if self.valid_only:
+            for flag in VALIDITY_FLAGS:  # null: not applicable or not recorded, kept
+                keep = pc.and_(keep, pc.fill_null(frames[flag], True))
+        frames = frames.filter(keep)
+        if columns is not None:
+            frames = frames.select(columns)
         return frames.sort_by([("session_id", "ascending"), ("frame", "ascending")])
 
     def __getstate__(self) -> dict:

@@ -20,6 +20,12 @@ and gave every Zarr group a manifest of its files' sha256 with every chunk writt
 (``graspcap.catalog.arrays``): the upgrade checks each group on disk against its digest and
 adds both in place (``add_manifest``); a group that does not match its digest is left as it
 is and listed in the report (``graspcap catalog verify`` names the sessions using it).
+Format 6 added the per-frame validity columns of ``frames`` (``camera_reason``, ``hand_used``,
+``hand_reason``, ``object_supported``, ``object_reason``, ``object_depth_agreement``): added
+as above, then the reason columns of the rows the catalog already has are set to
+``NOT_RECORDED`` ("not recorded before format 6"; one Delta update of ``frames``, rewriting its
+files: the versions pinned before keep reading the old files, where they are null) while the
+flags stay null, which ``GraspDataset`` keeps.
 An empty catalog's tables are simply created again. ``catalog.json`` is restamped last, under
 the writer lock: a migration that dies half way leaves a catalog of the old format that
 ``migrate`` finishes (each change is idempotent).
@@ -52,6 +58,7 @@ from graspcap.schemas.tables import (
     CATALOG_FORMAT_VERSION,
     DATA_TABLES,
     DELTA_TABLE_PROPERTIES,
+    NOT_RECORDED,
     TABLE_SCHEMAS,
 )
 
@@ -102,6 +109,33 @@ def refresh_field_metadata(dt: DeltaTable, schema: pa.Schema) -> list[str]:
     return changed
 
 
+def mark_not_recorded(dt: DeltaTable) -> bool:
+    """Set the format-6 reason columns of the ``frames`` rows that have none yet and no
+    verdict either (rows written before format 6) to ``NOT_RECORDED``: one Delta update, none
+    when no row needs it (a rerun after a crash). Whether it committed."""
+    before = dt.version()
+    if dt.to_pyarrow_dataset().count_rows() == 0:
+        return False
+    unset = " AND ".join(f"{c} IS NULL" for c in ("hand_used", "hand_reason",
+                                                  "object_supported", "object_reason"))
+    if _count(dt, unset):
+        dt.update(new_values={"hand_reason": NOT_RECORDED, "object_reason": NOT_RECORDED},
+                  predicate=unset)
+    # camera_solved (format 4) may be there: its reason only where it is not True
+    camera = "camera_reason IS NULL AND (camera_solved IS NULL OR NOT camera_solved)"
+    if _count(dt := DeltaTable(dt.table_uri), camera):
+        dt.update(new_values={"camera_reason": NOT_RECORDED}, predicate=camera)
+    return DeltaTable(dt.table_uri).version() != before
+
+
+def _count(dt: DeltaTable, predicate: str) -> int:
+    """Rows of ``dt`` where the SQL ``predicate`` holds."""
+    from deltalake import QueryBuilder
+
+    query = f"SELECT count(*) AS n FROM t WHERE {predicate}"
+    return int(QueryBuilder().register("t", dt).execute(query).read_all()["n"][0].as_py())
+
+
 def _upgrade(layout: CatalogLayout, found: int) -> int | None:
     """Format ``found`` -> current under the writer lock (module docstring); the appended
     version or None."""
@@ -123,6 +157,7 @@ def _upgrade(layout: CatalogLayout, found: int) -> int | None:
                                             TABLE_SCHEMAS[name]))
         changed |= bool(refresh_field_metadata(DeltaTable(str(layout.table(name))),
                                                TABLE_SCHEMAS[name]))
+    changed |= mark_not_recorded(DeltaTable(str(layout.table("frames"))))
     pinned = {name: delta_version(layout, name) for name in DATA_TABLES}
     if not changed and pinned == json.loads(row["table_versions"]):
         return None

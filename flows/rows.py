@@ -22,6 +22,7 @@ import numpy as np
 from graspcap.catalog.commit import ObjectMesh, SessionArrays
 from graspcap.schemas.qa import qa_columns
 from graspcap.schemas.tables import Status
+from graspcap.tasks.outputs.frame_validity import FrameValidity
 from graspcap.tasks.outputs.qa_metrics import QaReport, qa_metrics
 
 MANIFEST_MAX_BYTES = 1 << 20
@@ -61,6 +62,19 @@ class SessionRows:
 
 def _flat(a: Any) -> list[float] | None:
     return None if a is None else np.asarray(a, dtype=float).reshape(-1).tolist()
+
+
+VALIDITY_COLUMNS = ("camera_reason", "hand_used", "hand_reason", "object_supported",
+                    "object_reason", "object_depth_agreement")
+"""``frames`` columns of format 6 filled from ``PosePropagation.validity`` (beside
+``camera_solved``, which reconstruct_hand's ``pose_valid`` gives)."""
+
+
+def validity_columns(validity: FrameValidity | None, j: int) -> dict[str, Any]:
+    """Row ``j``'s :data:`VALIDITY_COLUMNS` (all null without a validity)."""
+    if validity is None:
+        return dict.fromkeys(VALIDITY_COLUMNS)
+    return {c: getattr(validity, c)[j] for c in VALIDITY_COLUMNS}
 
 
 def qa_report(results: Mapping[str, Any]) -> QaReport:
@@ -117,6 +131,7 @@ def session_rows(results: Mapping[str, Any], *, labels: Mapping[str, str], input
             "T_w_c": _flat(sfm.T_w_c[i]) if i is not None else [float("nan")] * 16,
             # False: reconstruct_hand interpolated this camera (too few detections), or has none
             "camera_solved": bool(sfm.pose_valid[i]) if i is not None else False,
+            **validity_columns(prop.validity, j),
             "T_c_o": _flat(prop.T_c_o[j]), "T_c_p": _flat(prop.T_c_p[j]),
             "joints_2d_px": _flat(kp[f, :, :2]), "keypoint_conf": _flat(kp[f, :, 2]),
             "joints_c": _flat(prop.joints_c[j]), "reproj_err_px": _flat(prop.reproj_err_px[j]),

@@ -28,7 +28,7 @@ import pyarrow as pa
 
 from graspcap.schemas.qa import qa_columns
 
-CATALOG_FORMAT_VERSION = 5
+CATALOG_FORMAT_VERSION = 6
 """Bumped on any change of the tables' columns, their encodings, their Delta table properties or
 the Zarr layout (``docs/data_changelog.md``)."""
 
@@ -130,6 +130,43 @@ SESSIONS_SCHEMA = pa.schema([
                "so sessions with the same mesh share one group.")),
 ], metadata={"table": "sessions", "key": "session_id"})
 
+NOT_RECORDED = "not recorded before format 6"
+"""The reason ``graspcap catalog migrate`` writes on the rows a catalog had before format 6, in
+the reason columns of :func:`_validity_columns` (their flags stay null)."""
+
+
+def _validity_columns() -> list[pa.Field]:
+    """Format 6's per-frame validity columns of ``frames`` (``tasks/outputs/frame_validity.py``,
+    docs/catalog.md "Per-frame validity"); ``GraspDataset`` keeps no row where a flag is False."""
+    why = ("Why not, short and human; null where the flag is True. On rows written before "
+           f"format 6 (migrated): {NOT_RECORDED!r}.")
+    return [
+        _f("camera_reason", _STR, "Why camera_solved is False, e.g. 'interpolated from its "
+           f"neighbours: 3 keypoints detected'. {why}", nullable=True),
+        _f("hand_used", pa.bool_(), "True where the frame's hand detection was used: at least "
+           "min_hand_inliers (6) of its keypoints are inliers of reconstruct_hand's final solve; "
+           "False where not (no detection, too few inliers); null outside reconstruct_hand's "
+           "window (frames before the steady onset are not part of the static-hand problem and "
+           "have no rows) and on rows written before format 6.", nullable=True),
+        _f("hand_reason", _STR, "Why hand_used is not True, e.g. 'no detection', '3 of 17 "
+           f"detected keypoints inliers (need 6)'. {why}", nullable=True),
+        _f("object_supported", pa.bool_(), "True where the frame's depth supports the object "
+           "pose T_c_o: of the object's pixels the hand does not cover (model and hand ray cast "
+           "at the pose), at least min_agreement (0.5) have a depth reading within depth_tol_m "
+           "(10 mm) of the model's; False where fewer do (the pose or the camera is off there); "
+           "null where the frame cannot say (fewer than min_pixels such pixels: the hand covers "
+           "the object, it is out of view, the depth has holes) and on rows written before "
+           "format 6.", nullable=True),
+        _f("object_reason", _STR, "Why object_supported is not True, e.g. 'depth disagrees: "
+           "median 14 mm, 20% of 310 pixels within 10 mm', 'too few object pixels visible: 12 "
+           f"of 240 outside the hand (need 50; the hand covers it)'. {why}", nullable=True),
+        _f("object_depth_agreement", _F64, "Share of the judged object pixels whose depth "
+           "agrees with the model at T_c_o (what object_supported compares with min_agreement); "
+           "null where no verdict was reached and on rows written before format 6.",
+           nullable=True, unit="1"),
+    ]
+
+
 FRAMES_SCHEMA = pa.schema([
     _f("session_id", _STR, "Capture session id."),
     _f("frame", pa.int64(), "Video frame index, from steady_from on."),
@@ -138,6 +175,7 @@ FRAMES_SCHEMA = pa.schema([
        "the frame's own keypoints; False where it interpolated it from its neighbours (too few "
        "detections), so T_w_c, T_c_o, T_c_p and joints_c of that row are interpolated too. "
        "Format 4; null on rows written before.", nullable=True),
+    *_validity_columns(),
     _pose("T_c_o", "Object in the frame's camera."),
     _pose("T_c_p", "Palm in the frame's camera."),
     _f("joints_2d_px", pa.list_(_F64, 42), "Observed 2D keypoints.", unit="px", shape="21x2"),

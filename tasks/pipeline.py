@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +32,7 @@ from graspcap.tasks.hand_sfm.metric_scale import depth_lookup
 from graspcap.tasks.keypoints import detect_keypoints
 from graspcap.tasks.keypoints.detect_keypoints import why_missing
 from graspcap.tasks.object_pose import estimate_adjustment, register_object, register_scan
-from graspcap.tasks.outputs import pictures, propagate_poses, qa_metrics
+from graspcap.tasks.outputs import frame_validity, pictures, propagate_poses, qa_metrics
 from graspcap.tasks.session import load_session
 from graspcap.tasks.session.load_session import Session
 from graspcap.tasks.session.manifest_guard import restricted
@@ -177,14 +177,22 @@ def _refine_grasp(session: Session, config, **up):
 
 
 def _propagate_poses(session: Session, config, **up):
+    """The poses, then each frame's validity (its depth against the object at its pose)."""
     sfm, frames = up["reconstruct_hand"], np.arange(up["select_steady"].steady_from,
                                                     session.manifest.grasp.count)
     T_w_p, _, joints_hand_w = final_pose(up["fit_hand"], up.get("refine_grasp"))
-    return propagate_poses.propagate_poses(
+    keypoints = up["detect_keypoints"].keypoints[frames]
+    prop = propagate_poses.propagate_poses(
         sfm.T_w_c, up["estimate_adjustment"].T_adj, up["register_object"].T_w_o, T_w_p,
-        sfm.joints_w, session.color_K, frames, up["detect_keypoints"].keypoints[frames],
+        sfm.joints_w, session.color_K, frames, keypoints,
         joints_fit_w=joints_hand_w, config=config,
     )
+    validity = frame_validity.frame_validity(
+        prop.frame_indices, keypoints, sfm.frames, sfm.pose_valid, sfm.inlier, prop.T_c_o,
+        lambda f: session.read_depth_m(session.grasp_path("depth", f)), session.color_K,
+        session.read_mesh(), _final_hand(up).mesh_o, config.validity,
+    )
+    return replace(prop, validity=validity)
 
 
 def _final_hand(up: Mapping[str, Any]) -> FinalHand:
@@ -263,7 +271,8 @@ STAGES: dict[str, Stage] = {
         Stage("propagate_poses", propagate_poses.STAGE_VERSION, propagate_poses.PRESETS,
               ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
                "fit_hand", "register_object", "estimate_adjustment") + _REFINE,
-              (), _propagate_poses, fields=(_K, "grasp.count")),
+              ("object_mesh", "grasp_depth"), _propagate_poses,
+              fields=(_K, "grasp.count", "grasp.depth", _DEPTH_SCALE, _MESH)),
         Stage("qa_metrics", qa_metrics.STAGE_VERSION, qa_metrics.PRESETS,
               ("load_session", "detect_keypoints", "reconstruct_hand", "crosscheck_sfm",
                "fit_hand", "register_object", "estimate_adjustment", "register_scan",

@@ -63,6 +63,28 @@ def session_row(session_id: str, rng: np.random.Generator, *, status: str = "ok"
     return row
 
 
+def validity_columns(count: int) -> dict[str, list]:
+    """Format 6's per-frame validity of ``count`` frames, a fixed pattern (no draw): frame 1
+    of every 4 interpolated with an unused detection; frame 1 of every 3 with depth
+    disagreeing, frame 2 of every 3 with an object the depth cannot judge."""
+    i = np.arange(count)
+    interp, off, hidden = i % 4 == 1, i % 3 == 1, i % 3 == 2
+    obj = [None if h else not o for h, o in zip(hidden, off, strict=True)]
+    return {
+        "camera_reason": ["interpolated from its neighbours: 2 keypoints detected" if k
+                          else None for k in interp],
+        "hand_used": [not k for k in interp],
+        "hand_reason": ["0 of 2 detected keypoints inliers (need 6)" if k else None
+                        for k in interp],
+        "object_supported": obj,
+        "object_reason": [None if v else "too few object pixels visible: 3 of 90 outside the "
+                          "hand (need 50; the hand covers it)" if v is None
+                          else "depth disagrees: median 21 mm, 4% of 120 pixels within 10 mm"
+                          for v in obj],
+        "object_depth_agreement": [None if v is None else (0.96 if v else 0.04) for v in obj],
+    }
+
+
 def frame_rows(session_id: str, rng: np.random.Generator, count: int, *,
                build_id: str = "b1") -> dict[str, np.ndarray | list]:
     """``count`` frames as columns (poses (count, 4, 4), joints (count, 21, 3), ...)."""
@@ -70,6 +92,7 @@ def frame_rows(session_id: str, rng: np.random.Generator, count: int, *,
         "session_id": [session_id] * count, "frame": np.arange(count, dtype=np.int64) + 5,
         "T_w_c": np.stack([_pose(rng) for _ in range(count)]),
         "camera_solved": np.arange(count) % 4 != 1,  # no draw: the rng's stream stays as it was
+        **validity_columns(count),
         "T_c_o": np.stack([_pose(rng) for _ in range(count)]),
         "T_c_p": np.stack([_pose(rng) for _ in range(count)]),
         "joints_2d_px": rng.uniform(0, 640, (count, 21, 2)),

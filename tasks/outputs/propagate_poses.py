@@ -4,6 +4,10 @@ Paper, end of Section 3: with the virtual cameras ``T_w_c[i]`` of stage 2,
 ``T_c_o[i] = inv(T_w_c[i]) @ T_adj @ T_w_o_stage1`` and ``T_c_p[i] = inv(T_w_c[i]) @ T_w_p``.
 The static hand's joints are carried into each camera and projected, and compared with the
 frame's detected 2D keypoints. Pure numpy, vectorised over frames.
+
+The stage's glue (``tasks/pipeline.py``) adds each frame's validity (``frame_validity``: the
+hand detection used, the camera solved, the object pose supported by the frame's depth),
+which needs the frame's depth: the stage reads the grasp depth and the object mesh.
 """
 
 from __future__ import annotations
@@ -16,8 +20,9 @@ import numpy as np
 from graspcap.schemas.transforms import rigidity_problems
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.outputs.frame_validity import FrameValidity, FrameValidityConfig
 
-STAGE_VERSION = "propagate_poses/1"
+STAGE_VERSION = "propagate_poses/2"
 STAGE = "propagate_poses"
 
 
@@ -40,6 +45,8 @@ class PropagatePosesConfig(StageConfig):
     """Detections with confidence at or below this are not observed (NaN error)."""
     rigid_tol: float = 1e-4
     """Tolerance of the rigidity check on the input poses (max |R^T R - I|)."""
+    validity: FrameValidityConfig = FrameValidityConfig()
+    """Tolerances of the per-frame validity (``frame_validity``)."""
 
 
 PRESETS: dict[str, PropagatePosesConfig] = {
@@ -70,6 +77,9 @@ class PosePropagation:
         RMS of the finite ``reproj_err_px`` (NaN when there is none).
     n_behind : int
         Joints (over all frames) at or behind the camera plane.
+    validity : FrameValidity or None
+        Per frame: hand detection used, camera solved, object pose supported by the depth,
+        with reasons (the stage's glue adds it; None from :func:`propagate_poses` alone).
     """
 
     frame_indices: np.ndarray
@@ -80,6 +90,7 @@ class PosePropagation:
     reproj_err_px: np.ndarray
     reproj_rmse_px: float
     n_behind: int
+    validity: FrameValidity | None = None
 
 
 def _pose(name: str, T: np.ndarray, tol: float) -> np.ndarray:

@@ -1,6 +1,6 @@
-"""Catalog formats: the golden catalogs of formats 1 to 4 fail to open naming `migrate`, and
-migrate (old rows read the newer columns as null, new commits fill them; array groups get
-their format-5 manifests)."""
+"""Catalog formats: the golden catalogs of formats 1 to 5 fail to open naming `migrate`, and
+migrate (old rows read the newer columns as null, format 6's reasons say "not recorded before
+format 6", new commits fill them; array groups get their format-5 manifests)."""
 
 from __future__ import annotations
 
@@ -15,10 +15,11 @@ from deltalake import DeltaTable
 import graspcap.catalog as gc
 from graspcap.catalog.delta import create_tables
 from graspcap.catalog.layout import CatalogLayout, write_format_file
-from graspcap.catalog.migrate import add_missing_columns, migrate_catalog
+from graspcap.catalog.migrate import add_missing_columns, mark_not_recorded, migrate_catalog
 from graspcap.schemas.tables import (
     CATALOG_FORMAT_VERSION,
     DELTA_TABLE_PROPERTIES,
+    NOT_RECORDED,
     SESSIONS_SCHEMA,
     TABLE_SCHEMAS,
 )
@@ -36,6 +37,21 @@ from tests.golden.make_golden import (
 )
 
 ARCHIVE = archive(1)
+
+
+REASONS = ("camera_reason", "hand_reason", "object_reason")
+"""Format 6's reason columns: the migration sets them on the rows before it."""
+
+
+def _migrated(col: str, fmt: int) -> list:
+    """The golden's two frames' ``col`` (a format-6 column) after the migration: flags null,
+    reasons "not recorded before format 6", the camera's only where camera_solved is not True
+    (the golden's is [True, False] from format 4 on)."""
+    if col not in REASONS:
+        return [None, None]
+    if col == "camera_reason" and fmt >= 4:
+        return [None, NOT_RECORDED]
+    return [NOT_RECORDED] * 2
 
 
 def _properties(root) -> dict[str, dict[str, str]]:
@@ -66,7 +82,7 @@ def _check_golden_content(cat: gc.Catalog, version) -> None:
 def test_current_format_tables_keep_their_delta_logs(tmp_path):
     gc.open(tmp_path / "cat", create=True)
     stamp = json.loads((tmp_path / "cat" / "catalog.json").read_text())
-    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 5
+    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 6
     for name, config in _properties(tmp_path / "cat").items():
         assert config == DELTA_TABLE_PROPERTIES, name
 
@@ -81,15 +97,15 @@ def test_golden_v1_fails_naming_migrate_then_migrated_copy_reads(tmp_path):
     before = _listing(src)
 
     report = migrate_catalog(src, tmp_path / "v2")
-    assert (report.from_format, report.to_format, report.new_version) == (1, 5, 2)
+    assert (report.from_format, report.to_format, report.new_version) == (1, 6, 2)
     assert _listing(src) == before  # source untouched (the copy is taken under its lock)
     with pytest.raises(gc.CatalogFormatError, match="migrate"):
         gc.open(src)
 
     cat = gc.open(tmp_path / "v2")
     assert cat.versions()["version"].to_pylist() == [1, 2]
-    assert cat.versions()["format_version"].to_pylist() == [1, 5]
-    assert cat.versions()["build_id"].to_pylist() == ["golden-1", "migrate-1-to-5"]
+    assert cat.versions()["format_version"].to_pylist() == [1, 6]
+    assert cat.versions()["build_id"].to_pylist() == ["golden-1", "migrate-1-to-6"]
     assert cat.resolve("golden") == 1
     for version in ("golden", 2, None):
         _check_golden_content(cat, version)
@@ -108,7 +124,10 @@ def test_migrate_in_place_is_idempotent_and_refuses_what_it_cannot(tmp_path):
     src = unpack(ARCHIVE, tmp_path / "v1")
     assert migrate_catalog(src).new_version == 2
     again = migrate_catalog(src)
-    assert (again.from_format, again.new_version) == (5, None)
+    assert (again.from_format, again.new_version) == (6, None)
+    frames = DeltaTable(str(src / "tables" / "frames"))  # a rerun after a crash: no commit
+    assert mark_not_recorded(frames) is False
+    assert DeltaTable(str(src / "tables" / "frames")).version() == frames.version()
     _check_golden_content(gc.open(src), 2)
     with pytest.raises(gc.CatalogError, match="exists"):
         migrate_catalog(src, tmp_path / "v1")
@@ -148,20 +167,24 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
     with pytest.raises(gc.CatalogFormatError, match=rf"format {fmt}.*graspcap catalog migrate"):
         gc.open(src)
     report = migrate_catalog(src)
-    assert (report.from_format, report.to_format, report.new_version) == (fmt, 5, 2)
-    assert (report.arrays_upgraded, report.damaged_arrays) == (3, {})  # given manifests
+    assert (report.from_format, report.to_format, report.new_version) == (fmt, 6, 2)
+    upgraded = 3 if fmt < 5 else 0  # given their format-5 manifests
+    assert (report.arrays_upgraded, report.damaged_arrays) == (upgraded, {})
     for name, cols in added.items():
         assert _delta_columns(src, name)[-len(cols):] == list(cols), name
     for name in TABLE_SCHEMAS:
         assert sorted(_delta_columns(src, name)) == sorted(TABLE_SCHEMAS[name].names), name
     cat = gc.open(src)
-    assert cat.versions()["build_id"].to_pylist() == ["golden-1", f"migrate-{fmt}-to-5"]
+    assert cat.versions()["build_id"].to_pylist() == ["golden-1", f"migrate-{fmt}-to-6"]
     for version in (1, "golden", 2):  # pinned before, and made by, the migration
         for name, cols in added.items():
             old = cat.table(name, version)
             assert old.schema == TABLE_SCHEMAS[name]  # conformed on read (field docs included)
             for col in cols:
-                assert old[col].null_count == old.num_rows > 0, (name, col)
+                if version == 2 and col in REASONS:  # the migration wrote them
+                    assert old[col].to_pylist() == _migrated(col, fmt), col
+                else:
+                    assert old[col].null_count == old.num_rows > 0, (name, col)
         old = cat.table("sessions", version)
         assert old["session_id"].to_pylist() == [SESSION]
         assert old["qa_contact_coverage"].to_pylist() == [0.5]  # the old QA values stay
@@ -196,6 +219,10 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
     want = np.asarray(build.frames["camera_solved"])  # sessions sorted, as the build's
     assert new["camera_solved"].to_pylist() == want.tolist()
     assert want.any() and not want.all()  # both True and False written
+    for col in COLUMNS_ADDED[6]["frames"]:
+        assert golden[col].to_pylist() == _migrated(col, fmt), col
+        assert new[col].to_pylist() == list(build.frames[col]), col
+    assert {True, False, None} == set(new["object_supported"].to_pylist())
     for name, cols in added.items():
         files = cat.files(name, 3)
         assert len(files) == 2, name
@@ -203,8 +230,11 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
             some = gc.Catalog(cat.layout)
             some._files[(name, 3)] = order  # the read must not depend on the file order
             got = some.table(name, 3, columns=["session_id", *cols])
-            n_old = sum(s == SESSION for s in got["session_id"].to_pylist())
-            assert all(got[c].null_count == n_old > 0 for c in cols), (name, order)
+            old = got.filter(pc.equal(got["session_id"], SESSION))
+            assert old.num_rows > 0, name
+            for c in cols:
+                want_old = _migrated(c, fmt) if c in REASONS else [None] * old.num_rows
+                assert old[c].to_pylist() == want_old, (name, c, order)
     assert cat.table("frames", 1)["camera_solved"].to_pylist() == (
         [None, None] if fmt < 4 else [True, False])
     _check_golden_content(cat, 1)

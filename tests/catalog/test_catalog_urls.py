@@ -48,7 +48,7 @@ def test_file_url_end_to_end(two_versions):
             values, observed = cat.contactmap(sid, v)
             np.testing.assert_array_equal(values, build.session_arrays[sid].contact)
             np.testing.assert_array_equal(observed, build.session_arrays[sid].observed)
-    ds = gc.GraspDataset(url, version=2)
+    ds = gc.GraspDataset(url, version=2, valid_only=False)
     assert len(ds) == 3 * 3 and ds[0]["contact"].dtype == np.float32
 
 

@@ -28,7 +28,7 @@ def catalog(tmp_path_factory):
 
 def test_frames_items_join_frame_row_with_session_arrays(catalog):
     cat, build = catalog
-    ds = gc.GraspDataset(cat)
+    ds = gc.GraspDataset(cat, valid_only=False)
     assert len(ds) == 5 * FRAMES  # the failed session has no frames and is filtered out
     item = ds[FRAMES + 1]
     sid = item["session_id"]
@@ -55,12 +55,46 @@ def test_filters_and_session_unit(catalog):
     cat, _ = catalog
     assert len(gc.GraspDataset(cat, unit="sessions")) == 5
     assert len(gc.GraspDataset(cat, unit="sessions", status=("ok", "failed"))) == 6
-    mugs = gc.GraspDataset(cat, objects=["mug"])
+    mugs = gc.GraspDataset(cat, objects=["mug"], valid_only=False)
     assert {mugs[i]["object_id"] for i in range(len(mugs))} == {"mug"}
     assert len(mugs) == 2 * FRAMES
     handoff = gc.GraspDataset(cat, unit="sessions", intents=["handoff"], participants=["p02"])
     assert handoff.session_ids == ["p02-mug-handoff-00"]
     assert "frame" not in handoff[0] and handoff[0]["T_adj"].shape == (4, 4)
+
+
+def test_frame_items_only_from_valid_frames_unless_asked(catalog):
+    cat, build = catalog
+    flags = ("hand_used", "camera_solved", "object_supported")
+    cols = {c: list(build.frames[c]) for c in ("session_id", "frame", *flags)}
+    rows = list(zip(*cols.values(), strict=True))
+    valid = {(s, f) for s, f, *v in rows if False not in v}
+    # the factory's pattern: per session frame 1 is denied (interpolated, unused hand, depth
+    # disagreeing); frame 2's object the depth cannot judge (null) is kept
+    assert len(valid) == 5 * (FRAMES - 1)
+    assert any(v[2] is None for s, f, *v in rows if (s, f) in valid)
+
+    ds = gc.GraspDataset(cat)  # valid_only=True by default
+    got = [(ds[i]["session_id"], ds[i]["frame"]) for i in range(len(ds))]
+    assert len(got) == len(valid) and set(got) == valid
+    for i in range(len(ds)):  # every item's columns are its own frame's
+        item = ds[i]
+        assert item["hand_used"] is not False and item["object_supported"] is not False
+        j = [(s, f) for s, f, *_ in rows].index((item["session_id"], item["frame"]))
+        np.testing.assert_array_equal(item["T_c_o"], build.frames["T_c_o"][j])
+        assert item["object_reason"] == build.frames["object_reason"][j]
+    everything = gc.GraspDataset(cat, valid_only=False)
+    assert len(everything) == 5 * FRAMES
+    denied = [everything[i] for i in range(len(everything))
+              if (everything[i]["session_id"], everything[i]["frame"]) not in valid]
+    assert {d["frame"] for d in denied} == {build.frames["frame"][1]}
+    assert {d["camera_reason"] for d in denied} == {
+        "interpolated from its neighbours: 2 keypoints detected"}
+    assert all(d["object_reason"].startswith("depth disagrees") for d in denied)
+    rest, held = ds.split_by("participant", ["p02"])  # subsets keep the filter
+    assert len(rest) + len(held) == len(ds)
+    assert pickle.loads(pickle.dumps(ds)).valid_only is True
+    assert len(gc.GraspDataset(cat, unit="sessions")) == 5  # sessions are not filtered
 
 
 @pytest.mark.parametrize("key, holdout", [("participant", ["p02"]),

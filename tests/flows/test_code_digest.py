@@ -125,5 +125,5 @@ def test_glue_counts_for_its_own_stage_and_a_shared_helper_for_its_users(monkeyp
     shared_changed = changed(lambda src: src.replace(
         b'up.get("refine_grasp"), up["estimate_adjustment"].T_w_o)',
         b'up.get("refine_grasp"), up["estimate_adjustment"].T_w_o * 1)', 1))
-    assert users == {"qa_metrics", "pictures"} == shared_changed
+    assert users == {"propagate_poses", "qa_metrics", "pictures"} == shared_changed
     assert changed(lambda src: src.replace(b"# --- the DAG", b"# --- the graph", 1)) == set()

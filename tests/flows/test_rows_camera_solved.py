@@ -1,7 +1,10 @@
 # ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """``frames.camera_solved`` (format 4): a real build writes True where stage 2 solved the frame's
 camera from its own keypoints and False where it interpolated it (a frame whose detection was
-removed); ``estimate_from_catalog`` carries the column."""
+removed); ``estimate_from_catalog`` carries the column. The same build's per-frame validity
+(format 6): the frame without a detection has its hand unused and its camera interpolated, with
+the reasons, every other frame of these easy sessions is valid and its object pose supported by
+its depth, and ``GraspDataset`` leaves out exactly the frame denied."""
 
 from __future__ import annotations
 
@@ -78,6 +81,30 @@ def test_a_frame_without_detections_is_written_as_interpolated(warm, synth_root,
     est = estimate_from_catalog({"steady_from": steady}, frames)
     assert est["camera_solved"].dtype == bool
     np.testing.assert_array_equal(est["frame"][~est["camera_solved"]], [dropped])
+
+    # per-frame validity (format 6), in every frame of the catalog, consistent
+    everything = gc.open(catalog).table("frames").to_pandas()
+    for flag, reason in (("hand_used", "hand_reason"), ("camera_solved", "camera_reason"),
+                         ("object_supported", "object_reason")):
+        assert everything[flag].notna().all(), flag  # every frame is in the steady window
+        assert (everything[reason].isna() == everything[flag].astype(bool)).all(), flag
+    assert everything.object_depth_agreement.notna().all()
+    dropped_row = frames[frames.frame == dropped].iloc[0]
+    assert (dropped_row.hand_used, dropped_row.hand_reason) == (False, "no detection")
+    assert dropped_row.camera_reason == "interpolated from its neighbours: no detection"
+    others = everything[(everything.session_id != sid) | (everything.frame != dropped)]
+    assert others.hand_used.astype(bool).all() and others.camera_solved.astype(bool).all()
+    # the easy sessions' object poses agree with their depth (measured: 0.95-1.0 per frame)
+    assert everything.object_supported.astype(bool).all()
+    assert everything.object_depth_agreement.min() > 0.9
+    assert np.isclose(dropped_row.object_depth_agreement,
+                      float(frames[frames.frame == dropped - 1].object_depth_agreement.iloc[0]),
+                      atol=0.05)  # the interpolated camera is no worse here
+    ds = gc.GraspDataset(catalog, status=("ok", "flagged"))
+    keys = {(ds[i]["session_id"], int(ds[i]["frame"])) for i in range(len(ds))}
+    assert len(ds) == len(everything) - 1 and (sid, dropped) not in keys
+    assert len(gc.GraspDataset(catalog, status=("ok", "flagged"), valid_only=False)) == len(
+        everything)
 
 
 def test_estimate_from_catalog_leaves_out_a_null_camera_solved():

@@ -1,6 +1,6 @@
 """Regenerate the golden catalogs under tests/golden/ (checked in with this script).
 
-    .venv/bin/python tests/golden/make_golden.py [--formats 1 2 3 4]
+    .venv/bin/python tests/golden/make_golden.py [--formats 1 2 3 4 5]
 
 - ``catalog_v0/``: the stamp of a catalog of format 0 (never released, no migration leads from
   it), for the "rebuild it" error. A few hundred bytes.
@@ -12,7 +12,9 @@
   format 2 itself (before format 3's columns existed), ``catalog_v3.tar.gz`` by the code of
   format 3 (before ``frames.camera_solved``, ``sessions.qa_flags`` and ``qa_notes``),
   ``catalog_v4.tar.gz`` by the code of format 4 (Zarr groups without format 5's manifests and
-  all-fill chunks, which this script now writes: only the columns are compared);
+  all-fill chunks, which this script now writes: only the columns are compared),
+  ``catalog_v5.tar.gz`` by this script when format 6 came (before the per-frame validity
+  columns);
   ``test_golden_script_still_writes_...`` checks that this script still writes the same
   columns. Unpacked one is ~86 KB in 33 files
   (Delta logs, and Parquet footers repeating the schema's docs), packed ~15-20 KB. Tests unpack
@@ -53,11 +55,13 @@ COLUMNS_ADDED: dict[int, dict[str, tuple[str, ...]]] = {
     3: {"sessions": ("qa_window_outlier_share", "qa_crosscheck_camera_deg",
                      "qa_rgbd_discrepancy_mm", "qa_fit_contact_agreement")},
     4: {"frames": ("camera_solved",), "sessions": ("qa_flags", "qa_notes")},
+    6: {"frames": ("camera_reason", "hand_used", "hand_reason", "object_supported",
+                   "object_reason", "object_depth_agreement")},
 }
 """``{format: {table: columns that format added}}`` (docs/data_changelog.md): a catalog of an
 older format lacks them."""
 FORMAT_2_COLUMNS = COLUMNS_ADDED[2]
-GOLDEN_FORMATS = (1, 2, 3, 4)
+GOLDEN_FORMATS = (1, 2, 3, 4, 5)
 """Older formats with a golden catalog (every one ``graspcap catalog migrate`` leads from)."""
 
 
@@ -112,6 +116,12 @@ def build() -> gc.BuildCommit:
     frames = {
         "session_id": [SESSION] * 2, "frame": np.array([3, 4]), "T_w_c": np.stack([e["T"]] * 2),
         "camera_solved": [True, False],
+        "camera_reason": [None, "interpolated from its neighbours: no detection"],
+        "hand_used": [True, False], "hand_reason": [None, "no detection"],
+        "object_supported": [True, None],
+        "object_reason": [None, "too few object pixels visible: 12 of 240 outside the hand "
+                                "(need 50; the hand covers it)"],
+        "object_depth_agreement": [0.9, None],
         "T_c_o": np.stack([e["T"]] * 2), "T_c_p": np.stack([e["T"]] * 2),
         "joints_2d_px": np.full((2, 21, 2), 320.0), "keypoint_conf": np.ones((2, 21)),
         "joints_c": np.stack([e["joints"]] * 2), "reproj_err_px": np.zeros((2, 21)),
