@@ -89,9 +89,9 @@ def _known(sessions: pa.Table, column: str, allowed: Any, version: int) -> list[
              else sorted(set(sessions[column].drop_null().to_pylist())))
     unknown = [v for v in values if v not in known]
     if unknown:
-        raise ValueError(f"GraspDataset({_FILTERS[column]}=...): {', '.join(map(repr, unknown))} "
-                         f"{'is' if len(unknown) == 1 else 'are'} not a {column} of catalog "
-                         f"version {version}; known: {', '.join(known)}")
+        raise ValueError(f"GraspDataset({_FILTERS[column]}=...): no session of catalog version "
+                         f"{version} has {column} {' or '.join(map(repr, unknown))}; known: "
+                         f"{', '.join(known)}")
     return values
 
 

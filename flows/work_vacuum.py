@@ -50,9 +50,9 @@ class WorkVacuumReport:
         stages = ", ".join(f"{s} {n}" for s, n in self.removed_by_stage.items())
         return (f"work area: removed {self.removed_results} cached stage result(s)"
                 + (f" ({stages})" if stages else "")
-                + f", {self.freed_bytes / 1e6:.2f} MB freed; kept {self.kept_results} "
-                f"({self.kept_bytes / 1e6:.2f} MB) the newest build used or that are a "
-                "session's latest run of a stage")
+                + f", {self.freed_bytes:,} bytes ({self.freed_bytes / 1e6:.2f} MB) freed; kept "
+                f"{self.kept_results} ({self.kept_bytes / 1e6:.2f} MB): those the newest build "
+                "used, each session's latest run of a stage, and those of the last hour")
 
 
 def _newest_record(work: Path) -> dict | None:
