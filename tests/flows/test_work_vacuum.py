@@ -9,7 +9,6 @@ import shutil
 import time
 from pathlib import Path
 
-
 import graspcap.catalog as gc
 from graspcap.cli import main
 from graspcap.flows.work_vacuum import vacuum_work
