@@ -117,6 +117,21 @@ BUILD_EXIT_CODES = """exit status:
      commits them without running those stages again"""
 
 
+def _dask_arg(text: str) -> str:
+    """``--dask``: ``local:N`` with N >= 1 workers, or a scheduler's address (``host:port``,
+    ``tcp://host:port``); checked here, before anything is made."""
+    if text.startswith("local:"):
+        n = text.removeprefix("local:")
+        if not (n.isdigit() and int(n) >= 1):
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: local:N needs a number of worker processes >= 1, e.g. local:2")
+    elif ":" not in text:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give a Dask scheduler's address (tcp://HOST:PORT or HOST:PORT) or "
+            "local:N for a local cluster of N worker processes")
+    return text
+
+
 def _cmd_build(args: argparse.Namespace) -> int:
     if missing_roots(args.roots, "build"):  # before the catalog is made
         return EXIT_USAGE
@@ -206,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="STAGE.FIELD=VALUE",
                    help="override one config field over the preset, checked against the "
                         "stage's config (repeatable), e.g. reconstruct_hand.huber_k=1.5")
-    p.add_argument("--dask", default=None, metavar="ADDRESS|local:N",
+    p.add_argument("--dask", default=None, metavar="ADDRESS|local:N", type=_dask_arg,
                    help="run on a Dask scheduler, or a local cluster of N worker processes")
     p.add_argument("--retry-failed", action="store_true",
                    help="re-run only the sessions that failed in the last build")

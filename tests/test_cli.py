@@ -54,6 +54,21 @@ def test_an_unknown_preset_is_refused_naming_the_choices(tmp_path, capsys):
     assert not (tmp_path / "c").exists()
 
 
+@pytest.mark.parametrize("value, why", [
+    ("local:0", "'local:0': local:N needs a number of worker processes >= 1"),
+    ("local:two", "'local:two': local:N needs a number of worker processes >= 1"),
+    ("localhost", "'localhost': give a Dask scheduler's address (tcp://HOST:PORT or HOST:PORT)"),
+])
+def test_a_malformed_dask_option_is_refused(tmp_path, capsys, value, why):
+    (tmp_path / "sessions").mkdir()
+    with pytest.raises(SystemExit) as exit_:
+        main(["build", str(tmp_path / "sessions"), "--catalog", str(tmp_path / "c"),
+              "--dask", value])
+    assert exit_.value.code == 2
+    assert f"argument --dask: {why}" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
+
+
 @pytest.mark.parametrize("command", ["build", "validate", "serve"])
 def test_a_missing_root_is_named_and_nothing_is_created(tmp_path, capsys, command):
     good = tmp_path / "sessions"
