@@ -117,12 +117,20 @@ def status_text(catalog: Path, limit: int = 5) -> str:
     log = cat.layout.root / "work" / "builds.jsonl"
     records, torn = _build_records(log)
     committed = {}
+    removed: list[str] = []
     if cat.latest_version() is not None:
         for row in cat.table("builds").sort_by("catalog_version").to_pylist():
             committed[row["build_id"]] = row
-            rec = json.loads(row["parameters_json"]).get("report")
+            params = json.loads(row["parameters_json"])
+            rec = params.get("report")
             if rec and rec["build_id"] not in {r["build_id"] for r in records}:
                 records.append(rec)
+            if params.get("command") == "catalog remove":  # a version no build made
+                removed.append(f"version {row['catalog_version']} ({row['build_id']}): catalog "
+                               f"remove of {', '.join(row['sessions_removed'])}"
+                               + (f"; reason: {params['reason']}" if params.get("reason")
+                                  else ""))
+    out += removed[::-1][:limit]
     if torn:
         out.append(f"note: {log}: line(s) {torn} are not build records (a build killed while "
                    "writing one?); skipped")

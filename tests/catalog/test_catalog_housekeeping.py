@@ -53,6 +53,11 @@ def test_remove_makes_a_version_without_the_sessions_and_records_why(catalog, ca
         "command": "catalog remove", "reason": "wrong object label",
         "removed": ["p01-mug-use-00", "p03-bowl-use-00"], "previous_version": 2}
     assert row["build_id"].startswith("rm-") and row["config_digest"] == "c" * 64
+    assert main(["status", "--catalog", root]) == 0
+    assert capsys.readouterr().out.splitlines()[:2] == [
+        f"catalog {root}: no builds yet",  # (the factory's versions record no build report)
+        f"version 3 ({row['build_id']}): catalog remove of p01-mug-use-00, p03-bowl-use-00; "
+        "reason: wrong object label"]
 
 
 def test_remove_of_an_unknown_session_commits_nothing(catalog, capsys):
