@@ -2,8 +2,10 @@
 
 A stored result (``results/<stage>/<key>.pkl`` and its ``<key>.json`` record) is kept when
 
-* the newest build's record (``builds.jsonl``, its ``keys``: the result every session's stages
-  used, run or cached) names it: what an unchanged rebuild looks up;
+* the newest build of a session used it (``builds.jsonl``: each build records in ``keys`` the
+  result every stage of every session it built used, run or cached): what an unchanged
+  rebuild looks up (a ``--retry-failed`` build records only its few sessions, so each
+  session's newest record counts, not only the newest record);
 * it is the latest run of a stage for a session (the key manifests under
   ``results/<stage>/latest/``): the results a build that failed as a whole left for the next
   one, and what ``--plan`` diffs against;
@@ -51,39 +53,46 @@ class WorkVacuumReport:
         return (f"work area: removed {self.removed_results} cached stage result(s)"
                 + (f" ({stages})" if stages else "")
                 + f", {self.freed_bytes:,} bytes ({self.freed_bytes / 1e6:.2f} MB) freed; kept "
-                f"{self.kept_results} ({self.kept_bytes / 1e6:.2f} MB): those the newest build "
-                "used, each session's latest run of a stage, and those of the last hour")
+                f"{self.kept_results} ({self.kept_bytes / 1e6:.2f} MB): those each session's "
+                "newest build used, its latest run of each stage, and those of the last hour")
 
 
-def _newest_record(work: Path) -> dict | None:
-    """The newest build record of ``builds.jsonl`` (a torn line skipped), None without one."""
+def _records(work: Path) -> list[dict]:
+    """The build records of ``builds.jsonl``, newest first (torn lines skipped)."""
     try:
         lines = (work / BUILDS_LOG).read_text(errors="replace").splitlines()
     except FileNotFoundError:
-        return None
+        return []
+    out = []
     for line in reversed(lines):
         try:
             record = json.loads(line)
         except (ValueError, RecursionError):
             continue
         if isinstance(record, dict) and "build_id" in record:
-            return record
-    return None
+            out.append(record)
+    return out
 
 
 def needed_keys(work: Path) -> dict[str, set[str]]:
     """``{stage: keys}`` to keep (module docstring); raises :class:`WorkVacuumRefused` when
     the newest build's record does not say which results it used."""
     needed: dict[str, set[str]] = {}
-    record = _newest_record(work)
-    if record is not None:
+    records = _records(work)
+    if records and not isinstance(records[0].get("keys"), dict):
+        raise WorkVacuumRefused(
+            f"{work / BUILDS_LOG}: the newest build ({records[0].get('build_id')}) did not "
+            "record which stage results it used (written by an older graspcap), so nothing is "
+            "removed; run `graspcap build` once, then vacuum --work again")
+    seen: set[str] = set()
+    for record in records:  # each session's newest build (a --retry-failed build has a few)
         keys = record.get("keys")
         if not isinstance(keys, dict):
-            raise WorkVacuumRefused(
-                f"{work / BUILDS_LOG}: the newest build ({record.get('build_id')}) did not "
-                "record which stage results it used (written by an older graspcap), so "
-                "nothing is removed; run `graspcap build` once, then vacuum --work again")
-        for stages in keys.values():
+            break  # older records say nothing; the key manifests below still count
+        for session_id, stages in keys.items():
+            if session_id in seen:
+                continue
+            seen.add(session_id)
             for stage, key in (stages or {}).items():
                 needed.setdefault(str(stage), set()).add(str(key))
     for manifest in (work / "results").glob("*/latest/*.json"):

@@ -27,8 +27,9 @@ def _result(folder: Path, key: str, size: int, age_s: float) -> None:
 
 
 def _work_area(work: Path, keys: dict | None = None) -> Path:
-    """Stage ``s``: ``used`` (the newest build's), ``latest`` (a session's latest run), ``old``
-    (neither), ``young`` (neither, written just now), an old unrecorded pickle and a
+    """Stage ``s``: ``used`` (the newest build's), ``retried`` (session c's, whose newest build
+    is the one before), ``latest`` (a session's latest run), ``old`` (session a's in the build
+    before: replaced), ``young`` (neither, written just now), an old unrecorded pickle and a
     remembered failure; stage ``t``: ``gone`` (neither)."""
     s = work / "results" / "s"
     for key in ("used", "latest", "old"):
@@ -40,7 +41,8 @@ def _work_area(work: Path, keys: dict | None = None) -> Path:
     (s / "failing.failed.json").write_text('{"reason": "no platter plane"}')
     (s / "latest").mkdir()
     (s / "latest" / "0123.json").write_text(json.dumps({"key": "latest", "ok": True}))
-    records = [{"build_id": "b0", "keys": {"a": {"s": "old"}}},
+    _result(s, "retried", 100, 2 * HOUR)  # session c's: its newest build is b0
+    records = [{"build_id": "b0", "keys": {"a": {"s": "old"}, "c": {"s": "retried"}}},
                {"build_id": "b1", **({"keys": keys} if keys is not None else {})}]
     (work / "builds.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
     return s
@@ -55,11 +57,12 @@ def test_vacuum_work_removes_what_no_build_needs(tmp_path, capsys):
     freed = 100 + len(json.dumps({"digest": "d", "bytes": 100})) + 50 + len(
         json.dumps({"digest": "d", "bytes": 50})) + 10
     assert out == (f"work area: removed 3 cached stage result(s) (s 2, t 1), {freed:,} bytes "
-                   f"({freed / 1e6:.2f} MB) freed; kept 3 (0.00 MB): those the newest build "
-                   "used, each session's latest run of a stage, and those of the last hour\n")
+                   f"({freed / 1e6:.2f} MB) freed; kept 4 (0.00 MB): those each session's "
+                   "newest build used, its latest run of each stage, and those of the last "
+                   "hour\n")
     assert sorted(p.name for p in s.iterdir()) == [
-        "failing.failed.json", "latest", "latest.json", "latest.pkl", "used.json", "used.pkl",
-        "young.json", "young.pkl"]
+        "failing.failed.json", "latest", "latest.json", "latest.pkl", "retried.json",
+        "retried.pkl", "used.json", "used.pkl", "young.json", "young.pkl"]
     assert list((s.parent / "t").iterdir()) == []
 
 
