@@ -69,6 +69,14 @@ def test_a_malformed_dask_option_is_refused(tmp_path, capsys, value, why):
     assert not (tmp_path / "c").exists()
 
 
+def test_detect_names_a_missing_input(tmp_path, capsys):
+    (tmp_path / "frames").mkdir()
+    assert main(["detect", str(tmp_path / "frames"), str(tmp_path / "frame.png")]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err == (f"graspcap detect: {str(tmp_path / 'frame.png')!r} does not "
+                                 "exist (no such file or folder)\n")
+
+
 @pytest.mark.parametrize("command", ["build", "validate", "serve"])
 def test_a_missing_root_is_named_and_nothing_is_created(tmp_path, capsys, command):
     good = tmp_path / "sessions"
