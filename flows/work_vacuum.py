@@ -47,14 +47,19 @@ class WorkVacuumReport:
     kept_results: int
     kept_bytes: int
     removed_by_stage: dict[str, int]
+    prefect_bytes: int = 0
+    """Size of Prefect's home in the work area (its database of runs), not touched."""
 
     def text(self) -> str:
         stages = ", ".join(f"{s} {n}" for s, n in self.removed_by_stage.items())
+        prefect = (f"; Prefect's run history ({self.prefect_bytes / 1e6:.2f} MB in "
+                   "work/prefect) is not touched" if self.prefect_bytes else "")
         return (f"work area: removed {self.removed_results} cached stage result(s)"
                 + (f" ({stages})" if stages else "")
                 + f", {self.freed_bytes:,} bytes ({self.freed_bytes / 1e6:.2f} MB) freed; kept "
                 f"{self.kept_results} ({self.kept_bytes / 1e6:.2f} MB): those each session's "
-                "newest build used, its latest run of each stage, and those of the last hour")
+                "newest build used, its latest run of each stage, and those of the last hour"
+                + prefect)
 
 
 def _records(work: Path) -> list[dict]:
@@ -143,4 +148,5 @@ def vacuum_work(work: Path | str, min_age_s: float = MIN_AGE_S) -> WorkVacuumRep
             pickle.unlink(missing_ok=True)
             removed += 1
             by_stage[folder.name] = by_stage.get(folder.name, 0) + 1
-    return WorkVacuumReport(removed, freed, kept, kept_bytes, by_stage)
+    prefect = sum(f.stat().st_size for f in (work / "prefect").rglob("*") if f.is_file())
+    return WorkVacuumReport(removed, freed, kept, kept_bytes, by_stage, prefect)
