@@ -43,6 +43,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from proc_cpu import ProcessCPU  # noqa: E402 - bench/ is the script's folder
 
+from graspcap.tasks.core.presets import PIPELINE_PRESETS  # noqa: E402
+
 
 def _fmt(values: list[float], unit: str = "s", digits: int = 1) -> str:
     med = statistics.median(values)
@@ -55,8 +57,9 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sessions", type=int, default=8)
     ap.add_argument("--frames", type=int, default=40)
-    ap.add_argument("--difficulty", default="easy", help="synthetic sessions: easy, realistic")
-    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--difficulty", default="easy", choices=["easy", "realistic", "hard"],
+                    help="synthetic sessions")
+    ap.add_argument("--preset", default="fast", choices=list(PIPELINE_PRESETS))
     ap.add_argument("--repeat", type=int, default=3, help="rounds of bare / cold / no-op")
     ap.add_argument("--dask-repeat", type=int, default=1, help="rounds of Dask 1 / 2 workers")
     ap.add_argument("--no-dask", action="store_true")

@@ -1,7 +1,9 @@
-"""`graspcap catalog versions|show|diff|tag|export|vacuum|verify|migrate` on the command line.
+"""`graspcap catalog versions|show|diff|tag|remove|export|vacuum|verify|migrate` on the command
+line.
 
 ``add_catalog_parser(subparsers)`` adds the ``catalog`` command to graspcap's parser. Every
-subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL), prints text for a
+subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL; before or after
+the subcommand's name), prints text for a
 person or ``--json`` for a script, and exits 2 with the catalog's message on a catalog error
 (missing version or tag, older format, a damaged file: one line per problem, never a
 traceback). Prefect-free, like every catalog reader.
@@ -116,9 +118,13 @@ def _cmd_versions(args: argparse.Namespace) -> int:
 
 
 def _listed_versions(args: argparse.Namespace, cat) -> int:
+    from graspcap.catalog.vacuum import vacuumed_versions
+
     table = cat.versions()
+    gone = vacuumed_versions(cat.layout) if cat.layout.is_local else {}
     rows = [{"version": r["version"], "time_utc": r["time_utc"].isoformat(timespec="seconds"),
              "build_id": r["build_id"], "tags": r["tags"], "format": r["format_version"],
+             "readable": r["version"] not in gone, "vacuumed_utc": gone.get(r["version"]),
              **{f"rows_{n}": r[f"rows_{n}"] for n in DATA_TABLES}} for r in table.to_pylist()]
     if args.json:
         _print_json(rows)
@@ -129,8 +135,10 @@ def _listed_versions(args: argparse.Namespace, cat) -> int:
     print(f"{'version':>7}  {'committed (UTC)':<25}  {'build':<24} {'sessions':>8} "
           f"{'frames':>9}  tags")
     for r in rows:
+        gone = ("" if r["readable"] else
+                f"  [vacuumed {r['vacuumed_utc']}: can no longer be read]")
         print(f"{r['version']:>7}  {r['time_utc']:<25}  {r['build_id']:<24} "
-              f"{r['rows_sessions']:>8} {r['rows_frames']:>9}  {', '.join(r['tags'])}")
+              f"{r['rows_sessions']:>8} {r['rows_frames']:>9}  {', '.join(r['tags'])}{gone}")
     return 0
 
 
@@ -202,8 +210,23 @@ def _cmd_diff(args: argparse.Namespace) -> int:
 def _cmd_tag(args: argparse.Namespace) -> int:
     cat = _open(args)
     v = cat.resolve(_version_arg(args.version))
-    cat.tag(v, args.name)
-    print(f"tag {args.name} -> version {v}")
+    before = cat.tags().get(args.name)
+    if not cat.tag(v, args.name, force=args.force):
+        print(f"tag {args.name} -> version {v} (already)")
+    elif before is not None:
+        print(f"tag {args.name} -> version {v} (moved from version {before})")
+    else:
+        print(f"tag {args.name} -> version {v}")
+    return 0
+
+
+def _cmd_remove(args: argparse.Namespace) -> int:
+    cat = _open(args)
+    v = cat.remove(args.sessions, args.reason or "")
+    ids = sorted(set(args.sessions))
+    print(f"removed {len(ids)} session(s) ({', '.join(ids)}) in new version {v}"
+          + (f"; reason: {args.reason}" if args.reason else "")
+          + f"; versions before {v} still hold them")
     return 0
 
 
@@ -217,10 +240,18 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_vacuum(args: argparse.Namespace) -> int:
-    r = _open(args).vacuum(args.keep)
-    print(f"kept versions {r.kept_versions}; dropped {r.dropped_versions or 'none'}; removed "
-          f"{r.removed_files} file(s) and {r.removed_arrays} array group(s), "
-          f"{r.freed_bytes / 1e6:.2f} MB")
+    if args.keep is None and not args.work:
+        print("graspcap catalog vacuum: say what to delete: --keep N (table files and arrays "
+              "of older versions), --work (cached stage results), or both", file=sys.stderr)
+        return 2
+    cat = _open(args)
+    if args.keep is not None:
+        print(cat.vacuum(args.keep).text(args.keep))
+    if args.work:
+        from graspcap.flows.work_vacuum import vacuum_work
+
+        cat.layout.require_local("cleaning a work area")
+        print(vacuum_work(cat.layout.root / "work").text())
     return 0
 
 
@@ -280,6 +311,8 @@ def _guard(func):
     def run(args: argparse.Namespace) -> int:
         try:
             return func(args)
+        except BrokenPipeError:
+            raise  # the reader went away: graspcap's main() ends quietly
         except (CatalogError, ValueError, OSError, DeltaError) as exc:
             for line in problem_lines(exc):
                 print(f"graspcap catalog {args.catalog_command}: {line}", file=sys.stderr)
@@ -289,13 +322,18 @@ def _guard(func):
 
 def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add ``catalog`` and its subcommands to graspcap's ``subparsers``."""
+    catalog_help = (f"catalog folder or URL (file://, s3://, ... read-only; default "
+                    f"{DEFAULT_CATALOG}); before or after the subcommand")
+    # --catalog before the subcommand (`catalog --catalog X versions`) or after it: the
+    # subcommands' copy has no default, so it only overrides the group's when given
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--catalog", default=str(DEFAULT_CATALOG),
-                        help="catalog folder or URL (file://, s3://, ... read-only)")
+    common.add_argument("--catalog", default=argparse.SUPPRESS, help=catalog_help)
     as_json = argparse.ArgumentParser(add_help=False)
     as_json.add_argument("--json", action="store_true", help="print JSON")
     parser = subparsers.add_parser("catalog", help="list, show, compare, tag, export, vacuum, "
-                                   "verify, repair and migrate catalog versions")
+                                   "verify, repair, migrate catalog versions and remove "
+                                   "sessions")
+    parser.add_argument("--catalog", default=str(DEFAULT_CATALOG), help=catalog_help)
     sub = parser.add_subparsers(dest="catalog_command", required=True)
 
     p = sub.add_parser("versions", parents=[common, as_json], help="every version")
@@ -313,7 +351,14 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
     p = sub.add_parser("tag", parents=[common], help="point a tag at a version")
     p.add_argument("version", help="version number (or a tag to copy)")
     p.add_argument("name", help="tag name: a letter, then letters, digits, '.', '_', '-'")
+    p.add_argument("--force", action="store_true",
+                   help="move the tag when it already points at another version")
     p.set_defaults(func=_guard(_cmd_tag))
+    p = sub.add_parser("remove", parents=[common],
+                       help="a new version without these sessions (older versions keep them)")
+    p.add_argument("sessions", nargs="+", metavar="SESSION", help="session ids to remove")
+    p.add_argument("--reason", help="why (recorded in the new version's builds row)")
+    p.set_defaults(func=_guard(_cmd_remove))
     p = sub.add_parser("export", parents=[common],
                        help="a version as plain Parquet (or CSV) files with its arrays")
     p.add_argument("version", help="version number or tag")
@@ -321,8 +366,14 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
     p.add_argument("--format", choices=["parquet", "csv"], default="parquet")
     p.set_defaults(func=_guard(_cmd_export))
     p = sub.add_parser("vacuum", parents=[common],
-                       help="delete files no kept version needs (newest N plus tagged)")
-    p.add_argument("--keep", type=int, required=True, help="newest versions to keep (>= 1)")
+                       help="delete files no kept version needs (newest N plus tagged), and "
+                       "cached stage results no build needs (--work)")
+    p.add_argument("--keep", type=int, help="newest versions to keep (>= 1); the others "
+                   "stay listed, and those that lose a file can no longer be read")
+    p.add_argument("--work", action="store_true",
+                   help="also delete the work area's cached stage results that neither the "
+                   "newest build used nor are a session's latest run (results of the last "
+                   "hour stay)")
     p.set_defaults(func=_guard(_cmd_vacuum))
     p = sub.add_parser("verify", parents=[common, as_json],
                        help="check that every file a version needs exists and every array "

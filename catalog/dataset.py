@@ -30,7 +30,7 @@ import pyarrow.compute as pc
 from graspcap.catalog.arrays import DamagedArrayError
 from graspcap.catalog.store import Catalog
 from graspcap.catalog.store import open as open_catalog
-from graspcap.schemas.tables import FRAMES_SCHEMA, SESSIONS_SCHEMA
+from graspcap.schemas.tables import FRAMES_SCHEMA, SESSIONS_SCHEMA, Status
 
 
 class Unit(StrEnum):
@@ -83,6 +83,25 @@ def _columns(table: pa.Table, schema: pa.Schema) -> dict[str, np.ndarray]:
     return out
 
 
+_FILTERS = {"status": "status", "object_id": "objects", "participant": "participants",
+            "intent": "intents"}
+
+
+def _known(sessions: pa.Table, column: str, allowed: Any, version: int) -> list[str]:
+    """``allowed`` (a value or values of ``column``) as a list; a ``ValueError`` naming any
+    value no session of the version has (a typo would otherwise give an empty dataset) and the
+    known ones. Statuses are checked against the schema's, not the version's."""
+    values = [allowed] if isinstance(allowed, str) else list(allowed)
+    known = (sorted(s.value for s in Status) if column == "status"
+             else sorted(set(sessions[column].drop_null().to_pylist())))
+    unknown = [v for v in values if v not in known]
+    if unknown:
+        raise ValueError(f"GraspDataset({_FILTERS[column]}=...): no session of catalog version "
+                         f"{version} has {column} {' or '.join(map(repr, unknown))}; known: "
+                         f"{', '.join(known)}")
+    return values
+
+
 class GraspDataset:
     """Frames (or sessions) of one catalog version, filtered, as dicts of numpy arrays.
 
@@ -91,7 +110,8 @@ class GraspDataset:
     catalog : Catalog or a catalog path
     version : catalog version or tag; None pins the latest at construction
     unit : "frames" (one item per frame row) or "sessions"
-    status, objects, participants, intents : keep only sessions with these values (None = all)
+    status, objects, participants, intents : keep only sessions with these values (None = all;
+        a value no session of the version has raises ``ValueError`` naming the known ones)
     valid_only : frame items only from frames none of whose :data:`VALIDITY_FLAGS` is False
         (True or null: see the module docstring); False keeps every frame. Sessions as items
         are not filtered by it.
@@ -105,12 +125,13 @@ class GraspDataset:
         self.version = self._catalog.resolve(version)
         self.unit = Unit(unit)
         self.valid_only = valid_only
-        sessions = self._catalog.table("sessions", self.version)
+        sessions = every = self._catalog.table("sessions", self.version)
         for col, allowed in (("status", status), ("object_id", objects),
                              ("participant", participants), ("intent", intents)):
             if allowed is not None:
+                allowed = _known(every, col, allowed, self.version)
                 sessions = sessions.filter(pc.is_in(sessions[col],
-                                                    pa.array(list(allowed), pa.string())))
+                                                    pa.array(allowed, pa.string())))
         self._session_meta = {r["session_id"]: r for r in sessions.select(
             ["session_id", "participant", "object_id", "intent", *_QA_FIELDS]).to_pylist()}
         self.session_ids = sorted(self._session_meta)

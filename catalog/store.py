@@ -9,6 +9,8 @@ workers and reopens lazily there.
 from __future__ import annotations
 
 import re
+import uuid
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -22,6 +24,7 @@ from graspcap.catalog.arrays import read_group
 from graspcap.catalog.commit import (
     REPAIR_VERSIONS,
     BuildCommit,
+    BuildInfo,
     check_versions,
     commit_build,
     writer_lock,
@@ -44,6 +47,15 @@ from graspcap.catalog.validate import to_table
 from graspcap.schemas.tables import DATA_TABLES
 
 _TAG = re.compile(r"[A-Za-z][A-Za-z0-9._-]*")
+
+
+class TagExists(CatalogError):
+    """A tag already points at another version (moving it needs ``force``)."""
+
+    def __init__(self, name: str, current: int, wanted: int):
+        self.name, self.current, self.wanted = name, current, wanted
+        super().__init__(f"tag {name!r} already points at version {current}; to move it to "
+                         f"version {wanted}, pass --force (Catalog.tag(..., force=True))")
 
 
 def open(uri: str | Path, *, create: bool = False, lock_timeout_s: float = 60.0,  # noqa: A001
@@ -146,8 +158,10 @@ class Catalog:
             self._pins[version] = table_versions_of(row)
         return self._pins[version]
 
-    def tag(self, version: int, name: str) -> None:
-        """Point tag ``name`` at ``version`` (moving it if it exists)."""
+    def tag(self, version: int, name: str, *, force: bool = False) -> bool:
+        """Point tag ``name`` at ``version``. A tag that points at another version moves only
+        with ``force`` (else :class:`TagExists` names the version it points at); False when it
+        already points at ``version`` (nothing written)."""
         if not _TAG.fullmatch(name):
             raise ValueError(f"tag {name!r}: use a letter then letters, digits, '.', '_', '-'")
         self._pinned(int(version))
@@ -156,9 +170,15 @@ class Catalog:
             _, problems = check_versions(self.layout)  # writers stop on a damaged catalog
             if problems:
                 raise CatalogDamaged(self.layout.uri, problems, REPAIR_VERSIONS)
+            current = self.tags().get(name)
+            if current == int(version):
+                return False
+            if current is not None and not force:
+                raise TagExists(name, current, int(version))
             with writing(self.layout.table("tags")):
                 write_deltalake(str(self.layout.table("tags")), to_table("tags", [row]),
                                 mode="append")
+        return True
 
     def problems(self) -> list[str]:
         """What a writer would stop on, one line per problem naming the file (empty for a
@@ -319,6 +339,33 @@ class Catalog:
     def commit(self, build: BuildCommit) -> int:
         """Commit ``build`` as the next version, atomically; return its number."""
         return commit_build(self.layout, build, lock_timeout_s=self.lock_timeout_s)
+
+    def remove(self, session_ids: Sequence[str], reason: str = "", *,
+               build_id: str | None = None) -> int:
+        """Commit a new version without ``session_ids`` (their sessions and frames rows);
+        return its number. The builds row records the removal and ``reason`` (its
+        ``parameters_json``: ``{"command": "catalog remove", "reason": ..., "removed": [...]}``)
+        and lists the sessions in ``sessions_removed``; older versions keep them. Raises
+        ``ValueError`` naming ids the latest version does not hold."""
+        ids = sorted(set(session_ids))
+        if not ids:
+            raise ValueError("name at least one session to remove")
+        latest = self.resolve(None)
+        known = set(self.table("sessions", latest)["session_id"].to_pylist())
+        unknown = [s for s in ids if s not in known]
+        if unknown:
+            raise ValueError(f"session(s) {unknown} not in catalog version {latest} (its "
+                             f"sessions: {sorted(known)})")
+        builds = self.table("builds", latest).sort_by("catalog_version")
+        config = builds["config_digest"][-1].as_py() if builds.num_rows else ""
+        from graspcap import __version__
+
+        build_id = build_id or ("rm-" + datetime.now(UTC).strftime("%Y%m%dT%H%M%S")
+                                + "-" + uuid.uuid4().hex[:4])
+        info = BuildInfo(build_id, __version__, config, parameters={
+            "command": "catalog remove", "reason": reason, "removed": ids,
+            "previous_version": latest})
+        return self.commit(BuildCommit(build=info, sessions=[], frames=[], remove=tuple(ids)))
 
     def vacuum(self, keep: int) -> VacuumReport:
         """Delete files and arrays that neither the last ``keep`` versions nor a tag need."""

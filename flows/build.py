@@ -115,20 +115,30 @@ def last_build_failures(cat: gc.Catalog, work: WorkArea) -> set[str]:
             if last.get("error"):
                 return {s["session_id"] for s in last["sessions"]}
             return set(last["summary"]["failed"])
-    if cat.latest_version() is None:
+    last = _last_build_row(cat)
+    if last is None:
         return set()
-    builds = cat.table("builds").sort_by("catalog_version").to_pylist()
-    last = builds[-1]
     failed = {f["session_id"] for f in last["sessions_failed"]}
     record = json.loads(last["parameters_json"]).get("report", {})
     return failed | set(record.get("summary", {}).get("failed", {}))
 
 
+def _last_build_row(cat: gc.Catalog) -> dict | None:
+    """The latest version's newest builds row made by a build (a ``catalog remove`` version's
+    row records no build's failures: the one before it does), None without one."""
+    if cat.latest_version() is None:
+        return None
+    for row in cat.table("builds").sort_by("catalog_version").to_pylist()[::-1]:
+        if json.loads(row["parameters_json"]).get("command") != "catalog remove":
+            return row
+    return None
+
+
 def recorded_failures(cat: gc.Catalog) -> dict[str, str]:
     """Failed sessions and their errors in the catalog's latest build record."""
-    if cat.latest_version() is None:
+    last = _last_build_row(cat)
+    if last is None:
         return {}
-    last = cat.table("builds").sort_by("catalog_version").to_pylist()[-1]
     failed = {f["session_id"]: f["error"] for f in last["sessions_failed"]}
     record = json.loads(last["parameters_json"]).get("report", {})
     return {**failed, **record.get("summary", {}).get("failed", {})}
@@ -293,6 +303,9 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                  for d, sid in zip(dirs, ids, strict=True) if str(d) not in duplicate}
     _watch(submitted, {str(d): sid for d, sid in zip(dirs, ids, strict=True)})
     outcomes = {d: _stage_outcomes(f) for d, f in submitted.items()}
+    # the stored result each stage used, by session (`catalog vacuum --work` keeps them)
+    used = {sid: {name: ref.key for name, ref in outcomes[str(d)][0].items()}
+            for d, sid in zip(dirs, ids, strict=True) if str(d) in outcomes}
     t_run = time.perf_counter()
 
     previous = cat.latest_version()
@@ -426,12 +439,12 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                 f"build {build_id} committed nothing: {type(exc).__name__}: {exc}. The "
                 f"{kept} completed stage result(s) stay in the work area {work.root}; the next "
                 "build commits them without running those stages again")
-            _log_build(work, {**draft.record(), "error": str(failed)})
+            _log_build(work, {**draft.record(), "error": str(failed), "keys": used})
             raise failed from exc
     seconds["commit"] = time.perf_counter() - t_rows
     seconds["total"] = time.perf_counter() - t0
     report = BuildReport(build_id, new_version, previous, tuple(reports), seconds, params)
-    _log_build(work, report.record())
+    _log_build(work, {**report.record(), "keys": used})
     _qa_artifact(report, rows)
     return report
 

@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import sys
+import time
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
@@ -41,12 +42,26 @@ class _NoTraceback(logging.Filter):
         return True
 
 
+def process_seconds(fallback_start: float | None = None) -> float:
+    """Seconds since this process started (Linux: its start time in ``/proc``), so a command's
+    summary counts the imports and Prefect's start-up too; elsewhere since ``fallback_start``
+    (a ``time.perf_counter()`` taken early), else 0."""
+    try:
+        stat = Path("/proc/self/stat").read_text()
+        ticks = int(stat.rpartition(")")[2].split()[19])  # field 22: starttime, in clock ticks
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return max(0.0, uptime - ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return 0.0 if fallback_start is None else time.perf_counter() - fallback_start
+
+
 def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
               dask: str | None = None, retry_failed: bool = False,
-              settings: Sequence[str] = ()) -> int:
+              settings: Sequence[str] = (), started: float | None = None) -> int:
     """``graspcap build``: :data:`EXIT_OK`, :data:`EXIT_SESSIONS_FAILED`, :data:`EXIT_USAGE`
     or :data:`EXIT_BUILD_FAILED` (its reason on stderr, a traceback only for a bug); a wrong
-    ``--set`` is :data:`EXIT_USAGE` (the message names it)."""
+    ``--set`` is :data:`EXIT_USAGE` (the message names it). The summary's wall time counts from
+    the process's start (``started``: a ``perf_counter`` of it where that cannot be read)."""
     from graspcap.catalog.errors import CatalogError
     from graspcap.flows.report import BuildFailed
     from graspcap.tasks.pipeline import settings_overrides
@@ -85,6 +100,10 @@ def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
         return EXIT_BUILD_FAILED
     finally:
         flow_log.removeFilter(quiet)
+    report.seconds["wall"] = process_seconds(started)
+    # Prefect's event worker says at exit that it is still sending events to the API: a line
+    # after the summary that asks nothing of the user
+    logging.getLogger("EventsWorker").setLevel(logging.ERROR)
     print(report.summary())
     return EXIT_SESSIONS_FAILED if report.failed else EXIT_OK
 
@@ -98,12 +117,20 @@ def status_text(catalog: Path, limit: int = 5) -> str:
     log = cat.layout.root / "work" / "builds.jsonl"
     records, torn = _build_records(log)
     committed = {}
+    removed: list[str] = []
     if cat.latest_version() is not None:
         for row in cat.table("builds").sort_by("catalog_version").to_pylist():
             committed[row["build_id"]] = row
-            rec = json.loads(row["parameters_json"]).get("report")
+            params = json.loads(row["parameters_json"])
+            rec = params.get("report")
             if rec and rec["build_id"] not in {r["build_id"] for r in records}:
                 records.append(rec)
+            if params.get("command") == "catalog remove":  # a version no build made
+                removed.append(f"version {row['catalog_version']} ({row['build_id']}): catalog "
+                               f"remove of {', '.join(row['sessions_removed'])}"
+                               + (f"; reason: {params['reason']}" if params.get("reason")
+                                  else ""))
+    out += removed[::-1][:limit]
     if torn:
         out.append(f"note: {log}: line(s) {torn} are not build records (a build killed while "
                    "writing one?); skipped")
@@ -186,7 +213,8 @@ def _build_records(log: Path) -> tuple[list[dict], list[int]]:
 def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
           cron: str | None = None, interval_s: float | None = None,
           name: str = "graspcap-build") -> int:
-    """``graspcap serve``: run the build on a schedule with Prefect's ``serve``.
+    """``graspcap serve``: run the build on a schedule with Prefect's ``serve``; an invalid
+    ``cron`` or ``interval_s`` is :data:`EXIT_USAGE`, one line, before anything starts.
 
     ``serve`` refuses Prefect's ephemeral API, so without ``PREFECT_API_URL`` a local Prefect
     server is started on 127.0.0.1 (database under the catalog's work area), supervised, and
@@ -194,10 +222,16 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
     """
     from contextlib import nullcontext
 
-    from graspcap.flows.runtime import local_server
+    from graspcap.flows.runtime import local_server, schedule_problem
 
     work = Path(catalog).expanduser().resolve() / "work"
-    configure(work)
+    env = configure(work, create=False)
+    problem = schedule_problem(cron, interval_s)
+    if problem is not None:  # before anything is made or started
+        print(f"graspcap serve: {problem}", file=sys.stderr)
+        return EXIT_USAGE
+    if "PREFECT_HOME" in env:
+        Path(env["PREFECT_HOME"]).mkdir(parents=True, exist_ok=True)
     own = "PREFECT_API_URL" not in os.environ
     server = local_server(log_file=work / "prefect-server.log") if own else nullcontext(None)
     with server as url:

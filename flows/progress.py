@@ -9,8 +9,9 @@ started by a schedule (``graspcap serve``) reports to nobody. Prefect runs a syn
 the calling thread and context, which is where the events are made (task workers, threads or
 Dask processes, never call it).
 
-:class:`ConsoleProgress` is what ``graspcap build`` shows: a ``rich`` bar over sessions and one
-over stage tasks on a terminal; one plain log line per finished session otherwise.
+:class:`ConsoleProgress` is what ``graspcap build`` shows: a ``rich`` bar over sessions (done /
+total, elapsed, ETA) and one over stage tasks on a terminal; one plain log line per finished
+session (with the ETA) otherwise.
 """
 
 from __future__ import annotations
@@ -94,13 +95,32 @@ class ConsoleProgress:
     Use as a context manager around the build (the bars are drawn while it is open).
     """
 
-    def __init__(self, stream: TextIO = sys.stderr, tty: bool | None = None):
+    def __init__(self, stream: TextIO = sys.stderr, tty: bool | None = None,
+                 clock: Callable[[], float] = time.perf_counter):
         self.stream = stream
         self.tty = stream.isatty() if tty is None else tty
-        self.t0 = time.perf_counter()
+        self.clock = clock
+        self.t0 = clock()
         self.failed: dict[str, str] = {}
         self._bars = None
         self._sessions = self._tasks = None
+        self._first: tuple[float, int] | None = None
+        """(time, tasks done) at the first event: the ETA's rate is measured from there (not
+        from the start, which includes Prefect's start-up)."""
+
+    def eta(self, e: StageEvent) -> str:
+        """``"ETA 0:01:23"``: the build's remaining stage tasks at the rate tasks finished
+        since the first event; ``"ETA …"`` until that rate is known, "" once all are done."""
+        now = self.clock()
+        if self._first is None:
+            self._first = (now, e.done)
+        if e.done >= e.total:
+            return ""
+        t_first, done_first = self._first
+        if e.done <= done_first or now <= t_first:
+            return "ETA …"
+        left = round((now - t_first) / (e.done - done_first) * (e.total - e.done))
+        return f"ETA {left // 3600}:{left % 3600 // 60:02d}:{left % 60:02d}"
 
     def __enter__(self) -> ConsoleProgress:
         if self.tty:
@@ -115,12 +135,14 @@ class ConsoleProgress:
 
             self._bars = Progress(TextColumn("{task.description:<10}"), BarColumn(),
                                   MofNCompleteColumn(), TimeElapsedColumn(),
+                                  TextColumn("{task.fields[eta]}"),
                                   TextColumn("{task.fields[last]}"),
                                   console=Console(file=self.stream, force_terminal=True),
                                   transient=False)
             self._bars.start()
-            self._sessions = self._bars.add_task("sessions", total=None, last="")
-            self._tasks = self._bars.add_task("stages", total=None, last="starting Prefect")
+            self._sessions = self._bars.add_task("sessions", total=None, last="", eta="")
+            self._tasks = self._bars.add_task("stages", total=None, last="starting Prefect",
+                                              eta="")
         return self
 
     def __exit__(self, *exc) -> None:
@@ -132,9 +154,10 @@ class ConsoleProgress:
         bad = e.state not in ("Completed", "Cached")
         if bad and e.state != "NotReady":
             self.failed.setdefault(e.session_id, e.stage)
+        eta = self.eta(e)
         if self._bars is not None:
             self._bars.update(self._sessions, total=e.sessions_total, completed=e.sessions_done,
-                              last=f"{e.session_id} done" if e.session_done else "")
+                              last=f"{e.session_id} done" if e.session_done else "", eta=eta)
             self._bars.update(self._tasks, total=e.total, completed=e.done,
                               last=f"{e.session_id}: {e.stage} {e.state}")
             return
@@ -144,8 +167,8 @@ class ConsoleProgress:
             what = (f"failed at {self.failed[e.session_id]}" if e.session_id in self.failed
                     else "all stages done")
             self._line(f"{e.session_id}: {what} (session {e.sessions_done}/{e.sessions_total}, "
-                       f"task {e.done}/{e.total})")
+                       f"task {e.done}/{e.total}{', ' * bool(eta)}{eta})")
 
     def _line(self, text: str) -> None:
-        self.stream.write(f"[{time.perf_counter() - self.t0:7.1f} s] {text}\n")
+        self.stream.write(f"[{self.clock() - self.t0:7.1f} s] {text}\n")
         self.stream.flush()

@@ -93,7 +93,7 @@ class BuildReport:
                        f"{len(self.unchanged)} unchanged, {len(self.failed)} failed; "
                        f"{self.executed} stage run(s), "
                        f"{sum(len(s.cached) for s in self.sessions)} cache hit(s); "
-                       f"{self.seconds.get('total', 0.0):.1f} s"]
+                       f"{self._time()}"]
         for s in self.sessions:
             if s.outcome == Outcome.FAILED:
                 kept = " (previous rows kept)" if s.kept_previous else ""
@@ -102,6 +102,14 @@ class BuildReport:
         lines += [f"  SKIPPED {folder}: {NOT_A_SESSION}"
                   for folder in self.parameters.get("not_sessions", ())]
         return "\n".join(lines)
+
+    def _time(self) -> str:
+        """The build's time: its wall time (``seconds["wall"]``: from the start of the
+        process, set by ``graspcap build``) and the flow's part of it, else the flow's."""
+        flow = self.seconds.get("total", 0.0)
+        if "wall" not in self.seconds:
+            return f"{flow:.1f} s"
+        return f"{self.seconds['wall']:.1f} s wall ({flow:.1f} s in the build flow)"
 
     def record(self) -> dict:
         """The JSON-able record kept in the catalog's builds table and the work area."""

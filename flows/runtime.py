@@ -5,8 +5,10 @@ Embedded default (nothing to start by hand): unless the user set ``PREFECT_API_U
 inside the catalog's work area, so a build never writes to ``~/.prefect`` and deleting the work
 area removes every trace. Flow-run heartbeats are off (``heartbeat_frequency=None``; each flow
 run otherwise pays ~1 s joining the heartbeat thread), the ephemeral API gets 120 s to start on
-a loaded machine, logs are quiet (WARNING) and the ephemeral server sends no analytics. Every
-setting the user put in the environment wins.
+a loaded machine, logs are quiet (WARNING), the ephemeral server sends no analytics and the
+client none either (``DO_NOT_TRACK=1``: without it Prefect prints its telemetry notice on a
+terminal the first time it runs in a new home, that is in every new catalog, across the build's
+progress bars). Every setting the user put in the environment wins.
 
 :func:`configure` must run before ``prefect`` is imported (the CLI does it first thing).
 """
@@ -14,6 +16,7 @@ setting the user put in the environment wins.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import socket
 import subprocess
@@ -28,21 +31,66 @@ DEFAULTS = {
     "PREFECT_LOGGING_LEVEL": "WARNING",
     "PREFECT_SERVER_LOGGING_LEVEL": "CRITICAL",
     "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+    "DO_NOT_TRACK": "1",
 }
 
 
-def configure(work_root: Path | str) -> dict[str, str]:
+def configure(work_root: Path | str, create: bool = True) -> dict[str, str]:
     """Set the embedded defaults (module docstring) in ``os.environ`` where unset; returns
-    what it set. Has no effect on settings once ``prefect`` is imported."""
+    what it set. Has no effect on settings once ``prefect`` is imported. ``create=False``
+    leaves making Prefect's home (``PREFECT_HOME`` of the result) to the caller: a command
+    that may still stop on a usage error creates nothing."""
     env = {}
     if "PREFECT_API_URL" not in os.environ and "PREFECT_HOME" not in os.environ:
         env["PREFECT_HOME"] = str(Path(work_root).expanduser().resolve() / "prefect")
-        Path(env["PREFECT_HOME"]).mkdir(parents=True, exist_ok=True)
+        if create:
+            Path(env["PREFECT_HOME"]).mkdir(parents=True, exist_ok=True)
     for key, value in DEFAULTS.items():
         if key not in os.environ:
             env[key] = value
     os.environ.update(env)
     return env
+
+
+def schedule_problem(cron: str | None, interval_s: float | None) -> str | None:
+    """Why ``graspcap serve``'s schedule is invalid (one line naming it and the fix), or None:
+    checked before anything is made or started, with the cron parser Prefect's
+    ``CronSchedule`` validates with (random and hashed fields refused, as Prefect does)."""
+    if interval_s is not None and not (math.isfinite(interval_s) and interval_s > 0):
+        return f"--interval {interval_s:g}: give a number of seconds > 0, e.g. --interval 3600"
+    if cron is None:
+        return None
+    parser = _cron_parser()
+    if parser is None or (parser.is_valid(cron) and not any(
+            field.lower() in ("r", "h") for field in cron.split())):
+        return None  # (no parser: Prefect checks it when the deployment is made)
+    return (f"--cron {cron!r} is not a cron schedule: give five fields, minute hour "
+            'day-of-month month day-of-week, e.g. --cron "0 2 * * *" (every day at 02:00)')
+
+
+def _cron_parser():
+    """``croniter`` (the class): the installed package, else the copy Prefect vendors, loaded
+    from its file. Importing ``prefect`` itself here would read its settings before the work
+    area exists and make its home folder (a usage error must create nothing); None when
+    neither is found."""
+    import importlib.util
+
+    try:
+        from croniter import croniter
+
+        return croniter
+    except ImportError:
+        pass
+    spec = importlib.util.find_spec("prefect")  # finds the package without running it
+    if spec is None or spec.origin is None:
+        return None
+    path = Path(spec.origin).parent / "_vendor" / "croniter" / "croniter.py"
+    vendored = importlib.util.spec_from_file_location("graspcap_prefect_croniter", path)
+    if not path.is_file() or vendored is None or vendored.loader is None:
+        return None
+    module = importlib.util.module_from_spec(vendored)
+    vendored.loader.exec_module(module)
+    return getattr(module, "croniter", None)
 
 
 _derived_settings: dict[tuple, tuple] = {}

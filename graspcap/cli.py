@@ -6,6 +6,7 @@ Every default lives in the library's config models, not here.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -15,6 +16,10 @@ from graspcap.catalog.cli import add_catalog_parser
 from graspcap.catalog.layout import DEFAULT_CATALOG
 from graspcap.detect_cli import add_detect_parser
 from graspcap.tasks.core.presets import PIPELINE_PRESETS
+
+STARTED = time.perf_counter()
+"""When this module was imported: what ``graspcap build`` reports its wall time from where the
+process's own start time cannot be read (``flows.commands.process_seconds``)."""
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
@@ -36,7 +41,26 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+EXIT_USAGE = 2
+"""A usage error: argparse's code, and every check here that stops before anything is made."""
+EXIT_BROKEN_PIPE = 141
+"""The reader of the output closed it early (``graspcap catalog show | head``): 128 + SIGPIPE,
+what a shell reports for a tool killed by it."""
+
+
+def missing_roots(roots: Sequence[Path], command: str) -> bool:
+    """Print one line naming each root that does not exist (a typo would otherwise build from
+    the other roots, or from none, without a word); True when there was one."""
+    missing = [r for r in roots if not Path(r).exists()]
+    for root in missing:
+        print(f"graspcap {command}: {str(root)!r} does not exist (no such file or folder); "
+              "name folders that hold sessions", file=sys.stderr)
+    return bool(missing)
+
+
 def _cmd_validate(args: argparse.Namespace) -> int:
+    if missing_roots(args.dirs, "validate"):
+        return EXIT_USAGE
     from graspcap.tasks.session.discover import NOT_A_SESSION, discover
     from graspcap.tasks.session.load_session import validate_session
 
@@ -93,7 +117,24 @@ BUILD_EXIT_CODES = """exit status:
      commits them without running those stages again"""
 
 
+def _dask_arg(text: str) -> str:
+    """``--dask``: ``local:N`` with N >= 1 workers, or a scheduler's address (``host:port``,
+    ``tcp://host:port``); checked here, before anything is made."""
+    if text.startswith("local:"):
+        n = text.removeprefix("local:")
+        if not (n.isdigit() and int(n) >= 1):
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: local:N needs a number of worker processes >= 1, e.g. local:2")
+    elif ":" not in text:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give a Dask scheduler's address (tcp://HOST:PORT or HOST:PORT) or "
+            "local:N for a local cluster of N worker processes")
+    return text
+
+
 def _cmd_build(args: argparse.Namespace) -> int:
+    if missing_roots(args.roots, "build"):  # before the catalog is made
+        return EXIT_USAGE
     if args.verify is not None:
         from graspcap.flows.verify_cache import run_verify
 
@@ -107,7 +148,8 @@ def _cmd_build(args: argparse.Namespace) -> int:
     from graspcap.flows.commands import run_build
 
     return run_build(args.roots, args.catalog, args.preset, dask=args.dask,
-                     retry_failed=args.retry_failed, settings=args.settings)
+                     retry_failed=args.retry_failed, settings=args.settings,
+                     started=STARTED)
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -121,6 +163,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
         text = status_text(args.catalog, limit=args.limit)
         print(text)
         return report_problems(gc.open(args.catalog), "graspcap status")
+    except BrokenPipeError:
+        raise  # the reader went away: main() ends quietly
     except (gc.CatalogError, ValueError, OSError, DeltaError) as exc:  # one line per problem
         for line in problem_lines(exc):
             print(f"graspcap status: {line}", file=sys.stderr)
@@ -130,6 +174,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
 def _cmd_serve(args: argparse.Namespace) -> int:
     from graspcap.flows.commands import serve
 
+    if missing_roots(args.roots, "serve"):
+        return EXIT_USAGE
     return serve(args.roots, args.catalog, args.preset, cron=args.cron, interval_s=args.interval)
 
 
@@ -175,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="STAGE.FIELD=VALUE",
                    help="override one config field over the preset, checked against the "
                         "stage's config (repeatable), e.g. reconstruct_hand.huber_k=1.5")
-    p.add_argument("--dask", default=None, metavar="ADDRESS|local:N",
+    p.add_argument("--dask", default=None, metavar="ADDRESS|local:N", type=_dask_arg,
                    help="run on a Dask scheduler, or a local cluster of N worker processes")
     p.add_argument("--retry-failed", action="store_true",
                    help="re-run only the sessions that failed in the last build")
@@ -211,7 +257,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    try:
+        code = args.func(args)
+        sys.stdout.flush()  # a closed pipe shows here, not at the interpreter's exit
+        return code
+    except BrokenPipeError:
+        _quiet_stdout()
+        return EXIT_BROKEN_PIPE
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null: the interpreter's last flush of what is still buffered for a
+    closed pipe would print a second BrokenPipeError."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a real file (a test's capture)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, fd)
+    os.close(devnull)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -105,6 +106,12 @@ def format_text(result: ImageResult, hand: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    missing = [p for p in args.inputs if not Path(p).exists()]
+    for path in missing:  # a typo is named before a detector loads
+        print(f"graspcap detect: {str(path)!r} does not exist (no such file or folder)",
+              file=sys.stderr)
+    if missing:
+        return 2
     from graspcap.tasks.keypoints.detect_keypoints import Backend, DetectKeypointsConfig
     from graspcap.tasks.keypoints.mediapipe_detector import FrameMode, MediaPipeConfig
 

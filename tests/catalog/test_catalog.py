@@ -103,7 +103,10 @@ def test_tags_resolve_and_move(three_versions):
     cat.tag(1, "first")
     cat.tag(2, "paper")
     assert cat.table("sessions", "first").equals(cat.table("sessions", 1))
-    cat.tag(3, "paper")
+    with pytest.raises(gc.CatalogError, match="already points at version 2"):
+        cat.tag(3, "paper")  # a tag moves only when asked to
+    assert cat.resolve("paper") == 2
+    assert cat.tag(3, "paper", force=True) is True
     assert cat.resolve("paper") == 3
     assert cat.versions()["tags"].to_pylist() == [["first"], [], ["paper"]]
     with pytest.raises(gc.VersionNotFound, match="no tag 'nope'"):
