@@ -365,7 +365,9 @@ def versions_svg(m: QaMetric, medians: Mapping[int, float], current: int,
     parts.append(f'<text x="{left - 4}" y="{top + 8}" text-anchor="end">{_num(hi, 2)}</text>')
     parts.append(f'<text x="{left - 4}" y="{top + ph}" text-anchor="end">{_num(lo, 2)}</text>')
     parts.append(f'<text x="{left}" y="{height - 8}">v{vs[0]}</text>')
-    parts.append(f'<text x="{left + pw}" y="{height - 8}" text-anchor="end">v{vs[-1]}</text>')
+    if len(vs) > 1:
+        parts.append(f'<text x="{left + pw}" y="{height - 8}" text-anchor="end">v{vs[-1]}'
+                     '</text>')
     parts.append("</svg>")
     return "".join(parts)
 
@@ -466,7 +468,7 @@ def render(data: ReportData, href: Callable[[str], str],
     out.append(_table([
         ("build", _e(rec.get("build_id"))),
         ("made version", _e(made) if made is not None else "none (nothing changed)"),
-        ("previous version", _e(rec.get("previous_version"))),
+        ("previous version", _e(rec.get("previous_version") or "none")),
         ("version committed", _e(data.version_row.get("time_utc"))),
         ("tags", _e(", ".join(data.version_row.get("tags") or ()) or "–")),
         ("code version", _e(p.get("code_version") or "–")),
