@@ -377,9 +377,13 @@ def _silhouette(shape: tuple[int, int], V: np.ndarray, F: np.ndarray, T_c_o: np.
     uv[front] = project(K, pts_c[front])
     tris = F[np.all(front[F], axis=1)]
     if len(tris):
-        poly = np.rint(uv[tris] * 8).astype(np.int32)  # 3 bits of sub-pixel precision
-        inside = np.all(np.abs(poly) < (1 << 28), axis=(1, 2))
-        cv2.fillPoly(mask, list(poly[inside]), 1, cv2.LINE_8, shift=3)
+        poly = np.rint(uv[tris] * 8).astype(np.int64)  # 3 bits of sub-pixel precision
+        lo, hi = poly.min(axis=1), poly.max(axis=1)
+        keep = (np.all(np.abs(poly) < (1 << 28), axis=(1, 2)) & (hi[:, 0] >= 0)
+                & (hi[:, 1] >= 0) & (lo[:, 0] < w * 8) & (lo[:, 1] < h * 8))
+        # one call per triangle: fillPoly on many polygons fills their even-odd union
+        for tri in poly[keep].astype(np.int32):
+            cv2.fillConvexPoly(mask, tri, 1, cv2.LINE_8, shift=3)
     return mask.astype(bool)
 
 
