@@ -27,6 +27,7 @@ from tests.flow_fixtures import (  # noqa: F401
     synth_root,
     warm,
 )
+from tests.report_html import check_page
 from tests.session_factory import write_session
 
 ODD_IDS = ("../../../../tmp/escaped-session-{u}", "a/b", "x" * 300, "new\nline", "nul\x00id",
@@ -159,9 +160,13 @@ def test_per_session_mishaps_after_the_stages_never_lose_the_build(warm, synth_r
     for rel in bug.pictures.values():
         assert (catalog / rel).is_file() and rel.startswith("pictures/")
     # the report page names every failure, the buggy session's among them
-    page = Path(report.report_page).read_text()
-    assert page.index(buggy) < page.index(f'data-session="{good}"')  # failed first
-    assert "injected bug in the rows of one session" in page and "No space left" in page
+    page = check_page(Path(report.report_page))  # failed first, links resolve
+    shown = [(r.session_id, r.status) for r in page.rows]
+    assert sorted(shown) == sorted([(good, first.status), (good, "failed"), (buggy, "failed"),
+                                    *[(n, "failed") for n in names]])  # the duplicate too
+    assert "injected bug in the rows of one session" in page.row_text(buggy)
+    assert "No space left on device" in page.row_text(good, first.status)
+    assert "comes first" in page.row_text(good, "failed")
     # nothing under the catalog but its own folders
     assert {p.name for p in catalog.iterdir()} <= {"catalog.json", "published.json", "tables",
                                                    "arrays", "vacuum.jsonl", "reports",
