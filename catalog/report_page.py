@@ -133,7 +133,10 @@ def _builds(cat: Catalog, version: int) -> dict[str, dict[str, Any]]:
 
 
 def _existing(cat: Catalog, files: Mapping[str, str]) -> dict[str, str]:
-    """The pictures of ``files`` (name to path under the root) that are there."""
+    """The pictures of ``files`` (name to path under the root) that are there (none on an
+    object store: the page and the export link local files)."""
+    if not cat.layout.is_local:
+        return {}
     root = cat.layout.root
     return {n: p for n, p in files.items()
             if Path(n).suffix in PICTURE_SUFFIXES and (root / p).is_file()}
@@ -142,6 +145,8 @@ def _existing(cat: Catalog, files: Mapping[str, str]) -> dict[str, str]:
 def _legacy_pictures(cat: Catalog, session_id: str) -> dict[str, str]:
     """Pictures of a catalog written before they were kept per build
     (``pictures/<session>/keypoints.png``, overwritten by each build)."""
+    if not cat.layout.is_local:
+        return {}
     folder = cat.layout.pictures_root / path_name(session_id)
     return _existing(cat, {n: f"pictures/{path_name(session_id)}/{n}"
                            for n in ("keypoints.png", "contact.png")}) if folder.is_dir() else {}
