@@ -203,8 +203,7 @@ def gather(cat: Catalog, version: int | str | None = None, record: dict | None =
     rows = {r["session_id"]: r for r in cat.table("sessions", v).to_pylist()}
     for sid, row in rows.items():
         mine = in_build.get(sid, [])
-        build = next((s for s in mine if s.get("session_dir") is not None
-                      and "comes first" not in (s.get("error") or "")), mine[0] if mine else None)
+        build = mine[0] if mine else None  # later folders with the id: duplicates (below)
         files = (build or {}).get("pictures") or {}
         if not files:  # a session this build did not see: the build that wrote its row
             writer = builds.get(row.get("build_id") or "", {}).get("params", {}).get("report")
@@ -220,10 +219,9 @@ def gather(cat: Catalog, version: int | str | None = None, record: dict | None =
         notes = list(row.get("qa_notes") or ()) + list((build or {}).get("notes") or ())
         entries.append(SessionEntry(sid, row["status"], row, build, tuple(reasons),
                                     tuple(notes), pictures))
-    for sid, mine in in_build.items():  # failures without a row of their own
-        for s in mine:
-            if s.get("outcome") == "failed" and (sid not in rows or "comes first" in (
-                    s.get("error") or "")):
+    for sid, mine in in_build.items():  # failures without a row of their own: folders
+        for s in mine if sid not in rows else mine[1:]:  # reusing an id, or no row written
+            if s.get("outcome") == "failed":
                 entries.append(SessionEntry(sid, "failed", None, s, (s.get("error") or "",),
                                             tuple(s.get("notes") or ()), {}))
     entries.sort(key=lambda e: e.order)
