@@ -12,13 +12,17 @@
    cache and whose catalog row has the same input and config digests is ``unchanged``;
 5. commit added, changed and failed sessions as one catalog version, with the build record
    (which stages ran or hit the cache, retries, failures, parameters, timings) in the
-   ``builds`` table; with nothing to commit there is no new version, and the report says so.
+   ``builds`` table; with nothing to commit there is no new version, and the report says so;
+6. write the build's report page, ``<catalog>/reports/<build_id>/index.html``
+   (``catalog/report_page.py``), with each session's pictures, which step 4 stored by content
+   under ``<catalog>/pictures/`` (named per session in the build record).
 
 A session that fails keeps its previous good rows (the failure is in the build record);
 without previous good rows it gets a ``status="failed"`` row with the reason. Nothing that
 happens to one session loses the others: a failure assembling its rows, or rows the catalog
 would refuse (its checks run per session before the commit), fails that session alone;
-pictures that cannot be written are a note. A folder reusing another's ``session_id`` (sorted:
+pictures that cannot be written are a note, a report page that cannot be written a warning.
+A folder reusing another's ``session_id`` (sorted:
 the first is built) is failed in the build record only. A failure of the build as a whole
 (the catalog's lock, the disk) raises :class:`BuildFailed`; the work area keeps every stage
 result for the next build. See ``docs/architecture.md``, "Build".
@@ -463,7 +467,7 @@ def _write_pictures(layout: CatalogLayout, session_id: str, pictures: Any) -> di
     """Store a session's QA pictures (``tasks.pictures.Pictures``) by content
     (``layout.picture_file``); their paths relative to the catalog root by file name. A file
     already there is kept; a new one is written to a temporary name and renamed (a reader sees
-    the whole file or none)."""
+    the whole file or none). ``session_id``: whose pictures they are (a caller's messages)."""
     stored = {}
     for name, data in pictures.files().items():
         path = layout.picture_file(hashlib.sha256(data).hexdigest(), Path(name).suffix)
