@@ -418,7 +418,7 @@ def _session_row(e: SessionEntry, limits: Mapping[str, Mapping[str, float | None
         level = _level(m, value, limits.get(name, {}))
         cells.append(f'<td class="metric {level}" data-metric="{name}">{_num(value)}</td>')
     thumbs = "".join(
-        f'<a href="{_e(href(e.pictures[n]))}"><img class="thumb" alt="{_e(n)}" '
+        f'<a href="{_e(href(e.pictures[n]))}"><img class="thumb" loading="lazy" alt="{_e(n)}" '
         f'title="{_e(n)}" src="{_e(href(e.pictures[n]))}"></a>'
         for n in THUMBNAILS if n in e.pictures)
     if "contact.ply" in e.pictures:
