@@ -107,3 +107,14 @@ def test_histogram_counts_every_value_and_draws_the_limits():
     assert "no values" in histogram_svg(m, [], {})
     assert sum(int(c) for c in re.findall(r"<title>(\d+) session", histogram_svg(
         m, [2.0, 2.0], {}))) == 2  # all equal: one bar, no division by zero
+
+
+def test_report_of_an_empty_or_missing_catalog_is_one_line_and_exit_2(tmp_path, capsys):
+    gc.open(tmp_path / "empty", create=True)
+    assert main(["report", "--catalog", str(tmp_path / "empty")]) == 2
+    assert main(["report", "--catalog", str(tmp_path / "nowhere")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == f"graspcap report: catalog {tmp_path / 'empty'} has no version yet"
+    assert err[1].startswith(f"graspcap report: {tmp_path / 'nowhere'} is not a graspcap catalog")
+    assert len(err) == 2 and not (tmp_path / "nowhere").exists()
+    assert not (tmp_path / "empty" / "reports").exists()
