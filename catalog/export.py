@@ -7,6 +7,9 @@
 - ``contact``, ``hand_mesh``, ``object_mesh``: one row per Zarr group the version's sessions
   reference, keyed by ``digest`` (join on ``sessions.contact_digest`` etc.); arrays become list
   columns (``vertices`` a list of ``[x, y, z]``, ``faces`` a list of ``[i, j, k]``);
+- ``report.html`` and ``pictures/<session>/``: the version's report page
+  (``catalog/report_page.py``) beside copies of every session's QA pictures and contact mesh
+  (``keypoints.png``, ``reprojection.png``, ``contact.png``, ``strip.png``, ``contact.ply``);
 - ``manifest.json``: catalog, version, build, tags, format, files and row counts.
 
 Every array group is checked against its digest as it is read: a damaged one fails the export
@@ -31,6 +34,7 @@ import pyarrow.parquet as pq
 
 from graspcap.catalog.arrays import DamagedArrayError, array_digest, read_group
 from graspcap.catalog.errors import CatalogError
+from graspcap.catalog.layout import path_name
 from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DATA_TABLES, ZARR_LAYOUT
 
 if TYPE_CHECKING:
@@ -129,6 +133,23 @@ def _write_csv(table: pa.Table, path: Path) -> None:
             writer.write_batch(pa.RecordBatch.from_arrays(cols, schema=schema))
 
 
+def _write_report(catalog: Catalog, v: int, partial: Path) -> int:
+    """``report.html`` and ``pictures/<session>/<name>`` (copies of the catalog's pictures of
+    version ``v``'s sessions); the number of pictures copied."""
+    from graspcap.catalog.report_page import gather, render
+
+    data = gather(catalog, v)
+    copied: dict[str, str] = {}
+    for entry in data.sessions:
+        for name, rel in entry.pictures.items():
+            dest = f"pictures/{path_name(entry.session_id)}/{name}"
+            (partial / dest).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(catalog.layout.root / rel, partial / dest)
+            copied[rel] = dest
+    (partial / "report.html").write_text(render(data, copied.__getitem__), encoding="utf-8")
+    return len(copied)
+
+
 def _write_all(catalog: Catalog, v: int, partial: Path, fmt: ExportFormat
                ) -> tuple[dict[str, int], int]:
     """Write every file of the export into ``partial``; return rows per stem and bytes."""
@@ -143,20 +164,22 @@ def _write_all(catalog: Catalog, v: int, partial: Path, fmt: ExportFormat
             _write_csv(table, path)
         rows[stem] = table.num_rows
         files[stem] = path.name
+    pictures = _write_report(catalog, v, partial)
     info = catalog.versions().to_pylist()[catalog.versions()["version"].to_pylist().index(v)]
     manifest = {
         "catalog": catalog.layout.uri, "version": v, "build_id": info["build_id"],
         "tags": info["tags"], "committed_utc": info["time_utc"].isoformat(),
         "format_version": CATALOG_FORMAT_VERSION, "file_format": fmt.value,
         "exported_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "files": files, "rows": rows,
+        "files": files, "rows": rows, "report": "report.html",
+        "pictures": {"folder": "pictures/<session>/", "files": pictures},
         "join": {kind: f"sessions.{spec.digest_column} = {kind}.digest"
                  for kind, spec in ZARR_LAYOUT.items()},
         "encodings": "poses: 16 float64, row-major 4x4, p_a = T_a_b @ p_b; joints: 63 "
                      "(21 x 3, m); 2D joints: 42 (21 x 2, px); arrays in the object frame (m)",
     }
     (partial / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
-    size = sum(p.stat().st_size for p in partial.iterdir())
+    size = sum(p.stat().st_size for p in partial.rglob("*") if p.is_file())
     return rows, size
 
 

@@ -85,7 +85,8 @@ class CatalogLayout:
     ROOT/.lock                                     writer lock (fcntl.flock)
     ROOT/published.json                            newest published version (recovery's evidence)
     ROOT/vacuum.jsonl                              one line per vacuum: the versions it dropped
-    ROOT/pictures/<path_name(session_id)>/*.png    QA pictures (latest build; not versioned)
+    ROOT/pictures/<sha256[:2]>/<sha256>.<png|ply>  QA pictures and contact meshes, by content
+    ROOT/reports/<path_name(build_id)>/index.html  a build's report page (graspcap report)
     ```
 
     Readers go through ``uri``-based paths and ``fs`` (fsspec), so the same code reads a local
@@ -180,11 +181,35 @@ class CatalogLayout:
         """The Zarr group holding the arrays of ``digest`` (a sha256 hex string)."""
         return self.arrays_dir / digest[:2] / f"{digest}.zarr"
 
-    def pictures_dir(self, session_id: str) -> Path:
-        """A session's QA pictures (``keypoints.png``, ``contact.png``): written by every
-        build that runs the session's ``pictures`` stage, the latest wins; not versioned.
-        The folder's name is :func:`path_name` of the id (the id itself when it is plain)."""
-        return child_path(self.root / "pictures", session_id)
+    @property
+    def pictures_root(self) -> Path:
+        return self.root / "pictures"
+
+    def picture_file(self, digest: str, suffix: str) -> Path:
+        """A QA picture (or contact mesh) by the sha256 hex ``digest`` of its bytes, e.g.
+        ``pictures/3f/3f...e1.png``: content-addressed, so every build's pictures stay (the
+        report of an old version still shows its own) and an unchanged session's pictures are
+        stored once. Which session and build a file belongs to is in the build records
+        (``SessionReport.pictures``)."""
+        if not re.fullmatch(r"[0-9a-f]{64}", digest) or suffix not in PICTURE_SUFFIXES:
+            raise CatalogError(f"not a picture digest and suffix: {digest!r}, {suffix!r}")
+        return self.pictures_root / digest[:2] / f"{digest}{suffix}"
+
+    @property
+    def reports_root(self) -> Path:
+        return self.root / "reports"
+
+    def report_dir(self, build_id: str) -> Path:
+        """The folder of build ``build_id``'s report page (:func:`path_name` of the id)."""
+        return child_path(self.reports_root, build_id)
+
+    def report_file(self, build_id: str) -> Path:
+        """Build ``build_id``'s report page, a static HTML file that opens from disk."""
+        return self.report_dir(build_id) / "index.html"
+
+
+PICTURE_SUFFIXES = (".png", ".ply")
+"""File types of the content-addressed pictures (``CatalogLayout.picture_file``)."""
 
 
 def write_format_file(layout: CatalogLayout, version: int = CATALOG_FORMAT_VERSION) -> None:

@@ -12,13 +12,17 @@
    cache and whose catalog row has the same input and config digests is ``unchanged``;
 5. commit added, changed and failed sessions as one catalog version, with the build record
    (which stages ran or hit the cache, retries, failures, parameters, timings) in the
-   ``builds`` table; with nothing to commit there is no new version, and the report says so.
+   ``builds`` table; with nothing to commit there is no new version, and the report says so;
+6. write the build's report page, ``<catalog>/reports/<build_id>/index.html``
+   (``catalog/report_page.py``), with each session's pictures, which step 4 stored by content
+   under ``<catalog>/pictures/`` (named per session in the build record).
 
 A session that fails keeps its previous good rows (the failure is in the build record);
 without previous good rows it gets a ``status="failed"`` row with the reason. Nothing that
 happens to one session loses the others: a failure assembling its rows, or rows the catalog
 would refuse (its checks run per session before the commit), fails that session alone;
-pictures that cannot be written are a note. A folder reusing another's ``session_id`` (sorted:
+pictures that cannot be written are a note, a report page that cannot be written a warning.
+A folder reusing another's ``session_id`` (sorted:
 the first is built) is failed in the build record only. A failure of the build as a whole
 (the catalog's lock, the disk) raises :class:`BuildFailed`; the work area keeps every stage
 result for the next build. See ``docs/architecture.md``, "Build".
@@ -26,6 +30,7 @@ result for the next build. See ``docs/architecture.md``, "Build".
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
@@ -373,7 +378,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         try:
             common["input_digest"] = _input_digest(work, d)
             if "pictures" in refs:
-                info["notes"] += _pictures_note(cat.layout, sid, refs["pictures"])
+                info["pictures"], note = _store_pictures(cat.layout, sid, refs["pictures"])
+                info["notes"] += note
             if error is not None:
                 fail(i, d, sid, error, stage, info, common, prev, good_prev, attempted)
                 continue
@@ -444,6 +450,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     seconds["commit"] = time.perf_counter() - t_rows
     seconds["total"] = time.perf_counter() - t0
     report = BuildReport(build_id, new_version, previous, tuple(reports), seconds, params)
+    report = dataclasses.replace(report, report_page=_report_page(cat, report))
     _log_build(work, {**report.record(), "keys": used})
     _qa_artifact(report, rows)
     return report
@@ -469,36 +476,57 @@ def _log_build(work: WorkArea, record: dict) -> None:
                                             work.root / BUILDS_LOG, exc)
 
 
-def _write_pictures(folder: Path, pictures: Any) -> None:
-    """A session's QA pictures (``tasks.pictures.Pictures``) as PNG files, each replaced
-    atomically (a reader sees the old picture or the new one)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    for name, data in (("keypoints.png", pictures.keypoints_png),
-                       ("contact.png", pictures.contact_png)):
-        if data is not None:
-            tmp = folder / f".{name}.tmp"
+def _write_pictures(layout: CatalogLayout, session_id: str, pictures: Any) -> dict[str, str]:
+    """Store a session's QA pictures (``tasks.pictures.Pictures``) by content
+    (``layout.picture_file``); their paths relative to the catalog root by file name. A file
+    already there is kept; a new one is written to a temporary name and renamed (a reader sees
+    the whole file or none). ``session_id``: whose pictures they are (a caller's messages)."""
+    stored = {}
+    for name, data in pictures.files().items():
+        path = layout.picture_file(hashlib.sha256(data).hexdigest(), Path(name).suffix)
+        if not path.exists():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
             try:
                 tmp.write_bytes(data)
-                os.replace(tmp, folder / name)
+                os.replace(tmp, path)
             except BaseException:
                 tmp.unlink(missing_ok=True)
                 raise
+        stored[name] = path.relative_to(layout.root).as_posix()
+    return stored
 
 
-def _pictures_note(layout: CatalogLayout, session_id: str, ref: ResultRef) -> tuple[str, ...]:
-    """Write a session's pictures under the catalog's ``pictures/`` (its folder named from the
-    id, never the id as a path: ``layout.pictures_dir``); () when written, else a note naming
-    the folder and the error (disk full, name too long, permission): pictures are a QA aid and
-    never fail a session or the build."""
-    folder = layout.root / "pictures"
+def _store_pictures(layout: CatalogLayout, session_id: str, ref: ResultRef
+                    ) -> tuple[dict[str, str], tuple[str, ...]]:
+    """Store a session's pictures under the catalog's ``pictures/`` (by content: a session id
+    is never a path there); (their paths by name, ()) when stored, else ({}, a note naming
+    the folder and the error: disk full, permission): pictures are a QA aid and never fail a
+    session or the build."""
     try:
-        folder = layout.pictures_dir(session_id)
-        _write_pictures(folder, WorkArea.load(ref))
+        return _write_pictures(layout, session_id, WorkArea.load(ref)), ()
     except Exception as exc:  # noqa: BLE001 - OSError above all; never fails the build
-        where = getattr(exc, "filename", None) or folder
-        return (f"pictures not written to {where}: {type(exc).__name__}: {exc} "
-                "(a QA aid: the session is committed without them)",)
-    return ()
+        where = getattr(exc, "filename", None) or layout.pictures_root
+        return {}, (f"pictures of {session_id} not written to {where}: {type(exc).__name__}: "
+                    f"{exc} (a QA aid: the session is committed without them)",)
+
+
+def _report_page(cat: gc.Catalog, report: BuildReport) -> str | None:
+    """Write the build's report page (``catalog.report_page``) of the version it made, or of
+    the catalog's latest when it made none; its path, or None (with a warning) when it cannot
+    be written: the page is an aid and never fails the build."""
+    from graspcap.catalog.report_page import write_report
+
+    try:
+        version = report.catalog_version if report.catalog_version is not None \
+            else cat.latest_version()
+        if version is None:
+            return None
+        return str(write_report(cat, version, report.record()))
+    except Exception as exc:  # noqa: BLE001 - an aid, like the pictures
+        logging.getLogger(__name__).warning("build %s: report page not written: %s: %s",
+                                            report.build_id, type(exc).__name__, exc)
+        return None
 
 
 def _qa_artifact(report: BuildReport, rows: list[dict]) -> None:

@@ -166,9 +166,9 @@ def status_text(catalog: Path, limit: int = 5) -> str:
                 line += f" ERROR: {x['error'].splitlines()[0]}"
                 line += "".join(f"\n{' ' * 46}{e}" for e in x["error"].splitlines()[1:6])
             line += "".join(f"\n{' ' * 46}note: {n}" for n in x.get("notes", ()))
-            pictures = cat.layout.pictures_dir(x["session_id"])
-            if x.get("status") in ("flagged", "failed") and pictures.is_dir():
-                line += f"\n{' ' * 46}{x['status']}; pictures: {pictures}"
+            page = rec.get("report_page")
+            if x.get("status") in ("flagged", "failed") and page and Path(page).is_file():
+                line += f"\n{' ' * 46}{x['status']}; pictures and reasons: {page}"
             out.append(line)
     return "\n".join(out)
 

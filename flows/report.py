@@ -48,6 +48,10 @@ class SessionReport:
     """Failed, and the catalog keeps the session's previous good rows."""
     notes: tuple[str, ...] = ()
     """Failures of aid stages (pictures) that left the session committed."""
+    pictures: dict[str, str] = field(default_factory=dict)
+    """The session's QA pictures of this build by file name (``keypoints.png``,
+    ``contact.ply``, ...): paths relative to the catalog root, content-addressed
+    (``CatalogLayout.picture_file``), so the report of every version finds its own."""
 
 
 @dataclass(frozen=True)
@@ -60,6 +64,9 @@ class BuildReport:
     sessions: tuple[SessionReport, ...]
     seconds: dict[str, float]
     parameters: dict
+    report_page: str | None = None
+    """The build's report page (``<catalog>/reports/<build_id>/index.html``); None when it
+    could not be written (a warning says why) or the catalog has no version."""
 
     def _ids(self, outcome: Outcome) -> list[str]:
         return [s.session_id for s in self.sessions if s.outcome == outcome]
@@ -101,6 +108,8 @@ class BuildReport:
             lines += [f"  note {s.session_id}: {n}" for n in s.notes]
         lines += [f"  SKIPPED {folder}: {NOT_A_SESSION}"
                   for folder in self.parameters.get("not_sessions", ())]
+        if self.report_page:
+            lines.append(f"  report: {self.report_page}")
         return "\n".join(lines)
 
     def _time(self) -> str:

@@ -171,6 +171,25 @@ def _cmd_status(args: argparse.Namespace) -> int:
         return 2
 
 
+def _cmd_report(args: argparse.Namespace) -> int:
+    from deltalake.exceptions import DeltaError
+
+    import graspcap.catalog as gc
+    from graspcap.catalog.cli import problem_lines
+    from graspcap.catalog.report_page import write_report
+
+    version = args.version
+    if version is not None and version.lstrip("-").isdigit():
+        version = int(version)
+    try:
+        print(write_report(gc.open(args.catalog), version))
+        return 0
+    except (gc.CatalogError, ValueError, OSError, DeltaError) as exc:  # one line per problem
+        for line in problem_lines(exc):
+            print(f"graspcap report: {line}", file=sys.stderr)
+        return 2
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     from graspcap.flows.commands import serve
 
@@ -239,6 +258,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
     p.add_argument("--limit", type=int, default=5, help="number of builds to show")
     p.set_defaults(func=_cmd_status)
+
+    p = sub.add_parser("report", help="write a version's report page (HTML: sessions, "
+                                      "reasons, pictures, QA plots) and print its path")
+    p.add_argument("version", nargs="?", default=None,
+                   help="version number or tag (default: the latest)")
+    p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
+    p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("serve", help="run the build on a schedule (Prefect serve)")
     p.add_argument("roots", type=Path, nargs="+", help="session folders or roots holding many")

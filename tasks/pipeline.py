@@ -205,17 +205,24 @@ def _qa_metrics(session: Session, config, **up):
 
 
 def _pictures(session: Session, config, **up):
-    """The first steady frame (its camera is the world frame) and the final hand."""
+    """The first steady frame (its camera is the world frame), the final hand, the object
+    where ``propagate_poses`` (the catalog's ``T_c_o``) puts it, a strip of frames across the
+    video and the QA reasons."""
     f, sfm, hand = up["select_steady"].steady_from, up["reconstruct_hand"], _final_hand(up)
-    contact = up["build_contactmap"]
+    contact, poses, qa = up["build_contactmap"], up["propagate_poses"], up["qa_metrics"]
+    keypoints = up["detect_keypoints"].keypoints
     model_px, outlier = pictures.model_keypoints(session.color_K, f, sfm.frames, sfm.T_w_c,
                                                  sfm.inlier, hand.joints_w)
+    T_c_o = {int(i): T for i, T in zip(poses.frame_indices, poses.T_c_o, strict=True)}
+    strip = [(i, *pictures.read_frame(session, i), keypoints[i], T_c_o.get(i))
+             for i in pictures.strip_indices(session.manifest.grasp.count, config.strip_frames)]
     return pictures.pictures(
-        *pictures.read_frame(session, f), up["detect_keypoints"].keypoints[f], model_px, f,
+        *pictures.read_frame(session, f), keypoints[f], model_px, f,
         session_id=session.session_id, outlier=outlier, object_mesh=session.read_mesh(),
         contact=contact.contact, observed=contact.observed, hand_mesh_o=hand.mesh_o,
-        up_o=up["register_scan"].T_turntable_o_scan[2, :3], note=str(up["qa_metrics"].verdict),
-        config=config,
+        up_o=up["register_scan"].T_turntable_o_scan[2, :3], note=str(qa.verdict),
+        K=session.color_K, T_c_o=T_c_o.get(f), strip=strip, steady_from=f,
+        reasons=qa.reasons, notes=qa.notes, config=config,
     )
 
 
@@ -281,7 +288,7 @@ STAGES: dict[str, Stage] = {
         Stage("pictures", pictures.STAGE_VERSION, pictures.PRESETS,
               ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
                "fit_hand", "estimate_adjustment", "register_scan", "build_contactmap",
-               "qa_metrics") + _REFINE,
+               "propagate_poses", "qa_metrics") + _REFINE,
               ("object_mesh", "grasp_color", "grasp_depth"), _pictures,
               fields=(_K, "grasp.count", "grasp.color", "grasp.depth", _DEPTH_SCALE, _MESH)),
     ]

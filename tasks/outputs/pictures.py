@@ -9,6 +9,14 @@
   Ray cast offscreen with :func:`graspcap.tasks.core.render.cast_rays` (hit triangle and
   barycentrics interpolate the per-vertex contact), Lambert-shaded by the incidence;
   unobserved surface is grey, so "unobserved" is visibly not "no contact" (blue).
+- :func:`reprojection_picture`: the object model drawn where the catalog's ``T_c_o`` puts it
+  in the frame (tinted silhouette, outline, object axes): the check of the object pose.
+- :func:`strip_picture`: a few small frames across the grasp video, with the detections and,
+  from the steady frame on, the object's outline.
+- :func:`contact_ply`: the object mesh with the contact map as vertex colours (PLY), for a
+  viewer a person can rotate.
+
+The QA reasons (failures, flags) are written under the pictures (:func:`with_reasons`).
 
 :func:`pictures` is the stage's pure entry point: it returns PNG bytes (``cv2.imencode``);
 the build writes them. No display, no Open3D visualizer.
@@ -40,7 +48,7 @@ from graspcap.tasks.outputs.drawing import (
     label,
 )
 
-STAGE_VERSION = "pictures/1"
+STAGE_VERSION = "pictures/2"
 STAGE = "pictures"
 
 BONES = list(SKELETON)
@@ -71,6 +79,10 @@ class PicturesConfig(StageConfig):
     """Detections at or below this confidence are not drawn."""
     zoom_margin: float = 0.35
     """Margin around the keypoints of the zoomed hand view (share of their extent)."""
+    strip_frames: int = 5
+    """Frames in the strip across the grasp video (0: no strip)."""
+    strip_height_px: int = 120
+    """Height of one frame of the strip (pixels)."""
 
 
 PRESETS: dict[str, PicturesConfig] = {
@@ -99,6 +111,21 @@ class Pictures:
     contact_png: bytes | None
     frame: int
     background: Background
+    reprojection_png: bytes | None = None
+    """:func:`reprojection_picture` of frame ``frame``; None without the object's pose."""
+    strip_png: bytes | None = None
+    """:func:`strip_picture`; None without frames."""
+    contact_ply: bytes | None = None
+    """:func:`contact_ply`; None without a contact map."""
+
+    def files(self) -> dict[str, bytes]:
+        """The pictures by file name (``keypoints.png``, ...), those there are; pictures of a
+        result pickled before a field existed have it missing."""
+        named = {"keypoints.png": self.keypoints_png, "contact.png": self.contact_png,
+                 "reprojection.png": getattr(self, "reprojection_png", None),
+                 "strip.png": getattr(self, "strip_png", None),
+                 "contact.ply": getattr(self, "contact_ply", None)}
+        return {name: data for name, data in named.items() if data is not None}
 
 
 def _draw_hand(img: np.ndarray, detected: np.ndarray, model_px: np.ndarray | None,
@@ -312,6 +339,166 @@ def contact_picture(object_vertices: np.ndarray, object_faces: np.ndarray,
     return np.concatenate([head, body, legend], axis=0)
 
 
+REASON_RGB = (255, 200, 60)
+"""Colour of the QA reasons written under a picture."""
+
+
+def with_reasons(image_rgb: np.ndarray, reasons: tuple[str, ...] | list[str],
+                 notes: tuple[str, ...] | list[str] = ()) -> np.ndarray:
+    """``image_rgb`` with a dark band below it listing the QA ``reasons`` (failures and
+    flags, amber) and ``notes`` (grey), one per line, cut to the width; the image itself when
+    there are none."""
+    lines = [(f"QA: {r}", REASON_RGB) for r in reasons] + [(f"note: {n}", (200, 200, 200))
+                                                          for n in notes]
+    if not lines:
+        return image_rgb
+    w = image_rgb.shape[1]
+    scale = 0.42
+    char_w = cv2.getTextSize("M", cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] * 0.8
+    chars = max(int((w - 16) / char_w), 10)
+    band = np.full((10 + 18 * len(lines), w, 3), 30, np.uint8)
+    for i, (text, colour) in enumerate(lines):
+        text = text if len(text) <= chars else text[:chars - 3] + "..."
+        label(band, text, (8, 22 + 18 * i), scale, colour, box=False)
+    return np.concatenate([image_rgb, band], axis=0)
+
+
+def _silhouette(shape: tuple[int, int], V: np.ndarray, F: np.ndarray, T_c_o: np.ndarray,
+                K: np.ndarray) -> np.ndarray:
+    """Mask (h, w) bool of the mesh ``(V, F)`` (object frame) projected by ``T_c_o`` and
+    ``K``; triangles with a vertex at or behind the camera plane are left out."""
+    h, w = shape
+    pts_c = transform_points(np.asarray(T_c_o, float), V)
+    mask = np.zeros((h, w), np.uint8)
+    front = pts_c[:, 2] > 1e-6
+    if not front.any():
+        return mask.astype(bool)
+    uv = np.full((len(V), 2), np.nan)
+    uv[front] = project(K, pts_c[front])
+    tris = F[np.all(front[F], axis=1)]
+    if len(tris):
+        poly = np.rint(uv[tris] * 8).astype(np.int64)  # 3 bits of sub-pixel precision
+        lo, hi = poly.min(axis=1), poly.max(axis=1)
+        keep = (np.all(np.abs(poly) < (1 << 28), axis=(1, 2)) & (hi[:, 0] >= 0)
+                & (hi[:, 1] >= 0) & (lo[:, 0] < w * 8) & (lo[:, 1] < h * 8))
+        # one call per triangle: fillPoly on many polygons fills their even-odd union
+        for tri in poly[keep].astype(np.int32):
+            cv2.fillConvexPoly(mask, tri, 1, cv2.LINE_8, shift=3)
+    return mask.astype(bool)
+
+
+def _outline(img: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int],
+             thickness: int = 1) -> None:
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                   cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(img, contours, -1, colour, thickness, cv2.LINE_AA)
+
+
+def reprojection_picture(image_rgb: np.ndarray, object_vertices: np.ndarray,
+                         object_faces: np.ndarray, T_c_o: np.ndarray, K: np.ndarray, *,
+                         title: str = "") -> np.ndarray:
+    """The object model where ``T_c_o`` puts it in the frame: its silhouette tinted, its
+    outline, and its axes (x red, y green, z blue, a third of its size) at its origin.
+
+    A pose that is off shows as an outline beside the object in the image.
+
+    Parameters
+    ----------
+    image_rgb : (h, w, 3) uint8
+        The frame (colour, or colourised depth).
+    object_vertices, object_faces : (n, 3) float, (m, 3) int
+        Object mesh in its own frame (metres).
+    T_c_o : (4, 4) float
+        The object in the frame's camera.
+    K : (3, 3) float
+        The camera's intrinsics.
+
+    Returns
+    -------
+    (h, w, 3) uint8
+    """
+    V = np.asarray(object_vertices, float)
+    F = np.asarray(object_faces, np.int64)
+    out = np.ascontiguousarray(image_rgb, dtype=np.uint8).copy()
+    mask = _silhouette(out.shape[:2], V, F, T_c_o, K)
+    tint = np.array(MODEL_RGB, float)
+    out[mask] = (out[mask] * 0.55 + tint * 0.45).astype(np.uint8)
+    _outline(out, mask, MODEL_RGB, 2)
+    size = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))) / 3 if len(V) else 0.0
+    axes_o = np.array([[0, 0, 0], [size, 0, 0], [0, size, 0], [0, 0, size]], float)
+    axes_c = transform_points(np.asarray(T_c_o, float), axes_o)
+    if size > 0 and np.all(axes_c[:, 2] > 1e-6):
+        px = project(K, axes_c)
+        if np.all(np.abs(px) < 1e5):
+            o = tuple(int(v) for v in np.rint(px[0]))
+            for end, colour in zip(px[1:], ((255, 60, 60), (60, 255, 60), (60, 120, 255)),
+                                   strict=True):
+                cv2.line(out, o, tuple(int(v) for v in np.rint(end)), colour, 2, cv2.LINE_AA)
+    label(out, title, (8, 20), 0.55)
+    label(out, "object model at the catalog's T_c_o (outline, axes x red y green z blue)",
+          (8, out.shape[0] - 10))
+    return out
+
+
+def strip_picture(frames: list[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]],
+                  object_mesh: tuple[np.ndarray, np.ndarray] | None, K: np.ndarray, *,
+                  steady_from: int, height_px: int = 120,
+                  min_confidence: float = 0.05) -> np.ndarray:
+    """Small frames side by side across the video: each with its index, its detected
+    keypoints and, where ``T_c_o`` is given (steady frames), the object's outline.
+
+    ``frames``: ``(index, image_rgb (h, w, 3) uint8, detected (21, 3) or None, T_c_o (4, 4)
+    or None)`` in video order; ``K`` the intrinsics of the full-size frames. Returns
+    ``(height_px + 22, sum of widths, 3) uint8``.
+    """
+    tiles = []
+    for index, image, detected, T_c_o in frames:
+        h, w = image.shape[:2]
+        s = height_px / h
+        tile = cv2.resize(np.ascontiguousarray(image, np.uint8), (max(int(round(w * s)), 1),
+                                                                   height_px),
+                          interpolation=cv2.INTER_AREA)
+        if T_c_o is not None and object_mesh is not None:
+            Ks = np.diag([s, s, 1.0]) @ np.asarray(K, float)
+            _outline(tile, _silhouette(tile.shape[:2], *object_mesh, T_c_o, Ks), MODEL_RGB)
+        if detected is not None:
+            for x, y, c in np.asarray(detected, float):
+                if c > min_confidence and np.isfinite(x) and np.isfinite(y):
+                    cv2.circle(tile, (int(round(x * s)), int(round(y * s))), 2,
+                               confidence_rgb(c), -1, cv2.LINE_AA)
+        head = np.full((22, tile.shape[1], 3), 40, np.uint8)
+        steady = "steady" if index >= steady_from else "before steady"
+        label(head, f"frame {index} ({steady})", (4, 15), 0.38, box=False)
+        tile = np.concatenate([head, tile], axis=0)
+        tile[:, -1] = 255  # a white line between frames
+        tiles.append(tile)
+    return np.concatenate(tiles, axis=1)
+
+
+def strip_indices(count: int, n: int) -> list[int]:
+    """``n`` video frame indices spread evenly over ``count`` frames (first and last
+    included), without repeats."""
+    if count <= 0 or n <= 0:
+        return []
+    return sorted({int(round(i)) for i in np.linspace(0, count - 1, min(n, count))})
+
+
+def contact_ply(object_vertices: np.ndarray, object_faces: np.ndarray, contact: np.ndarray,
+                observed: np.ndarray) -> bytes:
+    """The object mesh as binary PLY with the contact map as vertex colours (the colours of
+    :func:`contact_picture`; unobserved vertices grey), in the object frame, metres."""
+    import trimesh
+
+    colours = contact_rgb(np.asarray(contact, float))
+    colours[~np.asarray(observed, bool)] = UNOBSERVED_RGB
+    rgba = np.concatenate([np.clip(colours, 0, 255).astype(np.uint8),
+                           np.full((len(colours), 1), 255, np.uint8)], axis=1)
+    mesh = trimesh.Trimesh(np.asarray(object_vertices, float),
+                           np.asarray(object_faces, np.int64), vertex_colors=rgba,
+                           process=False)
+    return mesh.export(file_type="ply", encoding="binary")
+
+
 def read_frame(session, frame: int) -> tuple[np.ndarray, Background]:
     """Grasp frame ``frame`` of a :class:`~graspcap.tasks.session.load_session.Session` to draw on:
     the colour frame as RGB ``(h, w, 3) uint8`` when the session has colour video, else the
@@ -340,6 +527,15 @@ def model_keypoints(K: np.ndarray, frame: int, frames: np.ndarray, T_w_c: np.nda
     return model_px, ~np.asarray(inlier[i], bool)
 
 
+def _drawable(frame_image: np.ndarray, background: Background,
+              detected: np.ndarray | None) -> np.ndarray:
+    """An RGB image of a frame: itself, or its depth (metres) colourised."""
+    if Background(background) == Background.DEPTH:
+        kp = np.zeros((0, 3)) if detected is None else np.asarray(detected)
+        return colorize_depth(frame_image, hand_depth_range(frame_image, kp))
+    return frame_image
+
+
 def pictures(frame_image: np.ndarray, background: Background, detected: np.ndarray,
              model_px: np.ndarray | None, frame: int, *, session_id: str,
              outlier: np.ndarray | None = None,
@@ -347,31 +543,50 @@ def pictures(frame_image: np.ndarray, background: Background, detected: np.ndarr
              contact: np.ndarray | None = None, observed: np.ndarray | None = None,
              hand_mesh_o: tuple[np.ndarray, np.ndarray] | None = None,
              up_o: np.ndarray | None = None, note: str = "",
+             K: np.ndarray | None = None, T_c_o: np.ndarray | None = None,
+             strip: list[tuple[int, np.ndarray, Background, np.ndarray | None,
+                               np.ndarray | None]] = (),
+             steady_from: int | None = None, reasons: tuple[str, ...] = (),
+             notes: tuple[str, ...] = (),
              config: PicturesConfig = PRESETS["default"]) -> Pictures:
-    """Both pictures of a session as PNG bytes.
+    """Every picture of a session as PNG bytes (and the contact map as PLY).
 
     ``frame_image`` is the RGB frame, or the depth in metres ``(h, w)`` when ``background``
-    is ``depth`` (colourised here). ``note`` is appended to the titles (e.g. the verdict).
+    is ``depth`` (colourised here). ``note`` is appended to the titles (e.g. the verdict);
+    ``reasons`` (QA failures and flags) and ``notes`` are written under the pictures.
+    ``K`` and ``T_c_o`` (the object in frame ``frame``'s camera) give the reprojection
+    picture; ``strip``: ``(index, image, background, detected, T_c_o or None)`` per frame of
+    the strip, ``steady_from`` the first steady frame.
     """
     bg = Background(background)
-    if bg == Background.DEPTH:
-        image = colorize_depth(frame_image, hand_depth_range(frame_image, np.asarray(detected)))
-    else:
-        image = frame_image
+    image = _drawable(frame_image, bg, detected)
     title = f"{session_id}  frame {frame} ({bg})" + (f"  {note}" if note else "")
     kp = keypoints_picture(image, detected, model_px, outlier, title=title, config=config)
-    contact_png = None
+    kp = with_reasons(kp, reasons, notes)
+    contact_png = ply = None
     if object_mesh is not None and contact is not None and observed is not None:
         img = contact_picture(*object_mesh, contact, observed, hand_mesh_o, up_o=up_o,
                               title=f"{session_id}  contact map" + (
                                   ", below with the hand" if hand_mesh_o is not None else "")
                               + (f"  {note}" if note else ""), config=config)
-        contact_png = encode_png(img)
-    return Pictures(encode_png(kp), contact_png, int(frame), bg)
+        contact_png = encode_png(with_reasons(img, reasons))
+        ply = contact_ply(*object_mesh, contact, observed)
+    reprojection = None
+    if object_mesh is not None and K is not None and T_c_o is not None:
+        img = reprojection_picture(image, *object_mesh, T_c_o, K, title=title)
+        reprojection = encode_png(with_reasons(img, reasons))
+    strip_png = None
+    if strip and K is not None:
+        tiles = [(i, _drawable(im, b, d), d, T) for i, im, b, d, T in strip]
+        strip_png = encode_png(strip_picture(
+            tiles, object_mesh, K, steady_from=frame if steady_from is None else steady_from,
+            height_px=config.strip_height_px, min_confidence=config.min_confidence))
+    return Pictures(encode_png(kp), contact_png, int(frame), bg, reprojection, strip_png, ply)
 
 
 __all__ = [
     "BONES", "PRESETS", "STAGE_VERSION", "Background", "Pictures", "PicturesConfig",
-    "contact_picture", "keypoints_picture", "look_at", "model_keypoints", "pictures",
-    "read_frame",
+    "contact_picture", "contact_ply", "keypoints_picture", "look_at", "model_keypoints",
+    "pictures", "read_frame", "reprojection_picture", "strip_indices", "strip_picture",
+    "with_reasons",
 ]  # fmt: skip

@@ -33,6 +33,7 @@ from tests.flow_fixtures import (  # noqa: F401
     synth_root,
     warm,
 )
+from tests.report_html import check_page
 
 
 def _sessions(root: Path) -> list[Path]:
@@ -464,6 +465,14 @@ def test_retry_failed_reruns_only_the_tasks_that_did_not_complete(warm, synth_ro
         m.setitem(pipeline.STAGES, "fit_hand", fit_hand_failing_for(bad))
         first = build_dataset([synth_root], catalog, PRESET, build_id="half")
     assert set(first.failed) == {bad}
+    # the report page: the failure first, with its reason, though the rows kept are ok
+    page = check_page(Path(first.report_page))
+    assert [(r.session_id, r.status) for r in page.rows][0] == (bad, "failed")
+    assert {r.session_id for r in page.rows} == {good, bad} and len(page.rows) == 2
+    assert "did not converge (injected)" in first.failed[bad]
+    assert (f"failed in this build (its previous rows are kept): {first.failed[bad]}"
+            in page.row_text(bad))
+    assert len(page.rows[0].images) == 4  # the kept rows' pictures, from the build of them
     ran_first = executions(catalog, "half")
     assert (bad, "crosscheck_sfm") in ran_first  # completed in the failed session
     assert (bad, "fit_hand") not in ran_first  # failed: recorded, but not ok

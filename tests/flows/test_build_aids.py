@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+from pathlib import Path
 
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
@@ -19,6 +20,7 @@ from tests.flow_fixtures import (  # noqa: F401
     synth_root,
     warm,
 )
+from tests.report_html import check_page
 
 
 def test_failing_pictures_leave_the_session_committed_with_a_note(warm, synth_root, tmp_path,
@@ -55,3 +57,20 @@ def test_failing_pictures_leave_the_session_committed_with_a_note(warm, synth_ro
     assert record["summary"]["failed"] == {}
     assert all("offscreen" in x["notes"][0] for x in record["sessions"])
     assert "offscreen renderer unavailable (a QA aid" in status_text(catalog)
+    # the page shows each session without pictures, with the note
+    page = check_page(Path(report.report_page))
+    for sid in ids:
+        assert "offscreen renderer unavailable" in page.row_text(sid)
+        assert "no pictures" in page.row_text(sid)
+
+    # a page that cannot be written is a warning: the build stands (here: nothing changed)
+    import graspcap.catalog.report_page as report_page
+
+    def disk_full(*_, **__):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(report_page, "write_report", disk_full)
+    again = build_dataset([synth_root], catalog, PRESET, build_id="nopage")
+    assert again.report_page is None and again.failed == {} and again.catalog_version is None
+    assert "report:" not in again.summary()
+    assert not (catalog / "reports" / "nopage").exists()

@@ -27,6 +27,7 @@ from tests.flow_fixtures import (  # noqa: F401
     synth_root,
     warm,
 )
+from tests.report_html import check_page
 from tests.session_factory import write_session
 
 ODD_IDS = ("../../../../tmp/escaped-session-{u}", "a/b", "x" * 300, "new\nline", "nul\x00id",
@@ -62,11 +63,11 @@ def test_path_name_keeps_plain_ids_and_encodes_every_other_inside_its_parent(tmp
         assert not PLAIN_NAME.fullmatch(name) and "~" in name, sid  # never a plain id's name
         assert len(name) <= 65 and "/" not in name and "\x00" not in name and "\n" not in name
         assert not name.startswith(".")
-        folder = layout.pictures_dir(sid)
-        assert folder.parent == tmp_path / "pictures" and folder.name == name
+        folder = layout.report_dir(sid)  # a build id is data too
+        assert folder.parent == tmp_path / "reports" and folder.name == name
         assert path_name(sid) == name  # deterministic
         folder.mkdir(parents=True)  # a real directory, inside the catalog
-    assert sorted(p.name for p in (tmp_path / "pictures").iterdir()) == sorted(names)
+    assert sorted(p.name for p in (tmp_path / "reports").iterdir()) == sorted(names)
 
 
 # --- one build, every per-session mishap ---------------------------------------------------
@@ -103,11 +104,12 @@ def test_per_session_mishaps_after_the_stages_never_lose_the_build(warm, synth_r
             raise RuntimeError("injected bug in the rows of one session")
         return real_rows(results, **kw)
 
-    def disk_full(folder, pictures):
-        pictures_seen.append(folder)
-        if folder.name == good:
-            raise OSError(errno.ENOSPC, "No space left on device", str(folder / "contact.png"))
-        return real_write(folder, pictures)
+    def disk_full(layout, session_id, pictures):
+        pictures_seen.append(session_id)
+        if session_id == good:
+            raise OSError(errno.ENOSPC, "No space left on device",
+                          str(layout.pictures_root / "ab" / "ab.png"))
+        return real_write(layout, session_id, pictures)
 
     real_write = build_module._write_pictures
     monkeypatch.setattr(build_module, "session_rows", rows_with_a_bug)
@@ -123,7 +125,8 @@ def test_per_session_mishaps_after_the_stages_never_lose_the_build(warm, synth_r
     first = by_dir[str(_sessions(synth_root)[0])]
     assert first.outcome == Outcome.ADDED and first.status in ("ok", "flagged")
     (note,) = first.notes
-    assert "No space left on device" in note and str(catalog / "pictures" / good) in note
+    assert "No space left on device" in note and str(catalog / "pictures" / "ab") in note
+    assert note.startswith(f"pictures of {good} not written to ") and first.pictures == {}
     bug = by_dir[str(_sessions(synth_root)[1])]
     assert bug.outcome == Outcome.FAILED and bug.error == (
         "assembling the catalog rows: RuntimeError: injected bug in the rows of one session")
@@ -150,38 +153,54 @@ def test_per_session_mishaps_after_the_stages_never_lose_the_build(warm, synth_r
     assert str(dup) in record["summary"]["failed"][good]  # the duplicate: in the record only
     assert not escaped.exists() and not Path("/tmp/escaped-session").exists()
     assert not Path("/tmp", climber.rsplit("/", 1)[1]).exists()
-    # the sessions with pictures (written before their rows), each inside the catalog
-    assert sorted(pictures_seen) == sorted(catalog / "pictures" / path_name(sid)
-                                           for sid in [good, buggy])
-    assert sorted(p.name for p in (catalog / "pictures" / buggy).iterdir()) == [
-        "contact.png", "keypoints.png"]
+    # the sessions with pictures (written before their rows), by content inside the catalog
+    assert sorted(pictures_seen) == sorted([good, buggy])
+    assert sorted(bug.pictures) == ["contact.ply", "contact.png", "keypoints.png",
+                                    "reprojection.png", "strip.png"]
+    for rel in bug.pictures.values():
+        assert (catalog / rel).is_file() and rel.startswith("pictures/")
+    # the report page names every failure, the buggy session's among them
+    page = check_page(Path(report.report_page))  # failed first, links resolve
+    shown = [(r.session_id, r.status) for r in page.rows]
+    assert sorted(shown) == sorted([(good, first.status), (good, "failed"), (buggy, "failed"),
+                                    *[(n, "failed") for n in names]])  # the duplicate too
+    assert "injected bug in the rows of one session" in page.row_text(buggy)
+    assert "No space left on device" in page.row_text(good, first.status)
+    assert "comes first" in page.row_text(good, "failed")
     # nothing under the catalog but its own folders
     assert {p.name for p in catalog.iterdir()} <= {"catalog.json", "published.json", "tables",
-                                                   "arrays", "vacuum.jsonl",
+                                                   "arrays", "vacuum.jsonl", "reports",
                                                    "pictures", ".lock", "work"}
 
 
-def test_pictures_of_a_path_like_id_stay_inside_the_catalog(tmp_path):
-    """The write itself (``_pictures_note``): the folder is the encoded name, and an OSError
-    is a note naming the path."""
+def test_pictures_are_stored_by_content_and_a_failed_write_is_a_note(tmp_path):
+    """The write itself (``_store_pictures``): files named by their sha256 (never by the
+    session id, which may be path-like), stored once; an OSError is a note naming the path."""
+    import hashlib
     from types import SimpleNamespace
 
     layout = CatalogLayout(tmp_path / "cat")
-    pictures = SimpleNamespace(keypoints_png=b"k", contact_png=b"c")
+    files = {"keypoints.png": b"k", "contact.ply": b"c"}
+    pictures = SimpleNamespace(files=lambda: files)
     escaped = f"../../../../tmp/escaped-session-{uuid.uuid4().hex}"
     orig_load = build_module.WorkArea.load
     try:
         build_module.WorkArea.load = staticmethod(lambda ref: pictures)
-        assert build_module._pictures_note(layout, escaped, None) == ()
-        folder = layout.pictures_dir(escaped)
-        assert sorted(p.name for p in folder.iterdir()) == ["contact.png", "keypoints.png"]
-        assert folder.parent == tmp_path / "cat" / "pictures"
+        stored, notes = build_module._store_pictures(layout, escaped, None)
+        assert notes == ()
+        for name, data in files.items():
+            digest = hashlib.sha256(data).hexdigest()
+            suffix = Path(name).suffix
+            assert stored[name] == f"pictures/{digest[:2]}/{digest}{suffix}"
+            assert (layout.root / stored[name]).read_bytes() == data
+        assert build_module._store_pictures(layout, "other", None) == (stored, ())  # once
         assert not Path("/tmp", escaped.rsplit("/", 1)[1]).exists()
         shutil.rmtree(tmp_path / "cat" / "pictures")
         (tmp_path / "cat" / "pictures").write_text("a file where the folder should be")
-        (text,) = build_module._pictures_note(layout, "p02", None)  # a note, not a failure
-        assert text.startswith(f"pictures not written to {layout.pictures_dir('p02')}: "
-                               "NotADirectoryError")
+        stored, (text,) = build_module._store_pictures(layout, "p02", None)  # a note
+        assert stored == {}
+        assert text.startswith(f"pictures of p02 not written to {layout.pictures_root}")
+        assert "NotADirectoryError" in text or "FileExistsError" in text
     finally:
         build_module.WorkArea.load = orig_load
 

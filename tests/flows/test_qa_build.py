@@ -1,13 +1,22 @@
 # ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
-"""The QA gate in a build: qa_metrics decides each row's status, the pictures land under
-``<catalog>/pictures/<session_id>/``, a QA-failed session is a failed row with its reasons
-(the build does not crash) and ``graspcap status`` says where its pictures are."""
+"""The QA gate in a build: qa_metrics decides each row's status, the pictures are stored by
+content under ``<catalog>/pictures/`` and shown on the build's report page
+(``<catalog>/reports/<build_id>/index.html``), a QA-failed session is a failed row with its
+reasons (the build does not crash), ``graspcap status`` says where its page is, and
+``graspcap report`` writes an older version's page, whose pictures are still there."""
 
 from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import trimesh
 
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
 from graspcap.flows.rows import QA_COLUMNS
+from graspcap.schemas.qa import qa_columns
 from graspcap.tasks.outputs.drawing import decode_png
 from tests.flow_fixtures import (  # noqa: F401
     PRESET,
@@ -17,23 +26,57 @@ from tests.flow_fixtures import (  # noqa: F401
     synth_root,
     warm,
 )
+from tests.report_html import check_page
+
+PICTURES = ["contact.ply", "contact.png", "keypoints.png", "reprojection.png", "strip.png"]
 
 
 def test_pictures_are_written_and_rows_carry_the_qa_verdict(warm):
     catalog, report = warm
     cat = gc.open(catalog)
     rows = cat.table("sessions").to_pylist()
+    by_id = {s.session_id: s for s in report.sessions}
     for r in rows:
-        folder = catalog / "pictures" / r["session_id"]
-        keypoints = decode_png((folder / "keypoints.png").read_bytes())
-        contact = decode_png((folder / "contact.png").read_bytes())
+        files = by_id[r["session_id"]].pictures
+        assert sorted(files) == PICTURES
+        keypoints = decode_png((catalog / files["keypoints.png"]).read_bytes())
+        contact = decode_png((catalog / files["contact.png"]).read_bytes())
+        reprojection = decode_png((catalog / files["reprojection.png"]).read_bytes())
+        strip = decode_png((catalog / files["strip.png"]).read_bytes())
         assert keypoints.shape[0] > 100 and keypoints.shape[1] > keypoints.shape[0]
         assert contact.shape[1] > contact.shape[0] > 100
+        assert reprojection.shape[0] >= 100 and reprojection.shape[1] > 100
+        assert strip.shape[0] <= 160 and strip.shape[1] > 4 * strip.shape[0]  # 5 small frames
+        mesh = trimesh.load(catalog / files["contact.ply"], file_type="ply", process=False)
+        colours = np.asarray(mesh.visual.vertex_colors)[:, :3]
+        assert len(mesh.vertices) > 100 and len(np.unique(colours, axis=0)) > 3  # coloured
         assert r["status"] in ("ok", "flagged") and r["error"] is None
         for col in ("qa_reproj_rmse_px", "qa_penetration_max_mm", "qa_contact_agreement",
                     "qa_contact_coverage", "qa_window_outlier_share", "qa_crosscheck_camera_deg",
                     "qa_rgbd_discrepancy_mm", "qa_fit_contact_agreement"):
             assert r[col] is not None, col
+
+
+def test_the_build_writes_a_report_page_of_every_session(warm):
+    catalog, report = warm
+    assert report.report_page == str(catalog.resolve() / "reports" / "warm" / "index.html")
+    assert f"report: {report.report_page}" in report.summary()
+    page = check_page(Path(report.report_page))  # links resolve, no URL, failed first
+    rows = gc.open(catalog).table("sessions").to_pylist()
+    assert sorted(r.session_id for r in page.rows) == sorted(r["session_id"] for r in rows)
+    for r in rows:
+        (row,) = [x for x in page.rows if x.session_id == r["session_id"]]
+        assert row.status == r["status"]
+        files = next(s for s in report.sessions if s.session_id == r["session_id"]).pictures
+        assert len(row.images) == 4 and len(row.links) == 5  # 4 thumbnails and the mesh
+        assert {(Path(report.report_page).parent / x).resolve() for x in row.links} == {
+            (catalog / f).resolve() for f in files.values()}
+        for flag in r["qa_flags"]:
+            assert flag in page.row_text(r["session_id"])
+    assert page.plots == 2 * len(qa_columns())  # a histogram and a trend per metric
+    assert page.limit_lines >= len(qa_columns())  # the flag limits drawn at least
+    text = " ".join(page.text)
+    assert "Timings" in text and "total" in text and "version 1" in text
 
 
 def test_every_qa_column_holds_its_qa_report_metric(warm):
@@ -61,10 +104,13 @@ def test_every_qa_column_holds_its_qa_report_metric(warm):
 
 
 def test_a_qa_failed_session_is_a_failed_row_with_its_reasons(warm, synth_root, tmp_path):
+    from graspcap.catalog.export import export_version
+    from graspcap.cli import main
     from graspcap.flows.commands import status_text
 
     catalog = copy_catalog(warm[0], tmp_path / "catalog")
-    strict = {"reproj_rmse_px": {"flag": 0.0, "fail": 0.01}}
+    strict = {"reproj_rmse_px": {"flag": 0.0, "fail": 0.01},
+              "contact_coverage": {"flag": 1.01, "fail": 0.0}}  # a flag with its reason too
     report = build_dataset([synth_root], catalog, PRESET, overrides={"qa_metrics": strict},
                            build_id="strict-qa")
     assert {st for _, st in executions(catalog, "strict-qa")} == {"qa_metrics", "pictures"}
@@ -74,10 +120,43 @@ def test_a_qa_failed_session_is_a_failed_row_with_its_reasons(warm, synth_root, 
         assert r["error"].startswith("qa_metrics: reprojection RMSE ")
         assert "> 0.01 px" in r["error"]
         assert r["T_w_p"] is not None  # the results stay, for a person to look at
+        assert any(f.startswith("contact-map coverage ") for f in r["qa_flags"])
     assert all(s.status == "failed" and s.error for s in report.sessions)
     text = status_text(catalog)
+    assert text.count(f"failed; pictures and reasons: {report.report_page}") == len(rows)
+
+    # the new version's page: every session failed, with its error and its flags
+    page = check_page(Path(report.report_page))
+    assert {r.status for r in page.rows} == {"failed"} and len(page.rows) == len(rows)
     for r in rows:
-        assert f"failed; pictures: {catalog.resolve() / 'pictures' / r['session_id']}" in text
+        shown = page.row_text(r["session_id"])
+        assert all(line in shown for line in r["error"].splitlines()[1:]) and r["qa_flags"]
+        assert all(flag in shown for flag in r["qa_flags"])
+    # new pictures (the verdict and reasons are written on them), the old ones kept
+    old = {s.session_id: s.pictures for s in warm[1].sessions}
+    for s in report.sessions:
+        assert s.pictures["keypoints.png"] != old[s.session_id]["keypoints.png"]
+        assert all((catalog / f).is_file() for f in old[s.session_id].values())
+
+    # version 1's page again, from the command line: its own (older) pictures
+    shutil.rmtree(catalog / "reports" / "warm")
+    assert main(["report", "--catalog", str(catalog), "1"]) == 0
+    again = check_page(catalog / "reports" / "warm" / "index.html")
+    links = {(catalog / "reports" / "warm" / x).resolve() for x in again.links
+             if "pictures/" in x}
+    assert links == {(catalog / f).resolve() for p in old.values() for f in p.values()}
+    assert {r.status for r in again.rows} <= {"ok", "flagged"}
+    assert main(["report", "--catalog", str(catalog), "7"]) == 2  # no such version
+
+    # the export carries the version's pictures and its page
+    out = export_version(gc.open(catalog), 1, tmp_path / "export")
+    exported = check_page(out.out / "report.html")
+    assert len(exported.rows) == len(old)
+    for sid, files in old.items():
+        folder = out.out / "pictures" / sid
+        assert sorted(p.name for p in folder.iterdir()) == PICTURES
+        for name, rel in files.items():
+            assert (folder / name).read_bytes() == (catalog / rel).read_bytes()
 
 
 def test_rows_from_before_format_3_get_the_new_qa_columns_from_cached_results(

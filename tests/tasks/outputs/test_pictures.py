@@ -163,3 +163,81 @@ def test_model_keypoints_projects_the_hand_into_the_frames_camera():
     assert np.flatnonzero(outlier).tolist() == [2, 5]
     with pytest.raises(ValueError, match="frame 11 has no camera"):
         model_keypoints(K, 11, np.array([10, 12, 14]), T_w_c, inlier, joints_w)
+
+
+# --- the report's pictures: the object at T_c_o, the strip, the reasons, the contact mesh ---
+
+def _box() -> tuple[np.ndarray, np.ndarray]:
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    return np.asarray(box.vertices, float), np.asarray(box.faces, np.int64)
+
+
+def test_reprojection_picture_outlines_the_object_where_T_c_o_puts_it():
+    from graspcap.tasks.outputs.pictures import reprojection_picture
+
+    V, F = _box()
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    T_c_o = np.eye(4)
+    T_c_o[:3, 3] = (0.1, 0.0, 0.6)  # centre at pixel (160 + 300 * 0.1 / 0.6, 120) = (210, 120)
+    frame = np.zeros((240, 320, 3), np.uint8)
+    out = reprojection_picture(frame, V, F, T_c_o, K, title="t")
+    assert out.shape == frame.shape
+    tinted = out.astype(int).sum(axis=2) > 60  # the silhouette (and the text): lit on black
+    assert tinted[120, 210] and tinted[100, 190] and tinted[140, 230]
+    # the box's face spans 300 * 0.1 / 0.55 = 55 px at its nearest: nothing lit far left of it
+    assert not tinted[60:180, 20:150].any()
+    # moved by 10 cm the outline moves with it: the check of T_c_o
+    T_c_o[0, 3] = -0.1
+    moved = reprojection_picture(frame, V, F, T_c_o, K).astype(int).sum(axis=2) > 60
+    assert moved[120, 110] and not moved[120, 210]
+    behind = T_c_o.copy()
+    behind[2, 3] = -0.6  # behind the camera: nothing drawn, no error
+    assert not (reprojection_picture(frame, V, F, behind, K)[30:200] > 0).any()
+
+
+def test_strip_spreads_small_frames_across_the_video():
+    from graspcap.tasks.outputs.pictures import strip_indices, strip_picture
+
+    assert strip_indices(40, 5) == [0, 10, 20, 29, 39]
+    assert strip_indices(3, 5) == [0, 1, 2] and strip_indices(0, 5) == []
+    V, F = _box()
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    T_c_o = np.eye(4)
+    T_c_o[2, 3] = 0.6
+    frames = [(i, np.zeros((240, 320, 3), np.uint8), None, T_c_o if i >= 20 else None)
+              for i in strip_indices(40, 5)]
+    out = strip_picture(frames, (V, F), K, steady_from=20, height_px=60)
+    assert out.shape == (60 + 22, 5 * 80, 3)
+    body = out[22:]
+    cyan = np.all(np.abs(body.astype(int) - MODEL_RGB) < 60, axis=2)
+    assert not cyan[:, :160].any() and cyan[:, 160:].any()  # outlines on steady frames only
+
+
+def test_reasons_are_written_under_a_picture():
+    from graspcap.tasks.outputs.pictures import with_reasons
+
+    img = np.zeros((50, 300, 3), np.uint8)
+    assert with_reasons(img, ()) is img
+    out = with_reasons(img, ("reprojection RMSE 9.1 px > 8.00 px", "x" * 500), ("a note",))
+    assert out.shape == (50 + 10 + 18 * 3, 300, 3) and np.array_equal(out[:50], img)
+    assert (out[50:] > 100).any()  # text drawn in the band
+
+
+def test_contact_ply_colours_every_vertex_by_its_contact():
+    import io
+
+    from graspcap.tasks.outputs.drawing import contact_rgb
+    from graspcap.tasks.outputs.pictures import contact_ply
+
+    V, F = _box()
+    contact = np.linspace(0, 1, len(V))
+    observed = np.ones(len(V), bool)
+    observed[0] = False
+    data = contact_ply(V, F, contact, observed)
+    mesh = trimesh.load(io.BytesIO(data), file_type="ply", process=False)
+    np.testing.assert_allclose(mesh.vertices, V)
+    assert np.array_equal(mesh.faces, F)
+    colours = np.asarray(mesh.visual.vertex_colors)[:, :3].astype(int)
+    assert np.array_equal(colours[0], UNOBSERVED_RGB)
+    want = np.clip(contact_rgb(contact[1:]), 0, 255).astype(np.uint8)
+    assert np.array_equal(colours[1:], want)
