@@ -22,6 +22,9 @@ WEBCAM_DIST = (-0.32, 0.14, 0.0008, -0.0012, -0.03)
 """A wide-angle webcam's barrel distortion (k1 k2 p1 p2 k3) at 640x480, f = 615 px: about
 30 px at the image corners, 4-8 px where the hand is."""
 
+THERMAL_DIST = (-0.38, 0.2, 0.0005, 0.001, -0.06)
+"""A small thermal core's wide lens (k1 k2 p1 p2 k3) at 320x256, f = 360 px."""
+
 
 def lens_maps(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """For every raw (distorted) pixel, where its ray lands in the ideal pinhole image
@@ -52,14 +55,26 @@ def _distort_keypoints(path: Path, camera: Camera) -> None:
     path.write_text(json.dumps(doc))
 
 
-def distort_session(src: Path, dst: Path, dist=WEBCAM_DIST, *, colour: bool = True) -> Path:
+def distort_session(src: Path, dst: Path, dist=WEBCAM_DIST, *, colour: bool = True,
+                    thermal_dist=None) -> Path:
     """A copy of session ``src`` at ``dst`` as a colour camera with OpenCV ``dist`` recorded
     it: depth PNGs (stage 1, grasp, scan) resampled nearest, colour images bilinear (only with
     ``colour``: the keypoint JSONs stand for the detector), keypoints through
-    :meth:`Camera.distort_px`, ``color_camera.dist`` set. Returns ``dst``."""
+    :meth:`Camera.distort_px`, ``color_camera.dist`` set; with ``thermal_dist``, the thermal
+    PNGs (nearest) and ``thermal_camera.dist`` likewise. Returns ``dst``."""
     shutil.copytree(src, dst)
     manifest_path = dst / "session.json"
     manifest = json.loads(manifest_path.read_text())
+    if thermal_dist is not None:
+        th = manifest["thermal_camera"]
+        th_maps = lens_maps(Camera(np.asarray(th["K"], float), np.asarray(thermal_dist, float),
+                                   th["width"], th["height"]))
+        for view in manifest["scan"]["views"]:
+            _remap_png(dst / view["thermal"], th_maps, nearest=True)
+        th["dist"] = [float(x) for x in thermal_dist]
+    if not np.any(np.asarray(dist) != 0):
+        manifest_path.write_text(json.dumps(manifest, indent=1))
+        return dst
     cam = manifest["color_camera"]
     camera = Camera(np.asarray(cam["K"], float), np.asarray(dist, float), cam["width"],
                     cam["height"])
@@ -83,12 +98,12 @@ def distort_session(src: Path, dst: Path, dist=WEBCAM_DIST, *, colour: bool = Tr
     return dst
 
 
-def without_dist(src: Path, dst: Path) -> Path:
-    """A copy of session ``src`` whose manifest says its colour lens is pinhole (the
+def without_dist(src: Path, dst: Path, camera: str = "color_camera") -> Path:
+    """A copy of session ``src`` whose manifest says ``camera``'s lens is pinhole (the
     distortion ignored). Returns ``dst``."""
     shutil.copytree(src, dst)
     manifest_path = dst / "session.json"
     manifest = json.loads(manifest_path.read_text())
-    manifest["color_camera"]["dist"] = [0.0] * len(manifest["color_camera"]["dist"])
+    manifest[camera]["dist"] = [0.0] * len(manifest[camera]["dist"])
     manifest_path.write_text(json.dumps(manifest, indent=1))
     return dst
