@@ -126,8 +126,9 @@ def test_a_stage_that_reads_depth_must_declare_the_lens(short):
 @pytest.mark.slow
 def test_structure_from_motion_honours_the_lens(tmp_path):
     """reconstruct_hand on 30 frames: cameras and joints of the distorted session come out
-    as the pinhole session's when the lens is honoured, and off when it is ignored."""
-    stages = ["detect_keypoints", "select_steady", "reconstruct_hand"]
+    as the pinhole session's when the lens is honoured, and off when it is ignored; GTSAM and
+    pycolmap (crosscheck_sfm) solve the same ideal pixels and still agree."""
+    stages = ["detect_keypoints", "select_steady", "reconstruct_hand", "crosscheck_sfm"]
     err = {k: _errors(p, stages) for k, p in _sessions(tmp_path, frames=30).items()}
     cam_mm = {k: e["camera_trans_mm"] for k, e in err.items()}
     cam_deg = {k: e["camera_rot_deg"] for k, e in err.items()}
@@ -138,3 +139,4 @@ def test_structure_from_motion_honours_the_lens(tmp_path):
     assert abs(cam_deg["honoured"] - cam_deg["pinhole"]) < 0.1
     assert joints["honoured"] < joints["ignored"]
     assert abs(joints["honoured"] - joints["pinhole"]) < 0.3
+    assert err["honoured"]["crosscheck_max_mm"] < 0.1, err["honoured"]
