@@ -174,7 +174,7 @@ def _build_contactmap(session: Session, config, **up):
         [(session.read_thermal_k(v.thermal), np.radians(v.angle_deg)) for v in views],
         np.asarray(cam.K, dtype=float), np.asarray(cam.T_color_thermal, dtype=float),
         session.T_color_turntable, up["register_scan"].T_turntable_o_scan, config,
-        image_size=(cam.width, cam.height), dist_thermal=np.asarray(cam.dist, dtype=float),
+        image_size=(cam.width, cam.height), dist_thermal=session.thermal_camera.dist,
         view_names=[v.thermal for v in views],
         mesh_name=session.mesh_name,
     )
