@@ -96,6 +96,13 @@ def _load(session_dir: Path | str, config) -> Session:
     return Session(root=session.root, manifest=manifest)
 
 
+def _ideal_keypoints(session: Session, keypoints: np.ndarray) -> np.ndarray:
+    """The detector's keypoints (raw colour pixels) in ideal pinhole pixels of
+    ``color_camera.K`` (``color_camera.dist`` undone; as is when it is zero): the pixels every
+    stage's geometry works in (``tasks/core/camera.py``)."""
+    return session.color_camera.undistort_keypoints(keypoints)
+
+
 def _register_object(session: Session, config, **up):
     return register_object.register_object(
         session.read_depth_m(session.manifest.stage1.depth), session.color_K,
@@ -111,7 +118,8 @@ def _detect_keypoints(session: Session, config, **up):
 def _select_steady(session: Session, config, **up):
     keypoints = up["detect_keypoints"]
     return select_steady.select_steady(
-        keypoints.keypoints, session.color_K, session.manifest.grasp.steady_from, config,
+        _ideal_keypoints(session, keypoints.keypoints), session.color_K,
+        session.manifest.grasp.steady_from, config,
         why_missing=why_missing(keypoints),
     )
 
@@ -119,7 +127,8 @@ def _select_steady(session: Session, config, **up):
 def _reconstruct_hand(session: Session, config, **up):
     keypoints, read = up["detect_keypoints"], session.grasp_depth_reader()
     return reconstruct_hand.reconstruct_hand(
-        keypoints.keypoints, session.color_K, up["select_steady"].steady_from,
+        _ideal_keypoints(session, keypoints.keypoints), session.color_K,
+        up["select_steady"].steady_from,
         depth_lookup(read), np.asarray(SURFACE_OFFSET_M), config, depth_frame=read,
         T_color_turntable=session.T_color_turntable, why_missing=why_missing(keypoints),
     )
@@ -127,7 +136,8 @@ def _reconstruct_hand(session: Session, config, **up):
 
 def _crosscheck_sfm(session: Session, config, **up):
     return crosscheck_sfm.crosscheck_sfm(
-        up["detect_keypoints"].keypoints, session.color_K, up["reconstruct_hand"], config
+        _ideal_keypoints(session, up["detect_keypoints"].keypoints), session.color_K,
+        up["reconstruct_hand"], config,
     )
 
 
@@ -142,7 +152,8 @@ def _estimate_adjustment(session: Session, config, **up):
     return estimate_adjustment.estimate_adjustment_steady(
         lambda k: session.read_depth_m(session.grasp_path("depth", s + k)), session.color_K,
         *session.read_mesh(), (hand.vertices, hand.faces),
-        up["detect_keypoints"].keypoints[s : s + len(sfm.T_w_c)], sfm.T_w_c, sfm.pose_valid,
+        _ideal_keypoints(session, up["detect_keypoints"].keypoints[s : s + len(sfm.T_w_c)]),
+        sfm.T_w_c, sfm.pose_valid,
         stage1.T_w_o, config, T_w_o_stage1_alt=stage1.second_hypothesis,
     )
 
@@ -163,7 +174,8 @@ def _build_contactmap(session: Session, config, **up):
         [(session.read_thermal_k(v.thermal), np.radians(v.angle_deg)) for v in views],
         np.asarray(cam.K, dtype=float), np.asarray(cam.T_color_thermal, dtype=float),
         session.T_color_turntable, up["register_scan"].T_turntable_o_scan, config,
-        image_size=(cam.width, cam.height), view_names=[v.thermal for v in views],
+        image_size=(cam.width, cam.height), dist_thermal=session.thermal_camera.dist,
+        view_names=[v.thermal for v in views],
         mesh_name=session.mesh_name,
     )
 
@@ -181,7 +193,7 @@ def _propagate_poses(session: Session, config, **up):
     sfm, frames = up["reconstruct_hand"], np.arange(up["select_steady"].steady_from,
                                                     session.manifest.grasp.count)
     T_w_p, _, joints_hand_w = final_pose(up["fit_hand"], up.get("refine_grasp"))
-    keypoints = up["detect_keypoints"].keypoints[frames]
+    keypoints = _ideal_keypoints(session, up["detect_keypoints"].keypoints[frames])
     prop = propagate_poses.propagate_poses(
         sfm.T_w_c, up["estimate_adjustment"].T_adj, up["register_object"].T_w_o, T_w_p,
         sfm.joints_w, session.color_K, frames, keypoints,
@@ -207,17 +219,25 @@ def _qa_metrics(session: Session, config, **up):
 def _pictures(session: Session, config, **up):
     """The first steady frame (its camera is the world frame), the final hand, the object
     where ``propagate_poses`` (the catalog's ``T_c_o``) puts it, a strip of frames across the
-    video and the QA reasons."""
+    video and the QA reasons; drawn in ideal pixels (the colour frames and detections
+    undistorted through the lens, as the stages saw them; unchanged without distortion)."""
     f, sfm, hand = up["select_steady"].steady_from, up["reconstruct_hand"], _final_hand(up)
     contact, poses, qa = up["build_contactmap"], up["propagate_poses"], up["qa_metrics"]
-    keypoints = up["detect_keypoints"].keypoints
+    camera, keypoints = session.color_camera, up["detect_keypoints"].keypoints
+
+    def frame(i: int) -> tuple[np.ndarray, Any, np.ndarray]:
+        image, background = pictures.read_frame(session, i)
+        if background == pictures.Background.COLOR:
+            image = camera.undistort_image(image, nearest=False)
+        return image, background, _ideal_keypoints(session, keypoints[i])
+
     model_px, outlier = pictures.model_keypoints(session.color_K, f, sfm.frames, sfm.T_w_c,
                                                  sfm.inlier, hand.joints_w)
     T_c_o = {int(i): T for i, T in zip(poses.frame_indices, poses.T_c_o, strict=True)}
-    strip = [(i, *pictures.read_frame(session, i), keypoints[i], T_c_o.get(i))
+    strip = [(i, *frame(i), T_c_o.get(i))
              for i in pictures.strip_indices(session.manifest.grasp.count, config.strip_frames)]
     return pictures.pictures(
-        *pictures.read_frame(session, f), keypoints[f], model_px, f,
+        *frame(f), model_px, f,
         session_id=session.session_id, outlier=outlier, object_mesh=session.read_mesh(),
         contact=contact.contact, observed=contact.observed, hand_mesh_o=hand.mesh_o,
         up_o=up["register_scan"].T_turntable_o_scan[2, :3], note=str(qa.verdict),
@@ -232,10 +252,11 @@ _REFINE: tuple[str, ...] = ("refine_grasp",)
 """``("refine_grasp",)`` once ``refine_grasp`` is in the DAG: propagate_poses, qa_metrics and
 pictures then use the refined hand (``final_hand``); until then ``fit_hand``'s."""
 
-_K, _T_TT, _DEPTH_SCALE, _MESH = ("color_camera.K", "turntable.T_color_turntable",
-                                  "depth_scale_m", "object_mesh")
-"""Manifest fields many stages read: ``Session.color_K``, ``T_color_turntable``,
-``read_depth_m`` and ``read_mesh``/``mesh_name``."""
+_CAM, _T_TT, _DEPTH_SCALE, _MESH = ("color_camera", "turntable.T_color_turntable",
+                                    "depth_scale_m", "object_mesh")
+"""Manifest fields many stages read: ``Session.color_K`` and ``color_camera`` (the lens:
+K, dist and size; ``read_depth_m`` and the keypoints' undistortion read ``dist``),
+``T_color_turntable``, ``read_depth_m`` and ``read_mesh``/``mesh_name``."""
 
 STAGES: dict[str, Stage] = {
     s.name: s
@@ -244,20 +265,20 @@ STAGES: dict[str, Stage] = {
               tuple(r for r in ALL_FILES if r != "manifest"), _load, fields=WHOLE_MANIFEST),
         Stage("register_object", register_object.STAGE_VERSION, register_object.PRESETS,
               ("load_session",), ("object_mesh", "stage1"), _register_object,
-              fields=("stage1.depth", _DEPTH_SCALE, _K, _T_TT, _MESH)),
+              fields=("stage1.depth", _DEPTH_SCALE, _CAM, _T_TT, _MESH)),
         Stage("detect_keypoints", detect_keypoints.STAGE_VERSION, detect_keypoints.PRESETS,
               ("load_session",), ("grasp_keypoints", "grasp_color"), _detect_keypoints,
               fields=("hand", "color_camera.width", "color_camera.height", "grasp.count",
                       "grasp.keypoints", "grasp.color")),
         Stage("select_steady", select_steady.STAGE_VERSION, select_steady.PRESETS,
               ("load_session", "detect_keypoints"), (), _select_steady,
-              fields=(_K, "grasp.steady_from")),
+              fields=(_CAM, "grasp.steady_from")),
         Stage("reconstruct_hand", reconstruct_hand.STAGE_VERSION, reconstruct_hand.PRESETS,
               ("load_session", "detect_keypoints", "select_steady"), ("grasp_depth",),
-              _reconstruct_hand, fields=(_K, "grasp.count", "grasp.depth", _DEPTH_SCALE, _T_TT)),
+              _reconstruct_hand, fields=(_CAM, "grasp.count", "grasp.depth", _DEPTH_SCALE, _T_TT)),
         Stage("crosscheck_sfm", crosscheck_sfm.STAGE_VERSION, crosscheck_sfm.PRESETS,
               ("load_session", "detect_keypoints", "reconstruct_hand"), (), _crosscheck_sfm,
-              fields=(_K,)),
+              fields=(_CAM,)),
         Stage("fit_hand", fit_hand.STAGE_VERSION, fit_hand.PRESETS,
               ("load_session", "reconstruct_hand"), (), _fit_hand, fields=("hand",)),
         Stage("estimate_adjustment", estimate_adjustment.STAGE_VERSION,
@@ -265,10 +286,10 @@ STAGES: dict[str, Stage] = {
               ("load_session", "register_object", "detect_keypoints", "select_steady",
                "reconstruct_hand", "fit_hand"),
               ("object_mesh", "grasp_depth"), _estimate_adjustment,
-              fields=(_K, "grasp.count", "grasp.depth", _DEPTH_SCALE, _MESH)),
+              fields=(_CAM, "grasp.count", "grasp.depth", _DEPTH_SCALE, _MESH)),
         Stage("register_scan", register_scan.STAGE_VERSION, register_scan.PRESETS,
               ("load_session",), ("object_mesh", "scan_depth"), _register_scan,
-              fields=("scan.views", _DEPTH_SCALE, _K, _T_TT, _MESH)),
+              fields=("scan.views", _DEPTH_SCALE, _CAM, _T_TT, _MESH)),
         Stage("build_contactmap", build_contactmap.STAGE_VERSION, build_contactmap.PRESETS,
               ("load_session", "register_scan"), ("object_mesh", "scan_thermal"),
               _build_contactmap, fields=("thermal_camera", "scan.views", _T_TT, _MESH)),
@@ -279,7 +300,7 @@ STAGES: dict[str, Stage] = {
               ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
                "fit_hand", "register_object", "estimate_adjustment") + _REFINE,
               ("object_mesh", "grasp_depth"), _propagate_poses,
-              fields=(_K, "grasp.count", "grasp.depth", _DEPTH_SCALE, _MESH)),
+              fields=(_CAM, "grasp.count", "grasp.depth", _DEPTH_SCALE, _MESH)),
         Stage("qa_metrics", qa_metrics.STAGE_VERSION, qa_metrics.PRESETS,
               ("load_session", "detect_keypoints", "reconstruct_hand", "crosscheck_sfm",
                "fit_hand", "register_object", "estimate_adjustment", "register_scan",
@@ -290,7 +311,7 @@ STAGES: dict[str, Stage] = {
                "fit_hand", "estimate_adjustment", "register_scan", "build_contactmap",
                "propagate_poses", "qa_metrics") + _REFINE,
               ("object_mesh", "grasp_color", "grasp_depth"), _pictures,
-              fields=(_K, "grasp.count", "grasp.color", "grasp.depth", _DEPTH_SCALE, _MESH)),
+              fields=(_CAM, "grasp.count", "grasp.color", "grasp.depth", _DEPTH_SCALE, _MESH)),
     ]
 }  # fmt: skip
 

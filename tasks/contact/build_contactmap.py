@@ -46,6 +46,7 @@ import numpy as np
 import open3d as o3d
 from pydantic import Field
 
+from graspcap.tasks.core.camera import Camera
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError, check_mesh
 from graspcap.tasks.core.geometry import inv_T, rot_z, transform_points
@@ -297,6 +298,7 @@ def build_contactmap(
     config: BuildContactmapConfig = PRESETS["default"],
     *,
     image_size: tuple[int, int] | None = None,
+    dist_thermal: np.ndarray | None = None,
     view_names: Sequence[str] | None = None,
     mesh_name: str = "the object mesh",
 ) -> ContactMap:
@@ -310,11 +312,14 @@ def build_contactmap(
     views : list of (thermal_k (h, w) float, angle_rad float)
         Thermal images in kelvin and the platter angle of each view.
     K_thermal : (3, 3) float
-        Thermal intrinsics (OpenCV, no distortion).
+        Thermal intrinsics (OpenCV).
     T_color_thermal, T_color_turntable, T_turntable_o_scan : (4, 4) float
         Rig extrinsics and the object's registered pose on the platter at angle 0.
     image_size : (width, height), optional
         The thermal camera's declared size; every view must match it (else they must agree).
+    dist_thermal : (k,) float, optional
+        The thermal lens's OpenCV distortion (``thermal_camera.dist``): vertices are projected
+        into the raw thermal images through it (``Camera.project``); None or zeros: pinhole.
     view_names, mesh_name : optional
         The views' thermal files and the mesh file, for messages.
 
@@ -349,6 +354,7 @@ def build_contactmap(
     temps = np.full((n, n_views), np.nan)
     weights = np.zeros((n, n_views))
     T_thermal_turntable = inv_T(T_color_thermal) @ T_color_turntable
+    lens = Camera(K, np.zeros(4) if dist_thermal is None else dist_thermal, width, height)
     b = config.border_px
     for k, (image, angle_rad) in enumerate(views):
         if k in blank:
@@ -358,7 +364,10 @@ def build_contactmap(
         z = p[:, 2]
         front = z > 1e-6
         uv = np.full((n, 2), -1.0)
-        uv[front] = (p[front] @ K.T)[:, :2] / z[front, None]
+        if lens.distorted:  # NaN (outside the lens's field) fails the inside test below
+            uv[front] = lens.project(p[front])
+        else:
+            uv[front] = (p[front] @ K.T)[:, :2] / z[front, None]
         inside = front & (uv[:, 0] >= b) & (uv[:, 0] <= width - 1 - b) & (
             uv[:, 1] >= b) & (uv[:, 1] <= height - 1 - b)
         idx = np.flatnonzero(inside)

@@ -46,6 +46,7 @@ from graspcap.schemas.session import (
     SessionManifest,
     Stage1,
 )
+from graspcap.tasks.core.camera import Camera
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.session.discover import MANIFEST
@@ -208,9 +209,17 @@ class Session:
             raise SessionInvalid([Problem(self.session_id, rel, WHOLE_FILE, f"{kind}: {what}")])
         return image
 
-    def read_depth_m(self, rel_or_path: str | Path) -> np.ndarray:
-        """Depth PNG as ``(h, w) float32`` metres; 0 means no measurement."""
+    def read_depth_m(self, rel_or_path: str | Path, *, ideal: bool = True) -> np.ndarray:
+        """Depth PNG as ``(h, w) float32`` metres; 0 means no measurement.
+
+        The depth is aligned to the colour camera, so it has the colour lens: with ``ideal``
+        (the default) it is resampled into the ideal pinhole image of ``color_camera.K``
+        (:meth:`Camera.undistort_image`, nearest raw pixel), the frame every stage's geometry
+        works in; untouched when ``color_camera.dist`` is zero. ``ideal=False``: the raw image.
+        """
         raw = self._read(rel_or_path, ImageKind.DEPTH, cv2.IMREAD_UNCHANGED)
+        if ideal:
+            raw = self.color_camera.undistort_image(raw, nearest=True)
         return raw.astype(np.float32) * np.float32(self.manifest.depth_scale_m)
 
     def read_thermal_k(self, rel_or_path: str | Path) -> np.ndarray:
@@ -226,6 +235,18 @@ class Session:
     def color_K(self) -> np.ndarray:
         """The colour camera's intrinsics ``(3, 3)`` float, pixels."""
         return np.asarray(self.manifest.color_camera.K, dtype=float)
+
+    @property
+    def color_camera(self) -> Camera:
+        """The colour camera's lens (``color_camera``: K, dist, width, height), shared by the
+        aligned depth: keypoints go through its :meth:`Camera.undistort_keypoints` before any
+        geometry."""
+        return Camera.of(self.manifest.color_camera)
+
+    @property
+    def thermal_camera(self) -> Camera:
+        """The thermal camera's lens (``thermal_camera``: K, dist, width, height)."""
+        return Camera.of(self.manifest.thermal_camera)
 
     @property
     def T_color_turntable(self) -> np.ndarray:

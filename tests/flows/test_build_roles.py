@@ -188,10 +188,12 @@ def test_every_stage_key_takes_its_declared_fields_only(synth_root, tmp_path, ed
     before = keys()
     assert None not in before.values()
     for field, change in (("grasp.steady_from", lambda g: {**g, "steady_from": 1}),
-                          ("hand", None)):
+                          ("hand", None), ("color_camera.dist", None)):
         new = json.loads(json.dumps(raw))
         if field == "hand":
             new["hand"] = "left" if raw["hand"] == "right" else "right"
+        elif field == "color_camera.dist":  # the lens: every stage that reads depth or pixels
+            new["color_camera"]["dist"] = [0.1, -0.25, 0.001, -0.002, 0.08]
         else:
             new["grasp"] = change(raw["grasp"])
         edited(manifest, json.dumps(new).encode())
