@@ -69,6 +69,9 @@ class CaptureConfig(StageConfig):
     """Distance of the palm from the colour camera at the first steady frame."""
     turntable_distance_m: tuple[float, float] = (0.6, 1.0)
     """Distance from the colour camera to the platter centre."""
+    camera_elevation_deg: tuple[float, float] = (15.0, 45.0)
+    """Angle of the camera's optical axis below the horizontal (a Kinect on a tripod looks
+    at the hand nearly level; a camera over the desk looks down)."""
     rotation_deg: tuple[float, float] = (20.0, 180.0)
     """Total rotation of the hand over the steady frames (largest angle between two of
     its poses), turned one way then back by a random share, either direction."""
@@ -102,7 +105,7 @@ class ObjectSetConfig(StageConfig):
 
     names: tuple[str, ...] = (
         "mug", "bottle", "spray_bottle", "carton", "drill",
-        "bulb", "small_box", "pen", "plate", "ball", "can")
+        "bulb", "small_box", "glass", "remote", "ball", "can")
     """Procedural objects drawn from (see :data:`graspcap.synth.objects.OBJECT_NAMES`)."""
     extent_m: tuple[float, float] = (0.05, 0.30)
     """Largest extent of the object; each object is scaled within the part of this range

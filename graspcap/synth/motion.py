@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 from scipy.spatial.transform import Rotation
 
 from graspcap.synth.config import CaptureConfig, SynthConfig
@@ -161,7 +162,7 @@ def _time_warp(n_frames: int, irregularity: float, rng: np.random.Generator) -> 
     if n_frames < 2:
         return np.zeros(n_frames)
     raw = rng.uniform(-1.0, 1.0, n_frames - 1)
-    speed = 1.0 + irregularity * np.convolve(raw, np.ones(3) / 3, mode="same") * 1.5
+    speed = 1.0 + irregularity * uniform_filter1d(raw, 3, mode="nearest") * 1.5
     speed = np.clip(speed, 0.15, None)
     return np.concatenate([[0.0], np.cumsum(speed)]) / speed.sum()
 

@@ -157,19 +157,23 @@ def _small_box(p: np.ndarray) -> np.ndarray:
     return _smin(box, flap, 0.002)
 
 
-def _pen(p: np.ndarray) -> np.ndarray:
-    """A thin marker pen lying along x, with a clip on its cap."""
-    body = _capsule(p, (-0.065, 0, 0.007), (0.065, 0, 0.007), 0.007)
-    cap = _cylinder(p[:, [1, 2, 0]], (0, 0.007, 0.045), 0.0085, 0.02, 0.002)
-    clip = _box(p, (0.045, 0.0, 0.0165), (0.016, 0.002, 0.0018), 0.001)
-    return _smin(_smin(body, cap, 0.002), clip, 0.0015)
+def _glass(p: np.ndarray) -> np.ndarray:
+    """A wine glass held by its thin stem: foot, 5 mm stem, closed bowl; a chip in the
+    foot's rim breaks the symmetry."""
+    foot = _cylinder(p, (0, 0, 0.0035), 0.035, 0.0035, 0.0015)
+    stem = _capsule(p, (0, 0, 0.004), (0, 0, 0.085), 0.005)
+    bowl = _capsule(p, (0, 0, 0.12), (0, 0, 0.15), 0.037)
+    bowl = np.maximum(bowl, p[:, 2] - 0.16)  # flat rim
+    chip = np.linalg.norm(p - [0.036, 0.0, 0.006], axis=1) - 0.006
+    d = _smin(_smin(foot, stem, 0.006), bowl, 0.02)
+    return np.maximum(d, -chip)
 
 
-def _phone(p: np.ndarray) -> np.ndarray:
-    """A thin slab (phone, remote) with a camera bump in one corner."""
-    slab = _box(p, (0, 0, 0.0045), (0.075, 0.037, 0.0045), 0.003)
-    bump = _box(p, (0.055, 0.02, 0.0095), (0.012, 0.01, 0.0015), 0.001)
-    return _smin(slab, bump, 0.001)
+def _remote(p: np.ndarray) -> np.ndarray:
+    """A thin remote control (2 cm thick) with a raised button pad near one end."""
+    slab = _box(p, (0, 0, 0.01), (0.085, 0.024, 0.01), 0.006)
+    pad = _box(p, (0.05, 0.0, 0.0205), (0.02, 0.014, 0.0015), 0.001)
+    return _smin(slab, pad, 0.002)
 
 
 def _ball(p: np.ndarray) -> np.ndarray:
@@ -194,8 +198,8 @@ _SDFS: dict[str, tuple[Sdf, tuple[tuple[float, float, float], tuple[float, float
     "drill": (_drill, ((-0.1, -0.045, -0.005), (0.135, 0.045, 0.21))),
     "bulb": (_bulb, ((-0.04, -0.036, -0.003), (0.04, 0.036, 0.113))),
     "small_box": (_small_box, ((-0.034, -0.026, -0.004), (0.04, 0.026, 0.04))),
-    "pen": (_pen, ((-0.074, -0.012, -0.003), (0.074, 0.012, 0.022))),
-    "phone": (_phone, ((-0.08, -0.041, -0.003), (0.08, 0.041, 0.015))),
+    "glass": (_glass, ((-0.04, -0.04, -0.003), (0.04, 0.04, 0.163))),
+    "remote": (_remote, ((-0.088, -0.027, -0.003), (0.088, 0.027, 0.026))),
     "ball": (_ball, ((-0.038, -0.038, -0.003), (0.038, 0.042, 0.073))),
     "can": (_can, ((-0.036, -0.036, -0.003), (0.036, 0.036, 0.125))),
 }
@@ -203,7 +207,7 @@ _SDFS: dict[str, tuple[Sdf, tuple[tuple[float, float, float], tuple[float, float
 EXTENT_RANGE_M: dict[str, tuple[float, float]] = {
     "mug": (0.10, 0.16), "bottle": (0.16, 0.30), "spray_bottle": (0.15, 0.26),
     "carton": (0.14, 0.26), "drill": (0.18, 0.30), "bulb": (0.08, 0.14),
-    "small_box": (0.05, 0.08), "pen": (0.12, 0.16), "phone": (0.12, 0.20),
+    "small_box": (0.05, 0.08), "glass": (0.14, 0.20), "remote": (0.14, 0.20),
     "ball": (0.06, 0.10), "can": (0.09, 0.16),
 }  # fmt: skip
 """Plausible largest extent of each object (the wild profile scales within it)."""
@@ -212,7 +216,8 @@ OBJECT_NAMES: tuple[str, ...] = ("mug", "bottle", "spray_bottle", "carton", "dri
 """The original five (``synth/2``'s profiles draw from these)."""
 ALL_OBJECT_NAMES: tuple[str, ...] = tuple(_SDFS)
 """Every procedural object: the five above, then a light bulb, a small box (held in the fist,
-mostly hidden), a pen and a phone (thin), a ball and a can (near-symmetric)."""
+mostly hidden), a wine glass (thin stem) and a remote (thin slab), a ball and a can
+(near-symmetric)."""
 
 
 def _march(sdf: Sdf, lo: np.ndarray, hi: np.ndarray, step: float) -> trimesh.Trimesh:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -137,13 +138,23 @@ def _steady_pose(obj: ObjectMesh, hand_o: np.ndarray, joints_o: np.ndarray, T_w_
     K = color_K(cfg)
     centre_o = joints_o[list(RIGID_PALM_POINTS)].mean(axis=0)
     sample = np.concatenate([obj.vertices[::7], hand_o[::5]])
-    for _ in range(60):
+    # with cfg.capture one depth is drawn and kept (coming 5 cm nearer every 10 tries), else
+    # the accepted depths would crowd at the near end of a wide range
+    target = None if cfg.capture is None else rng.uniform(*cfg.hand_distance_m)
+    for k in range(60):
         axis = rng.normal(size=3)
         angle = np.radians(rng.uniform(0.3, 1.0) * cfg.adjust_rotation_deg)
         R = make_T(cv2.Rodrigues(axis / np.linalg.norm(axis) * angle)[0], [0, 0, 0])[:3, :3]
         R_w_o = R @ T_w_o1[:3, :3]
-        uv = rng.uniform([0.35 * cfg.width, 0.3 * cfg.height], [0.65 * cfg.width, 0.6 * cfg.height])
-        c_w = backproject(K, uv[None], np.array([rng.uniform(*cfg.hand_distance_m)]))[0]
+        if target is None:
+            uv = rng.uniform([0.35 * cfg.width, 0.3 * cfg.height],
+                             [0.65 * cfg.width, 0.6 * cfg.height])
+            z = rng.uniform(*cfg.hand_distance_m)
+        else:
+            uv = rng.uniform([0.3 * cfg.width, 0.15 * cfg.height],
+                             [0.7 * cfg.width, 0.6 * cfg.height])
+            z = max(cfg.hand_distance_m[0], target - 0.05 * (k // 10))
+        c_w = backproject(K, uv[None], np.array([z]))[0]
         T = make_T(R_w_o, c_w - R_w_o @ centre_o)
         if _in_image(proj(transform_points(T, joints_o)), cfg, 25) and _above_table(
                 transform_points(T, sample), T_color_turntable, 0.02):
@@ -151,15 +162,34 @@ def _steady_pose(obj: ObjectMesh, hand_o: np.ndarray, joints_o: np.ndarray, T_w_
     raise StageError("synth", f"object {obj.name}: no steady pose keeps the hand in view")
 
 
+WILD_ATTEMPTS = 4
+"""Draws of object, hand and scene a session of ``object_set`` gets before it fails: a
+hand that cannot grasp the object drawn (a remote lying flat) draws both again."""
+
+
 def generate_session(out: Path, session_seed: int | Sequence[int], config: SynthConfig,
                      object_mesh: Path | None = None) -> Path:
     """Write one synthetic session (and its ground truth) under ``out``; returns its directory.
 
-    Deterministic: the same ``session_seed`` and ``config`` give byte-identical files.
+    Deterministic: the same ``session_seed`` and ``config`` give byte-identical files. With
+    ``config.object_set`` (and no ``object_mesh``) a draw whose grasp or motion cannot be
+    made is replaced by the next (``WILD_ATTEMPTS`` in all, each its own seeded stream).
     """
-    cfg = config
     seed = [int(session_seed)] if np.isscalar(session_seed) else [int(s) for s in session_seed]
-    rng = np.random.default_rng(seed)
+    attempts = WILD_ATTEMPTS if config.object_set is not None and object_mesh is None else 1
+    for attempt in range(attempts):
+        rng = np.random.default_rng(seed if attempt == 0 else [*seed, 7700 + attempt])
+        try:
+            return _generate_session(Path(out), seed, rng, config, object_mesh)
+        except StageError:
+            if attempt == attempts - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
+def _generate_session(out: Path, seed: list[int], rng: np.random.Generator, config: SynthConfig,
+                      object_mesh: Path | None) -> Path:
+    cfg = config
     if object_mesh is not None:
         obj = load_object(object_mesh)
     elif cfg.object_set is None:
@@ -171,6 +201,18 @@ def generate_session(out: Path, session_seed: int | Sequence[int], config: Synth
     intent = str(rng.choice(["use", "handoff"]))
     session_id = f"synth-{_seed_label(seed)}-{obj.name}"
     root = Path(out) / session_id
+    try:
+        return _write_session(root, session_id, seed, rng, config, obj, participant, scale,
+                              intent)
+    except StageError:
+        shutil.rmtree(root, ignore_errors=True)  # no half-written session left behind
+        raise
+
+
+def _write_session(root: Path, session_id: str, seed: list[int], rng: np.random.Generator,
+                   config: SynthConfig, obj: ObjectMesh, participant: str,
+                   scale: float, intent: str) -> Path:
+    cfg = config
     hm: HandModel | WildHand = HandModel(HandSide.RIGHT)
     shape = None
     if cfg.wild_hand is not None:
@@ -358,6 +400,7 @@ def _session_camera(cfg: SynthConfig, rng: np.random.Generator) -> SynthConfig:
     return cfg.model_copy(update={"width": int(width), "height": int(height),
                                   "f_px": float(f_px),
                                   "camera_distance_m": cap.turntable_distance_m,
+                                  "camera_elevation_deg": cap.camera_elevation_deg,
                                   "hand_distance_m": cap.hand_distance_m})
 
 
