@@ -132,7 +132,7 @@ class RealDetectorConfig(StageConfig):
     else, mirrored, or another hand (confidences as high as good frames)."""
     swap_rate: float = 0.08
     """Share of frames with two neighbouring fingers' labels exchanged."""
-    missing_run_rate: float = 0.04
+    missing_run_rate: float = 0.025
     """Chance per frame that a run of frames without detection starts."""
     missing_run_frames: tuple[int, int] = (2, 8)
     """Length of a run of missing frames."""
