@@ -189,6 +189,8 @@ def generate_session(out: Path, session_seed: int | Sequence[int], config: Synth
 
 def _generate_session(out: Path, seed: list[int], rng: np.random.Generator, config: SynthConfig,
                       object_mesh: Path | None) -> Path:
+    """One draw of a session from ``rng``: the object, participant and intent, then the rest;
+    a draw that fails leaves nothing behind."""
     cfg = config
     if object_mesh is not None:
         obj = load_object(object_mesh)
@@ -212,6 +214,7 @@ def _generate_session(out: Path, seed: list[int], rng: np.random.Generator, conf
 def _write_session(root: Path, session_id: str, seed: list[int], rng: np.random.Generator,
                    config: SynthConfig, obj: ObjectMesh, participant: str,
                    scale: float, intent: str) -> Path:
+    """Hand, cameras, stage 1, grasp, video, scan, manifest and truth of one session."""
     cfg = config
     hm: HandModel | WildHand = HandModel(HandSide.RIGHT)
     shape = None
