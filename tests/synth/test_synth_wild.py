@@ -107,6 +107,18 @@ def test_same_seed_same_bytes(sessions, tmp_path):
         assert (again / rel).read_bytes() == (sessions[1] / rel).read_bytes(), rel
 
 
+def test_real_detector_profile_alone_keeps_the_realistic_rig(tmp_path):
+    cfg = PRESETS["real-detector"].model_copy(update={"frames": 8, "scan_views": (6, 6)})
+    session = generate_session(tmp_path, [18, 0], cfg)
+    assert validate_session(session) == []
+    manifest, truth = _load(session)
+    assert (manifest["color_camera"]["width"], manifest["color_camera"]["height"]) == (640, 480)
+    assert manifest["color_camera"]["dist"] == [0.0] * 5
+    rnd = truth["randomisation"]
+    assert rnd["hand_model"] == "hand_model/1" and rnd["hand_shape"] is None
+    assert len(rnd["detector"]["events"]) == 8 and truth["difficulty"] == "real-detector"
+
+
 def test_clean_keypoints_are_the_truth_joints_through_the_distorted_lens(sessions):
     for session in sessions:
         manifest, truth = _load(session)
