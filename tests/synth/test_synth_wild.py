@@ -319,12 +319,13 @@ def test_distorted_projection_matches_opencv():
 
 @pytest.mark.slow
 def test_ranges_over_many_wild_sessions(tmp_path):
-    """Ten sessions: the three cameras, both rotation directions, small and large objects,
+    """Ten 40-frame sessions (a 20-frame one has a run of missing frames with chance ~0.4):
+    the three cameras, both rotation directions, small and large objects,
     detector failures, swaps and missing runs all occur in what the rig wrote."""
     found = {"cameras": set(), "turns": [], "extents": [], "events": set(), "swaps": 0,
              "both_ways": 0}
     for i in range(10):
-        session = generate_session(tmp_path, [7, i], WILD.model_copy(update={"frames": 20}))
+        session = generate_session(tmp_path, [7, i], WILD.model_copy(update={"frames": 40}))
         assert validate_session(session) == [], session
         manifest, truth = _load(session)
         rnd = truth["randomisation"]
