@@ -142,6 +142,12 @@ class WildHandShape:
         parents = (-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 0, 13, 14, 15, 0, 17, 18, 19)
         return np.array([np.linalg.norm(kp[k] - kp[p]) for k, p in enumerate(parents) if p >= 0])
 
+    @staticmethod
+    def from_json(data: dict) -> WildHandShape:
+        """The shape :meth:`to_json` wrote (``truth.json``'s ``randomisation.hand_shape``)."""
+        return WildHandShape(**{k: np.asarray(v, float) if isinstance(v, list) else float(v)
+                                for k, v in data.items()})
+
     def to_json(self) -> dict:
         """Plain lists and numbers (written into the ground truth)."""
         return {k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else float(v))
