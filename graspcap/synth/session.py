@@ -281,6 +281,8 @@ def _write_session(root: Path, session_id: str, seed: list[int], rng: np.random.
         _png(root / DEPTH_PATTERN.format(index=i), depth_mm(hits))
         _jpg(root / COLOR_PATTERN.format(index=i), shaded_rgb(hits, albedo, rng), cfg.jpeg_quality)
         occluded[i] = _occluded(hits, clean[i], joints[:, 2])
+        if cfg.detector is not None:  # a real detector also suffers from the hand's own cover
+            occluded[i] |= _self_occluded(hits, clean[i], joints[:, 2])
         if cfg.detector is None:
             kp = detect_keypoints(clean[i], occluded[i], cfg.width, cfg.height, cfg, rng)
             _write(root / KEYPOINTS_PATTERN.format(index=i),
@@ -293,7 +295,8 @@ def _write_session(root: Path, session_id: str, seed: list[int], rng: np.random.
             _write(root / KEYPOINTS_PATTERN.format(index=i),
                    json.dumps(openpose_json(kp)).encode())
         detector = {"error_share": share, "events": events,
-                    "swapped": [bool(x) for x in swapped]}
+                    "swapped": [bool(x) for x in swapped],
+                    "hidden_joint_share": float(occluded.mean())}
 
     # The scan: the object back on the platter in a new pose, rotated through 360 deg.
     contact = hand_contact(obj, hand_o, hand_p.faces, hand_p.part)
@@ -458,6 +461,24 @@ def _occluded(
     out = np.zeros(len(uv), bool)
     u, v = px[inside, 0], px[inside, 1]
     out[inside] = (hits.mesh_index[v, u] == 0) & (hits.depth_m[v, u] < z_m[inside] - margin_m)
+    return out
+
+
+SELF_OCCLUSION_M = 0.03
+"""A joint counts as hidden by the hand itself when the hand's surface at its pixel lies
+this much in front of it (well over a finger's radius and capsule offset, up to 2 cm, so that
+the joint's own skin never counts)."""
+
+
+def _self_occluded(hits: RayHits, uv: np.ndarray, z_m: np.ndarray) -> np.ndarray:
+    """(21,) joints whose pixel shows the hand (mesh 1) well in front of them."""
+    h, w = hits.depth_m.shape
+    px = np.round(uv).astype(int)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    out = np.zeros(len(uv), bool)
+    u, v = px[inside, 0], px[inside, 1]
+    out[inside] = (hits.mesh_index[v, u] == 1) & (
+        hits.depth_m[v, u] < z_m[inside] - SELF_OCCLUSION_M)
     return out
 
 
