@@ -9,6 +9,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import open3d as o3d
 import pytest
 import trimesh
 from scipy.optimize import least_squares
@@ -172,6 +173,22 @@ def test_hand_and_object_at_truth_poses_explain_the_video_depth(sessions):
         # the depth really is misaligned: unshifted, it fits worse
         assert _p90_depth_error_mm(written, expected, dx, dy) < _p90_depth_error_mm(
             written, expected, 0, 0), session
+
+
+def test_contact_truth_lies_on_the_rig_hand(sessions):
+    """Contacted vertices are where the rig's own hand touches the object, and only there."""
+    for session in sessions:
+        _, truth = _load(session)
+        hand = WildHand(WildHandShape.from_json(truth["randomisation"]["hand_shape"])).mesh(
+            np.array(truth["joint_angles_rad"]), np.array(truth["T_o_p"]), truth["hand_scale"])
+        mesh = trimesh.load(session / "object.ply", process=False)
+        contact = np.load(session / "ground_truth/contact.npy")
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(hand.vertices.astype(np.float32), hand.faces.astype(np.uint32))
+        d = scene.compute_distance(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)))
+        d = d.numpy()
+        assert (contact > 0.5).sum() >= 10, session
+        assert d[contact > 0.5].max() < 0.003 and contact[d > 0.006].max() < 0.01, session
 
 
 def test_hand_ranges_from_the_written_truth(sessions):
