@@ -143,9 +143,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (deterministic per seed)")
     p.add_argument(
         "--profile", "--difficulty", dest="profile", default="realistic",
-        choices=["easy", "realistic", "hard", "real-detector", "wild"],
-        help="sensor and detector noise, and for 'wild' every randomisation factor (hands, "
-        "cameras, lens, objects, detector, depth; docs/synth.md); --difficulty is an alias",
+        choices=["easy", "realistic", "hard", "real-detector", "wild"], metavar="PROFILE",
+        help="easy, realistic (default), hard, real-detector or wild (every randomisation "
+        "factor: hands, cameras, lens, objects, detector, depth; docs/synth.md); "
+        "--difficulty is an alias",
     )
     p.add_argument("--frames", type=int, default=None, help="grasp-video frames per session")
     p.add_argument(
