@@ -30,7 +30,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         args.out,
         sessions=args.sessions,
         seed=args.seed,
-        difficulty=args.difficulty,
+        profile=args.profile,
         frames=args.frames,
         objects=args.object,
         workers=args.workers,
@@ -207,8 +207,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sessions", type=int, default=4, help="number of sessions")
     p.add_argument("--seed", type=int, default=0, help="random seed (deterministic per seed)")
     p.add_argument(
-        "--difficulty", choices=["easy", "realistic", "hard"], default="realistic",
-        help="detection noise and outliers",
+        "--profile", "--difficulty", dest="profile", default="realistic",
+        choices=["easy", "realistic", "hard", "real-detector", "wild"], metavar="PROFILE",
+        help="easy, realistic (default), hard, real-detector or wild (every randomisation "
+        "factor: hands, cameras, lens, objects, detector, depth; docs/synth.md); "
+        "--difficulty is an alias",
     )
     p.add_argument("--frames", type=int, default=None, help="grasp-video frames per session")
     p.add_argument(

@@ -12,14 +12,15 @@ from multiprocessing import get_context
 from pathlib import Path
 
 from graspcap.synth.config import PRESETS, STAGE_VERSION, Difficulty, SynthConfig
-from graspcap.synth.objects import OBJECT_NAMES, procedural_object
+from graspcap.synth.objects import ALL_OBJECT_NAMES, OBJECT_NAMES, procedural_object
 from graspcap.synth.session import generate_session
 
 
-def config_for(difficulty: Difficulty | str = "realistic",
+def config_for(profile: Difficulty | str = "realistic",
                frames: int | None = None) -> SynthConfig:
-    """The preset of ``difficulty``, with ``frames`` overriding the video length when given."""
-    cfg = PRESETS[Difficulty(difficulty).value]
+    """The preset of ``profile`` (a :data:`PRESETS` name), with ``frames`` overriding the video
+    length when given."""
+    cfg = PRESETS[Difficulty(profile).value]
     if frames is None:
         return cfg
     return SynthConfig.model_validate({**cfg.model_dump(), "frames": int(frames)})  # validated
@@ -27,13 +28,14 @@ def config_for(difficulty: Difficulty | str = "realistic",
 
 def generate(out: Path, *, sessions: int, seed: int, difficulty: Difficulty | str = "realistic",
              frames: int | None = None, objects: Sequence[Path] | None = (),
-             workers: int = 1) -> list[Path]:
+             workers: int = 1, profile: Difficulty | str | None = None) -> list[Path]:
     """Write ``sessions`` synthetic sessions under ``out``; returns their directories in order.
 
     Session ``i`` uses ``np.random.default_rng([seed, i])`` and, when ``objects``
     are given, the mesh ``objects[i % len(objects)]`` (else a procedural object).
+    ``profile`` (a :data:`PRESETS` name) wins over ``difficulty``, its older name.
     """
-    cfg = config_for(difficulty, frames)
+    cfg = config_for(difficulty if profile is None else profile, frames)
     objects = [Path(p) for p in (objects or ())]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -46,6 +48,6 @@ def generate(out: Path, *, sessions: int, seed: int, difficulty: Difficulty | st
 
 
 __all__ = [
-    "OBJECT_NAMES", "PRESETS", "STAGE_VERSION", "Difficulty", "SynthConfig", "config_for",
-    "generate", "generate_session", "procedural_object",
+    "ALL_OBJECT_NAMES", "OBJECT_NAMES", "PRESETS", "STAGE_VERSION", "Difficulty", "SynthConfig",
+    "config_for", "generate", "generate_session", "procedural_object",
 ]  # fmt: skip

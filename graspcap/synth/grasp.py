@@ -15,6 +15,7 @@ import open3d as o3d
 
 from graspcap.synth.config import SynthConfig
 from graspcap.synth.objects import ObjectMesh
+from graspcap.synth.wild_hand import WildHand
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import make_T, transform_points
 from graspcap.tasks.hand.model import FINGERTIPS, SURFACE_OFFSET_M, HandModel
@@ -114,8 +115,12 @@ class _Grasper:
     the finished grasp is checked on the full surface mesh.
     """
 
-    def __init__(self, obj: ObjectMesh, hm: HandModel, scale: float, cfg: SynthConfig):
+    def __init__(self, obj: ObjectMesh, hm: HandModel | WildHand, scale: float,
+                 cfg: SynthConfig):
         self.obj, self.hm, self.scale, self.cfg = obj, hm, scale, cfg
+        self.wild = isinstance(hm, WildHand)
+        self.palm_parts = hm.palm_parts if self.wild else (0, 1)
+        self.palm_contact_p = hm.palm_contact_p if self.wild else _PALM_CONTACT_P
         self.sdf = ObjectSdf(obj)
         rest = hm.mesh(hm.rest_angles())
         self.part, self.faces = rest.part, rest.faces
@@ -130,6 +135,12 @@ class _Grasper:
 
     def finger_gaps(self, angles: np.ndarray, T_o_p: np.ndarray, f: int) -> np.ndarray:
         """Smallest skin-to-surface distance (3,) of finger ``f``'s three phalanges."""
+        if self.wild:
+            start, end, r0, r1 = self.hm.phalanx_capsules(angles, T_o_p, self.scale)
+            t = self._t[None, :]
+            centres = start[f][:, None] + t[..., None] * (end[f] - start[f])[:, None]
+            radius = (1 - t) * r0[f][:, None] + t * r1[f][:, None]
+            return (self.sdf(centres.reshape(-1, 3)).reshape(3, -1) - radius).min(axis=1)
         kp = self.hm.keypoints(angles, T_o_p, self.scale)
         a, b = kp[1 + 4 * f: 4 + 4 * f], kp[2 + 4 * f: 5 + 4 * f]
         centres = a[:, None] + self._t[None, :, None] * (b - a)[:, None]  # (3, s, 3)
@@ -147,6 +158,14 @@ class _Grasper:
     def face_mask(self, parts: tuple[int, ...]) -> np.ndarray:
         return np.isin(self.part[self.faces[:, 0]], parts)
 
+    def tip_gaps(self, angles: np.ndarray, T_o_p: np.ndarray) -> np.ndarray:
+        """Skin-to-surface distance (5,) at each fingertip."""
+        if self.wild:
+            _, end, _, r1 = self.hm.phalanx_capsules(angles, T_o_p, self.scale)
+            return self.sdf(end[:, 2]) - r1[:, 2]
+        tips = self.hm.keypoints(angles, T_o_p, self.scale)[list(FINGERTIPS)]
+        return self.sdf(tips) - SURFACE_OFFSET_M[list(FINGERTIPS)] * self.scale
+
     def penetration(self, angles: np.ndarray, T_o_p: np.ndarray) -> float:
         """Deepest overlap (>= 0, m): hand surface samples in the object, object vertices in
         the hand (a sharp rim can poke through a large flat hand face between samples)."""
@@ -157,7 +176,7 @@ class _Grasper:
 
     def palm_gap(self, angles: np.ndarray, T_o_p: np.ndarray) -> float:
         """Smallest distance of the palm and thumb metacarpal surfaces to the object."""
-        return float(self.sdf(self.surface(angles, T_o_p, (0, 1))).min())
+        return float(self.sdf(self.surface(angles, T_o_p, self.palm_parts)).min())
 
     def place_palm(self, point: np.ndarray, normal: np.ndarray, roll: float,
                    open_angles: np.ndarray) -> np.ndarray | None:
@@ -170,9 +189,9 @@ class _Grasper:
         R = np.stack([np.cross(y, z), y, z], axis=1)
 
         def pose(gap: float) -> np.ndarray:
-            return make_T(R, point - z * gap - R @ (_PALM_CONTACT_P * self.scale))
+            return make_T(R, point - z * gap - R @ (self.palm_contact_p * self.scale))
 
-        palm_p = self.surface(open_angles, np.eye(4), (0, 1))  # palm frame
+        palm_p = self.surface(open_angles, np.eye(4), self.palm_parts)  # palm frame
 
         def gap_at(gap: float, stride: int = 4) -> float:
             return float(self.sdf(transform_points(pose(gap), palm_p[::stride])).min())
@@ -221,7 +240,7 @@ class _Grasper:
         return angles
 
 
-def plan_grasp(obj: ObjectMesh, hm: HandModel, scale: float, up_o: np.ndarray,
+def plan_grasp(obj: ObjectMesh, hm: HandModel | WildHand, scale: float, up_o: np.ndarray,
                cfg: SynthConfig, rng: np.random.Generator) -> Grasp:
     """A grasp of ``obj`` by a hand of ``scale``, reachable while the object rests on a platter.
 
@@ -260,13 +279,13 @@ def plan_grasp(obj: ObjectMesh, hm: HandModel, scale: float, up_o: np.ndarray,
         mesh = hm.mesh(angles, T_o_p, scale)
         if (mesh.vertices @ up_o).min() < floor:
             continue
+        if g.wild and _approach_too_low(hm, open_angles, T_o_p, scale, up_o, floor):
+            continue
         penetration = g.penetration(angles, T_o_p)
         if penetration > cfg.max_penetration_m:  # back the whole hand off a little, once
             T_o_p = T_o_p @ make_T(np.eye(3), [0, 0, -(penetration - 0.5 * cfg.max_penetration_m)])
             penetration = g.penetration(angles, T_o_p)
-        tips = hm.keypoints(angles, T_o_p, scale)[list(FINGERTIPS)]
-        tip_gap = g.sdf(tips) - SURFACE_OFFSET_M[list(FINGERTIPS)] * scale
-        touching = tip_gap < 0.003
+        touching = g.tip_gaps(angles, T_o_p) < 0.003
         if penetration > cfg.max_penetration_m or touching.sum() < cfg.min_touching_fingers:
             continue
         grasp = Grasp(T_o_p, angles, open_angles, scale, touching, penetration)
@@ -278,6 +297,21 @@ def plan_grasp(obj: ObjectMesh, hm: HandModel, scale: float, up_o: np.ndarray,
                          f"{cfg.min_touching_fingers} touching fingers in "
                          f"{cfg.grasp_attempts} attempts")
     return best
+
+
+APPROACH_M = 0.04
+"""The open hand starts this far back along its palmar normal (the session's approach)."""
+
+
+def _approach_too_low(hm: WildHand, open_angles: np.ndarray, T_o_p: np.ndarray, scale: float,
+                      up_o: np.ndarray, floor: float) -> bool:
+    """Whether the open hand, backed off for the approach, reaches under the support plane
+    (small objects: the open fingers would sweep through the platter)."""
+    back = T_o_p @ make_T(np.eye(3), [0.0, 0.0, -APPROACH_M])
+    for T in (T_o_p, back):
+        if (hm.mesh(open_angles, T, scale).vertices @ up_o).min() < floor - 0.003:
+            return True
+    return False
 
 
 def _open_outside(obj: ObjectMesh, normals: np.ndarray, clearance_m: float = 0.08) -> np.ndarray:

@@ -14,9 +14,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 from scipy.spatial.transform import Rotation
 
-from graspcap.synth.config import SynthConfig
+from graspcap.synth.config import CaptureConfig, SynthConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import make_T
 
@@ -91,9 +92,10 @@ def turn_deg(Ms: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)))
 
 
-def lift(Ms: np.ndarray, heights_m: np.ndarray, up: np.ndarray) -> np.ndarray | None:
+def lift(Ms: np.ndarray, heights_m: np.ndarray, up: np.ndarray,
+         max_lift_m: float = MAX_LIFT_M) -> np.ndarray | None:
     """The motions lifted along ``up`` in proportion to each one's turn, just enough to bring
-    the lowest point to ``TABLE_CLEARANCE_M``; None when that needs more than ``MAX_LIFT_M``.
+    the lowest point to ``TABLE_CLEARANCE_M``; None when that needs more than ``max_lift_m``.
 
     Ms : (n, 4, 4) motions; heights_m : (n,) lowest point above the table under each.
     up : (3,) unit table normal in the camera frame.
@@ -107,7 +109,7 @@ def lift(Ms: np.ndarray, heights_m: np.ndarray, up: np.ndarray) -> np.ndarray | 
     if np.any(share[low] <= 0):
         return None  # too low without any turn: a lift proportional to the turn cannot help
     height = float(np.max(deficit[low] / share[low]))
-    if height > MAX_LIFT_M:
+    if height > max_lift_m:
         return None
     out = np.array(Ms, dtype=float)
     out[:, :3, 3] += height * share[:, None] * np.asarray(up, float)
@@ -153,3 +155,73 @@ def steady_motion(
         "synth", f"no motion turns the hand >= {MIN_STEADY_TURN_DEG:g} deg in view, above the "
         f"table, in {MOTION_DRAWS} draws",
     )
+
+
+def _time_warp(n_frames: int, irregularity: float, rng: np.random.Generator) -> np.ndarray:
+    """Normalised times (n,) from 0 to 1 at an irregular, always positive speed."""
+    if n_frames < 2:
+        return np.zeros(n_frames)
+    raw = rng.uniform(-1.0, 1.0, n_frames - 1)
+    speed = 1.0 + irregularity * uniform_filter1d(raw, 3, mode="nearest") * 1.5
+    speed = np.clip(speed, 0.15, None)
+    return np.concatenate([[0.0], np.cumsum(speed)]) / speed.sum()
+
+
+def wild_motion(
+    centre: np.ndarray,
+    n_frames: int,
+    cap: CaptureConfig,
+    rng: np.random.Generator,
+    *,
+    in_view: Callable[[np.ndarray], bool],
+    heights_m: Callable[[np.ndarray], float],
+    up: np.ndarray,
+) -> tuple[np.ndarray, float]:
+    """Motions (n_frames, 4, 4) of hand and object for the steady frames, and the total turn
+    aimed at (deg): a turn about one random axis (either way) by ``a``, then back past the
+    start by ``total - a``, at an irregular speed, with a few degrees of wobble about the
+    other axes and up to ``cap.translation_m`` of translation per axis.
+
+    The total is drawn in ``cap.rotation_deg``; a draw that leaves the view or cannot be
+    lifted clear of the table (by up to ``cap.max_lift_m``) first loses translation, then
+    another axis is drawn, and every 10 draws the total shrinks by 0.85 (never below the
+    range's low end).
+    """
+    lo, hi = cap.rotation_deg
+    total = rng.uniform(lo, hi)
+    for draw in range(MOTION_DRAWS * 2):
+        if draw and draw % 10 == 0:
+            total = max(lo, total * 0.85)
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        first = total * rng.uniform(0.5, 1.0) * rng.choice([-1.0, 1.0])
+        back = first - np.sign(first) * total  # ends at first - total (one sign further)
+        turn_at = rng.uniform(0.35, 0.75)
+        taus = _time_warp(n_frames, cap.speed_irregularity, rng)
+        wobble_axes = rng.normal(size=(2, 3))
+        wobble_axes -= (wobble_axes @ axis)[:, None] * axis
+        wobble = rng.uniform(-3.0, 3.0, 2)
+        shift_dir = rng.uniform(-1.0, 1.0, 3) * cap.translation_m
+        shift_freq = rng.uniform(0.3, 1.0, 3)
+        for shrink in (1.0, 0.6, 0.3, 0.0):
+            Ms = np.empty((n_frames, 4, 4))
+            for i, tau in enumerate(taus):
+                if tau <= turn_at:
+                    angle = first * _ease(tau / turn_at)
+                else:
+                    angle = first + (back - first) * _ease((tau - turn_at) / (1 - turn_at))
+                rotvec = np.radians(angle) * axis + np.radians(
+                    (wobble * np.sin(np.pi * tau)) @ wobble_axes)
+                shift = shrink * shift_dir * np.sin(np.pi * shift_freq * tau)
+                R = Rotation.from_rotvec(rotvec).as_matrix()
+                Ms[i] = make_T(R, centre + shift - R @ centre)
+            lifted = lift(Ms, np.array([heights_m(M) for M in Ms]), up, cap.max_lift_m)
+            if lifted is not None and all(in_view(M) for M in lifted):
+                return lifted, float(total)
+    raise StageError("synth", f"no motion turning the hand {lo:g}-{hi:g} deg stays in view and "
+                     f"above the table in {2 * MOTION_DRAWS} draws")
+
+
+def _ease(x: float) -> float:
+    x = min(max(x, 0.0), 1.0)
+    return x * x * (3 - 2 * x)

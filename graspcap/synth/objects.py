@@ -135,15 +135,89 @@ def _drill(p: np.ndarray) -> np.ndarray:
     return _smin(d, battery, 0.01)
 
 
+def _bulb(p: np.ndarray) -> np.ndarray:
+    """A light bulb: glass globe, tapered neck, screw base; a small glass nub breaks the
+    symmetry (near-symmetric about z)."""
+    globe = np.linalg.norm(p - [0, 0, 0.075], axis=1) - 0.03
+    neck = _capsule(p, (0, 0, 0.03), (0, 0, 0.06), 0.016)
+    base = _cylinder(p, (0, 0, 0.014), 0.0125, 0.014, 0.002)
+    nub = np.linalg.norm(p - [0.0, 0.0, 0.1055], axis=1) - 0.004
+    thread = _torus_xz(p[:, [0, 2, 1]], (0, 0.018, 0), 0.0125, 0.0018)  # ring about z
+    d = _smin(globe, neck, 0.012)
+    d = _smin(d, base, 0.004)
+    d = np.minimum(d, thread)
+    side = np.linalg.norm(p - [0.024, 0.0, 0.082], axis=1) - 0.008  # the maker's seal
+    return _smin(_smin(d, nub, 0.003), side, 0.004)
+
+
+def _small_box(p: np.ndarray) -> np.ndarray:
+    """A small carton (tea, matches) with a flap on one end."""
+    box = _box(p, (0, 0, 0.0175), (0.03, 0.0225, 0.0175), 0.003)
+    flap = _box(p, (0.031, 0.0, 0.028), (0.004, 0.016, 0.006), 0.0015)
+    return _smin(box, flap, 0.002)
+
+
+def _glass(p: np.ndarray) -> np.ndarray:
+    """A wine glass held by its thin stem: foot, 5 mm stem, closed bowl; a chip in the
+    foot's rim breaks the symmetry."""
+    foot = _cylinder(p, (0, 0, 0.0035), 0.035, 0.0035, 0.0015)
+    stem = _capsule(p, (0, 0, 0.004), (0, 0, 0.085), 0.005)
+    bowl = _capsule(p, (0, 0, 0.12), (0, 0, 0.15), 0.037)
+    bowl = np.maximum(bowl, p[:, 2] - 0.16)  # flat rim
+    chip = np.linalg.norm(p - [0.036, 0.0, 0.006], axis=1) - 0.006
+    d = _smin(_smin(foot, stem, 0.006), bowl, 0.02)
+    return np.maximum(d, -chip)
+
+
+def _remote(p: np.ndarray) -> np.ndarray:
+    """A thin remote control (2 cm thick) with a raised button pad near one end."""
+    slab = _box(p, (0, 0, 0.01), (0.085, 0.024, 0.01), 0.006)
+    pad = _box(p, (0.05, 0.0, 0.0205), (0.02, 0.014, 0.0015), 0.001)
+    return _smin(slab, pad, 0.002)
+
+
+def _ball(p: np.ndarray) -> np.ndarray:
+    """A ball with a small valve bump: nearly symmetric in every direction."""
+    sphere = np.linalg.norm(p - [0, 0, 0.035], axis=1) - 0.035
+    valve = np.linalg.norm(p - [0.0, 0.033, 0.045], axis=1) - 0.004
+    return _smin(sphere, valve, 0.002)
+
+
+def _can(p: np.ndarray) -> np.ndarray:
+    """A drinks can: a cylinder with rims and a pull tab off the axis (near-symmetric)."""
+    body = _cylinder(p, (0, 0, 0.06), 0.033, 0.06, 0.005)
+    tab = _box(p, (0.012, 0.0, 0.1205), (0.01, 0.005, 0.0012), 0.0008)
+    return _smin(body, tab, 0.001)
+
+
 _SDFS: dict[str, tuple[Sdf, tuple[tuple[float, float, float], tuple[float, float, float]]]] = {
     "mug": (_mug, ((-0.05, -0.05, -0.005), (0.085, 0.05, 0.1))),
     "bottle": (_bottle, ((-0.04, -0.04, -0.005), (0.045, 0.04, 0.215))),
     "spray_bottle": (_spray_bottle, ((-0.04, -0.032, -0.005), (0.07, 0.032, 0.19))),
     "carton": (_carton, ((-0.05, -0.037, -0.005), (0.05, 0.037, 0.185))),
     "drill": (_drill, ((-0.1, -0.045, -0.005), (0.135, 0.045, 0.21))),
+    "bulb": (_bulb, ((-0.04, -0.036, -0.003), (0.04, 0.036, 0.113))),
+    "small_box": (_small_box, ((-0.034, -0.026, -0.004), (0.04, 0.026, 0.04))),
+    "glass": (_glass, ((-0.04, -0.04, -0.003), (0.04, 0.04, 0.163))),
+    "remote": (_remote, ((-0.088, -0.027, -0.003), (0.088, 0.027, 0.026))),
+    "ball": (_ball, ((-0.038, -0.038, -0.003), (0.038, 0.042, 0.073))),
+    "can": (_can, ((-0.036, -0.036, -0.003), (0.036, 0.036, 0.125))),
 }
 
-OBJECT_NAMES: tuple[str, ...] = tuple(_SDFS)
+EXTENT_RANGE_M: dict[str, tuple[float, float]] = {
+    "mug": (0.10, 0.16), "bottle": (0.16, 0.30), "spray_bottle": (0.15, 0.26),
+    "carton": (0.14, 0.26), "drill": (0.18, 0.30), "bulb": (0.08, 0.14),
+    "small_box": (0.05, 0.08), "glass": (0.14, 0.20), "remote": (0.14, 0.20),
+    "ball": (0.06, 0.10), "can": (0.09, 0.16),
+}  # fmt: skip
+"""Plausible largest extent of each object (the wild profile scales within it)."""
+
+OBJECT_NAMES: tuple[str, ...] = ("mug", "bottle", "spray_bottle", "carton", "drill")
+"""The original five (``synth/2``'s profiles draw from these)."""
+ALL_OBJECT_NAMES: tuple[str, ...] = tuple(_SDFS)
+"""Every procedural object: the five above, then a light bulb, a small box (held in the fist,
+mostly hidden), a wine glass (thin stem) and a remote (thin slab), a ball and a can
+(near-symmetric)."""
 
 
 def _march(sdf: Sdf, lo: np.ndarray, hi: np.ndarray, step: float) -> trimesh.Trimesh:
@@ -168,7 +242,7 @@ def procedural_object(name: str, target_faces: int = 15000) -> ObjectMesh:
     The frame's origin is the centre of the bounding box's bottom face, z up.
     """
     if name not in _SDFS:
-        raise StageError("synth", f"unknown object {name!r}; known: {', '.join(OBJECT_NAMES)}")
+        raise StageError("synth", f"unknown object {name!r}; known: {', '.join(ALL_OBJECT_NAMES)}")
     sdf, (lo, hi) = _SDFS[name]
     lo, hi = np.asarray(lo), np.asarray(hi)
     step = 0.004
@@ -186,6 +260,14 @@ def procedural_object(name: str, target_faces: int = 15000) -> ObjectMesh:
     origin = np.array([(bounds[0, 0] + bounds[1, 0]) / 2, (bounds[0, 1] + bounds[1, 1]) / 2,
                        bounds[0, 2]])
     return ObjectMesh(name, np.asarray(mesh.vertices) - origin, np.asarray(mesh.faces, np.int64))
+
+
+def scaled_object(obj: ObjectMesh, extent_m: float) -> ObjectMesh:
+    """``obj`` scaled about its origin to largest extent ``extent_m``; its id gains the size
+    in millimetres (``bulb-112mm``), as a differently sized object is another object."""
+    extent = float((obj.vertices.max(axis=0) - obj.vertices.min(axis=0)).max())
+    return ObjectMesh(f"{obj.name}-{round(extent_m * 1000):d}mm",
+                      obj.vertices * (extent_m / extent), obj.faces)
 
 
 def load_object(path: Path) -> ObjectMesh:

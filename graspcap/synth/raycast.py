@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from graspcap.synth.rig import distorted_pixel_rays, project_distorted
 from graspcap.tasks.core.geometry import transform_points
 from graspcap.tasks.core.render import RayHits, cast_rays, pixel_rays
 
@@ -21,9 +22,14 @@ class StaticCamera:
     """
 
     def __init__(self, K: np.ndarray, width: int, height: int,
-                 background: list[tuple[np.ndarray, np.ndarray]], T_c_b: list[np.ndarray]):
+                 background: list[tuple[np.ndarray, np.ndarray]], T_c_b: list[np.ndarray],
+                 dist: np.ndarray | None = None):
         self.K, self.width, self.height = np.asarray(K, float), width, height
-        self.dirs = pixel_rays(self.K, width, height).astype(np.float32)
+        self.dist = None if dist is None or not np.any(dist) else np.asarray(dist, float)
+        if self.dist is None:
+            self.dirs = pixel_rays(self.K, width, height).astype(np.float32)
+        else:  # each pixel's ray through the distorted lens
+            self.dirs = distorted_pixel_rays(self.K, self.dist, width, height).astype(np.float32)
         self.background = cast_rays(background, T_c_b, self.dirs)
 
     def render(
@@ -42,9 +48,15 @@ class StaticCamera:
         pts = np.concatenate([transform_points(T, v) for (v, _), T in zip(meshes, T_c_m,
                                                                           strict=True)])
         if np.all(pts[:, 2] > 1e-3):
-            uv = pts[:, :2] / pts[:, 2:3] * [self.K[0, 0], self.K[1, 1]] + self.K[:2, 2]
-            u0, v0 = np.clip(np.floor(uv.min(0)).astype(int) - 2, 0, [self.width, self.height])
-            u1, v1 = np.clip(np.ceil(uv.max(0)).astype(int) + 3, 0, [self.width, self.height])
+            if self.dist is None:
+                uv = pts[:, :2] / pts[:, 2:3] * [self.K[0, 0], self.K[1, 1]] + self.K[:2, 2]
+                pad = 0
+            else:  # the distorted image of a vertex; a few pixels more for the faces between
+                uv, pad = project_distorted(self.K, self.dist, pts), 4
+            u0, v0 = np.clip(np.floor(uv.min(0)).astype(int) - 2 - pad, 0,
+                             [self.width, self.height])
+            u1, v1 = np.clip(np.ceil(uv.max(0)).astype(int) + 3 + pad, 0,
+                             [self.width, self.height])
         else:
             u0, v0, u1, v1 = 0, 0, self.width, self.height
         if u1 <= u0 or v1 <= v0:

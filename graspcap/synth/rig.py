@@ -4,12 +4,14 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+import cv2
 import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation, Slerp
 
-from graspcap.synth.config import SynthConfig
+from graspcap.synth.config import LensConfig, SynthConfig
 from graspcap.synth.objects import ObjectMesh
+from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import from_rotvec, inv_T, make_T, rot_z
 
 TABLE_HALF_M = 0.6
@@ -19,6 +21,48 @@ TABLE_THICKNESS_M = 0.03
 def color_K(cfg: SynthConfig) -> np.ndarray:
     """(3, 3) colour-camera intrinsics, principal point at the image centre."""
     return np.array([[cfg.f_px, 0, cfg.width / 2], [0, cfg.f_px, cfg.height / 2], [0, 0, 1.0]])
+
+
+def project_distorted(K: np.ndarray, dist: np.ndarray, points_c: np.ndarray) -> np.ndarray:
+    """Pixels (n, 2) of camera-frame ``points_c`` (n, 3) through OpenCV's radial-tangential
+    model ``dist`` (k1, k2, p1, p2, k3), as ``cv2.projectPoints`` computes them."""
+    k1, k2, p1, p2, k3 = np.asarray(dist, float)[:5]
+    p = np.asarray(points_c, float)
+    x, y = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=1)
+
+
+def sample_lens(lens: LensConfig, K: np.ndarray, width: int, height: int,
+                rng: np.random.Generator) -> np.ndarray:
+    """Distortion coefficients (5,) drawn from ``lens``'s ranges, redrawn until the
+    distorted radius grows monotonically out to the image corners (a lens that folds the
+    image onto itself is no lens)."""
+    corner = np.hypot(width / 2, height / 2) / min(K[0, 0], K[1, 1]) * 1.05
+    r = np.linspace(0.0, 3.0, 3001)
+    for _ in range(100):
+        k1, k2, k3 = (rng.uniform(*lens.k1), rng.uniform(*lens.k2), rng.uniform(*lens.k3))
+        p1, p2 = rng.uniform(-lens.p, lens.p, 2)
+        rd = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
+        rising = np.flatnonzero(np.diff(rd) <= 0)
+        top = rd[: rising[0] + 1].max() if len(rising) else rd.max()
+        if top > corner * 1.1:
+            return np.array([k1, k2, p1, p2, k3])
+    raise StageError("synth", f"no lens in {lens} keeps a {width}x{height} image monotonic")
+
+
+def distorted_pixel_rays(K: np.ndarray, dist: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Unit rays (h, w, 3) through every pixel centre of a camera with distortion ``dist``
+    (each pixel undistorted iteratively, to 1e-10 in normalised coordinates)."""
+    u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    uv = np.stack([u.ravel(), v.ravel()], axis=1)[:, None]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    xy = cv2.undistortPoints(uv, K, np.asarray(dist, float), criteria=criteria)[:, 0]
+    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1).reshape(height, width, 3)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
 def thermal_K(cfg: SynthConfig) -> np.ndarray:
@@ -64,12 +108,22 @@ def table_mesh(cfg: SynthConfig) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(box.vertices) + shift, np.asarray(box.faces)
 
 
+_MAX_HULL_FACES = 3000
+"""Convex hulls with more faces (a ball, a bulb) are thinned before finding the stable poses
+(their cost grows with the faces; the pose is settled onto the full mesh afterwards)."""
+
+
 @lru_cache(maxsize=16)
 def _stable_poses(key: str, vertices: bytes, faces: bytes) -> tuple[np.ndarray, np.ndarray]:
     v = np.frombuffer(vertices).reshape(-1, 3)
     f = np.frombuffer(faces, dtype=np.int64).reshape(-1, 3)
-    poses, prob = trimesh.poses.compute_stable_poses(trimesh.Trimesh(v, f, process=False))
-    keep = prob >= 0.03
+    mesh = trimesh.Trimesh(v, f, process=False)
+    hull = mesh.convex_hull
+    if len(hull.faces) > _MAX_HULL_FACES:  # round objects: rest them on a coarser hull
+        step = int(np.ceil(len(hull.faces) / _MAX_HULL_FACES))
+        mesh = trimesh.Trimesh(np.asarray(hull.vertices)[::step], process=False).convex_hull
+    poses, prob = trimesh.poses.compute_stable_poses(mesh)
+    keep = prob >= min(0.03, prob.max())  # a ball rests every way: keep its likeliest pose
     return poses[keep], prob[keep] / prob[keep].sum()
 
 
