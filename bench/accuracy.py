@@ -97,11 +97,11 @@ def _session(root: Path, profile: str, frames: int, seed: int, i: int) -> dict |
             - int(load_truth(d)["steady_from"])}
 
 
-def run(profile: str, sessions: int, frames: int, root: Path, seed: int = SEED,
+def run(profile: str, sessions: int, frames: tuple[int, ...], root: Path, seed: int = SEED,
         jobs: int = 1) -> None:
     from concurrent.futures import ProcessPoolExecutor
 
-    args = [(root, profile, frames, seed, i) for i in range(sessions)]
+    args = [(root, profile, frames[i % len(frames)], seed, i) for i in range(sessions)]
     if jobs <= 1:
         done = [_session(*a) for a in args]
     else:
@@ -150,7 +150,8 @@ def run(profile: str, sessions: int, frames: int, root: Path, seed: int = SEED,
         )
     ok = len(ran) - sum(failures.values())
     print(
-        f"\n### {profile}: {len(ran)} sessions x {frames} frames (seed {seed}), "
+        f"\n### {profile}: {len(ran)} sessions x {'/'.join(map(str, frames))} frames "
+        f"(seed {seed}), "
         f"{ok} ran every stage"
         + (f" ({skipped} seeds the rig could not stage)" if skipped else "")
         + "\n"
@@ -209,7 +210,8 @@ def run(profile: str, sessions: int, frames: int, root: Path, seed: int = SEED,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sessions", type=int, default=12)
-    parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument("--frames", type=int, nargs="+", default=[120],
+                        help="video lengths, cycled over the sessions")
     parser.add_argument("--profile", "--difficulty", nargs="+", dest="profile",
                         default=["easy", "realistic", "hard"])
     parser.add_argument("--seed", type=int, default=SEED)
@@ -217,7 +219,7 @@ def main() -> None:
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         for profile in args.profile:
-            run(profile, args.sessions, args.frames, Path(tmp), args.seed, args.jobs)
+            run(profile, args.sessions, tuple(args.frames), Path(tmp), args.seed, args.jobs)
 
 
 if __name__ == "__main__":

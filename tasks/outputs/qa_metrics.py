@@ -115,9 +115,14 @@ class QaMetricsConfig(StageConfig):
     trustworthy >= 0.962 (x 1.5 gives 0.943)."""
     scan_rmse_mm: Bound = Bound(flag=1.9, fail=5.0)
     """Inlier RMSE of the scan registration (mm), upper limits; trustworthy <= 1.26 (x 1.5)."""
-    fit_residual_mm: Bound = Bound(flag=3.75, fail=15.0)
-    """RMS distance of the fitted hand model's joints to the SfM joints (mm), upper limits;
-    trustworthy <= 2.46 (x 1.5); 24-34 mm where the SfM hand was wrong."""
+    fit_residual_mm: Bound = Bound(fail=15.0)
+    """RMS distance of the fitted hand model's joints to the SfM joints (mm), upper limit: a
+    fail only. It measures how well our 20-DoF model fits the hand, and another hand's
+    proportions are not our model's: the wild rig's hands (``graspcap/synth/wild_hand.py``)
+    leave 4.6-9.4 mm with every other output good, so no flag (issue 18: a model misfit is
+    not evidence that the session is wrong; the old flag, 3.75 mm, was x 1.5 our own rig's
+    2.46). The fail stays where the SfM hand itself was wrong: 24-34 mm on our rig, 17-37 mm
+    on the wild tuning set (seed 9700), all with cameras tens of degrees off."""
     penetration_max_mm: Bound = Bound(flag=2.0, fail=10.0)
     """Deepest hand vertex inside the object (mm), upper limits: issue 6's target (trustworthy
     <= 0.13, x 1.5 would flag sub-millimetre contact noise; 2.98 on a wrong session)."""
@@ -129,9 +134,12 @@ class QaMetricsConfig(StageConfig):
     measurements, agree on where the grasp is (low: the hand poses, the object pose or the
     contact map's registration is wrong); trustworthy >= 0.405, wrong 0-0.29 where this was
     the first sign: the flag sits between them (x 1.18, a thinner margin than the others)."""
-    contact_agreement: Bound = Bound(flag=0.94, fail=0.3)
+    contact_agreement: Bound = Bound(flag=0.92, fail=0.3)
     """Share of contacted observed vertices within ``near_hand_mm`` of the final hand, lower
-    limits; trustworthy >= 0.964 (x 1.5); objects registered upside down gave 0-0.28."""
+    limits; objects registered upside down gave 0-0.28. Flag set on the issue-18 tuning set
+    (realistic ``[9400, i]`` i < 20, good by ``GOOD_IF``): good sessions >= 0.926, not-good
+    ones 0.30-0.91 where this was the evidence (the earlier 0.94 flagged a good mug at
+    0.926)."""
     hand_contact_agreement: Bound = Bound(flag=0.3)
     """Share of observed vertices within ``near_hand_mm`` of the final hand that are
     contacted, lower limits; trustworthy >= 0.533 (x 1.5; fingers lying along a surface
