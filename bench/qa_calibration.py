@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import csv
 import pickle
+import re
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -149,19 +150,36 @@ def _line(r: dict[str, Any]) -> str:
             f"{r['reasons'][:150]}")
 
 
+def _causes(rows: list[dict[str, Any]]) -> Counter:
+    """Why the sessions are not good: the quantity out of tolerance, or "stage failed"."""
+    out: Counter = Counter()
+    for r in rows:
+        why = r["not_good_because"]
+        if r["label"] == "good":
+            continue
+        if why.startswith("stage failed"):
+            out["stage failed"] += 1
+            continue
+        out.update(w.split(" ")[0] for w in why.split("; ") if w)
+    return out
+
+
 def summary(rows: list[dict[str, Any]]) -> None:
     for profile in sorted({r["profile"] for r in rows}):
         mine = [r for r in rows if r["profile"] == profile]
         print(f"\n### {profile}: {len(mine)} sessions\n")
         print(confusion_markdown(qa_confusion([(r["label"] == "good", r["verdict"])
                                                for r in mine])))
-        why = Counter(w.split(" ")[0] for r in mine if r["label"] != "good"
-                      for w in r["not_good_because"].split("; ") if w)
         print("\nnot good because (sessions per quantity; a session may count twice): "
-              + ", ".join(f"{k} {n}" for k, n in why.most_common()))
-        flags = Counter(f.split(":")[0].split(" (")[0] for r in mine if r["verdict"] != "ok"
+              + ", ".join(f"{k} {n}" for k, n in _causes(mine).most_common()))
+        stages = Counter(r["reasons"].removeprefix("stage error: ").split(":")[0]
+                         for r in mine if r["reasons"].startswith("stage error: "))
+        flags = Counter(re.split(r" [-\d.]+", f)[0] for r in mine if r["verdict"] != "ok"
+                        and not r["reasons"].startswith("stage error: ")
                         for f in r["reasons"].split("; ") if f)
-        print("QA reasons (not ok): " + ", ".join(f"{k} {n}" for k, n in flags.most_common(12)))
+        print("refused by a stage: " + ", ".join(f"{k} {n}" for k, n in stages.most_common()))
+        print("QA reasons of the rest (not ok): "
+              + ", ".join(f"{k} {n}" for k, n in flags.most_common(12)))
     print("\n| metric | good min / median / max | not good min / median / max |")
     print("|---|---|---|")
     for name in METRICS:
