@@ -222,7 +222,8 @@ def _write_all(catalog: Catalog, v: int, partial: Path, fmt: ExportFormat, licen
         "tags": info["tags"], "committed_utc": info["time_utc"].isoformat(),
         "format_version": CATALOG_FORMAT_VERSION, "file_format": fmt.value,
         "exported_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "files": files, "rows": rows, "report": "report.html",
+        "files": files, "rows": rows, "report": "report.html", "card": "README.md",
+        "stats": "stats.json",
         "pictures": {"folder": "pictures/<session>/", "files": pictures},
         "join": {kind: f"sessions.{spec.digest_column} = {kind}.digest"
                  for kind, spec in ZARR_LAYOUT.items()},
