@@ -376,7 +376,7 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
                        help="a version as plain Parquet (or CSV) files with its arrays, a "
                        "dataset card (README.md) and normalisation statistics (stats.json); "
                        "or as a LeRobot v3.0-style dataset (--format lerobot)")
-    p.add_argument("version", help="version number or tag")
+    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
     p.add_argument("--out", required=True, help="new folder to write")
     p.add_argument("--format", choices=["parquet", "csv", "lerobot"], default="parquet",
                    help="parquet or csv: the catalog's tables and arrays; lerobot: "

@@ -296,3 +296,10 @@ def test_stats_merge_chunks_like_numpy_over_the_whole_column():
         _check(stats["T_adj.translation"], t[:, k], axis)
     assert stats["T_adj.translation"]["count"] == [48, 49, 49]
     _check(stats["hand_scale"], np.array([v for v in scalar if v is not None]))
+
+
+def test_export_without_a_version_takes_the_latest(catalog, capsys, tmp_path):
+    code = main(["catalog", "export", "--out", str(tmp_path / "l"), "--catalog",
+                 str(catalog.layout.root)])
+    assert code == 0 and "exported version 1" in capsys.readouterr().out
+    assert json.loads((tmp_path / "l" / "manifest.json").read_text())["version"] == 1
