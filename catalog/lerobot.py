@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from graspcap.catalog.stats import _Accumulator
@@ -98,15 +99,17 @@ def write_lerobot(sessions: pa.Table, frames: pa.Table, fps: float, out: Path
                    key=lambda r: r["session_id"])
     tasks = sorted({task_text(r["object_id"], r["intent"]) for r in srows})
     task_index = {t: i for i, t in enumerate(tasks)}
-    episode_of = {r["session_id"]: i for i, r in enumerate(srows)}
-
-    sid = frames["session_id"].to_pylist()
-    ep = np.array([episode_of[s] for s in sid], np.int64)
+    episode_task = np.array([task_index[task_text(r["object_id"], r["intent"])] for r in srows],
+                            np.int64)
+    ids = pa.array([r["session_id"] for r in srows], pa.string())
+    ep = pc.index_in(frames["session_id"], value_set=ids).to_numpy().astype(np.int64)
     n = len(ep)
     starts = np.flatnonzero(np.r_[True, ep[1:] != ep[:-1]]) if n else np.zeros(0, np.int64)
     lengths = np.diff(np.r_[starts, n]).astype(np.int64)
     frame_index = np.arange(n, dtype=np.int64) - np.repeat(starts, lengths)
-    angles = np.array([srows[e]["joint_angles_rad"] for e in ep], np.float64).reshape(n, _ANGLES)
+    episode_angles = np.array([r["joint_angles_rad"] for r in srows], np.float64
+                              ).reshape(len(srows), _ANGLES)
+    angles = episode_angles[ep]
     t_c_p = _pose_matrix(frames["T_c_p"])
     state = np.concatenate([angles, t_c_p], axis=1).astype(np.float32)
     columns = {
@@ -120,8 +123,7 @@ def write_lerobot(sessions: pa.Table, frames: pa.Table, fps: float, out: Path
         "frame_index": pa.array(frame_index, pa.int64()),
         "episode_index": pa.array(ep, pa.int64()),
         "index": pa.array(np.arange(n, dtype=np.int64), pa.int64()),
-        "task_index": pa.array([task_index[task_text(srows[e]["object_id"], srows[e]["intent"])]
-                                for e in ep], pa.int64()),
+        "task_index": pa.array(episode_task[ep] if n else np.zeros(0, np.int64), pa.int64()),
     }
     data = pa.table(columns)
     feats = _features()

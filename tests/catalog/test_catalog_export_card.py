@@ -303,3 +303,18 @@ def test_export_without_a_version_takes_the_latest(catalog, capsys, tmp_path):
                  str(catalog.layout.root)])
     assert code == 0 and "exported version 1" in capsys.readouterr().out
     assert json.loads((tmp_path / "l" / "manifest.json").read_text())["version"] == 1
+
+
+def test_lerobot_of_a_version_where_every_session_failed_is_empty_but_valid(tmp_path, capsys):
+    cat = gc.open(tmp_path / "cat", create=True)
+    cat.commit(make_build([FAILED], seed=2, failed=(FAILED,)))
+    code, _, err = export(capsys, cat, tmp_path / "lr", "--format", "lerobot")
+    assert code == 0, err
+    info = json.loads((tmp_path / "lr" / "meta" / "info.json").read_text())
+    assert (info["total_episodes"], info["total_frames"], info["total_tasks"]) == (0, 0, 0)
+    data = pq.read_table(tmp_path / "lr" / "data" / "chunk-000" / "file-000.parquet")
+    assert data.num_rows == 0 and set(data.column_names) == set(info["features"])
+    stats = json.loads((tmp_path / "lr" / "meta" / "stats.json").read_text())
+    assert stats["T_c_o"]["count"] == [0] and stats["T_c_o"]["mean"] == [None] * 16
+    card = (tmp_path / "lr" / "README.md").read_text(encoding="utf-8")
+    assert "0 ok, 0 flagged, 1 failed" in card
