@@ -318,3 +318,25 @@ def test_lerobot_of_a_version_where_every_session_failed_is_empty_but_valid(tmp_
     assert stats["T_c_o"]["count"] == [0] and stats["T_c_o"]["mean"] == [None] * 16
     card = (tmp_path / "lr" / "README.md").read_text(encoding="utf-8")
     assert "0 ok, 0 flagged, 1 failed" in card
+
+
+def test_lerobot_data_reads_with_the_hugging_face_parquet_loader(catalog, capsys, tmp_path):
+    """Where `datasets` is installed: its Parquet loader reads the data and episodes files,
+    and each feature of info.json comes back with its length."""
+    datasets = pytest.importorskip("datasets", reason="the Hugging Face `datasets` package is "
+                                   "not installed (not a dependency of graspcap)")
+    out = tmp_path / "lr"
+    assert export(capsys, catalog, out, "--format", "lerobot")[0] == 0
+    info = json.loads((out / "meta" / "info.json").read_text())
+    data = datasets.load_dataset("parquet", data_files=str(out / info["data_path"].format(
+        chunk_index=0, file_index=0)), split="train", cache_dir=str(tmp_path / "hf"))
+    assert data.num_rows == info["total_frames"]
+    assert set(data.column_names) == set(info["features"])
+    row = data[5]
+    for name, spec in info["features"].items():
+        value = row[name]
+        assert (len(value) if isinstance(value, list) else 1) == spec["shape"][0], name
+    episodes = datasets.load_dataset("parquet", data_files=str(
+        out / "meta" / "episodes" / "chunk-000" / "file-000.parquet"), split="train",
+        cache_dir=str(tmp_path / "hf"))
+    assert sum(episodes["length"]) == info["total_frames"]
