@@ -101,11 +101,24 @@ def _arrays() -> list[str]:
     return lines + [""]
 
 
+def _features(features: dict[str, dict], docs: dict[str, tuple[str, str]]) -> list[str]:
+    lines = ["### LeRobot features (`data/`)", "",
+             "| feature | dtype | shape | unit | description |", "|---|---|---|---|---|"]
+    for name, spec in features.items():
+        unit, doc = docs.get(name, ("", ""))
+        lines.append(f"| `{name}` | {spec['dtype']} | {'x'.join(map(str, spec['shape']))} | "
+                     f"{_md(unit) or '-'} | {_md(doc)} |")
+    return lines + [""]
+
+
 def render_card(*, catalog_uri: str, version: int, info: dict, sessions: pa.Table,
                 frame_counts: dict[str, int], schemas: dict[str, pa.Schema],
-                files: list[str], licence: str, layout_note: str) -> str:
-    """The card's Markdown. ``schemas``: the exported tables whose columns it documents
-    (name -> schema); ``files``: what the export holds; ``layout_note``: how it is laid out."""
+                files: list[str], licence: str, layout_note: str,
+                features: dict[str, dict] | None = None,
+                feature_docs: dict[str, tuple[str, str]] | None = None) -> str:
+    """The card's Markdown. ``schemas``: the catalog tables whose columns it documents
+    (name -> schema); ``files``: what the export holds; ``layout_note``: how it is laid out;
+    ``features`` (and their ``(unit, doc)``): a LeRobot layout's data columns."""
     qa = qa_summary(sessions)
     participants = sorted(set(sessions["participant"].to_pylist()))
     objects = sorted(set(sessions["object_id"].to_pylist()))
@@ -147,6 +160,7 @@ def render_card(*, catalog_uri: str, version: int, info: dict, sessions: pa.Tabl
         "21-keypoint OpenPose/MediaPipe order.",
         "- Mesh arrays (`hand_mesh`, `object_mesh`, `contact`) are in the object's frame.", "",
         "## Columns and units", "",
+        *(_features(features, feature_docs or {}) if features else []),
         *[line for name, schema in schemas.items() for line in _columns(name, schema)],
         *_arrays(),
         "## Normalisation statistics", "",

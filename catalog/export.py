@@ -43,7 +43,7 @@ from graspcap.catalog.arrays import DamagedArrayError, array_digest, read_group
 from graspcap.catalog.card import DEFAULT_LICENCE, render_card
 from graspcap.catalog.errors import CatalogError
 from graspcap.catalog.layout import path_name
-from graspcap.catalog.lerobot import DEFAULT_FPS, write_lerobot
+from graspcap.catalog.lerobot import DEFAULT_FPS, FEATURE_DOCS, feature_specs, write_lerobot
 from graspcap.catalog.stats import array_stats, table_stats
 from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DATA_TABLES, ZARR_LAYOUT
 
@@ -195,7 +195,8 @@ def _write_lerobot(catalog: Catalog, v: int, partial: Path, licence: str, fps: f
     card = render_card(catalog_uri=catalog.layout.uri, version=v, info=_version_info(catalog, v),
                        sessions=sessions, frame_counts=_frame_counts(frames),
                        schemas={"sessions": sessions.schema, "frames": frames.schema},
-                       files=[*files, "README.md"], licence=licence, layout_note=note)
+                       files=[*files, "README.md"], licence=licence, layout_note=note,
+                       features=feature_specs(), feature_docs=FEATURE_DOCS)
     (partial / "README.md").write_text(card, encoding="utf-8")
     size = sum(p.stat().st_size for p in partial.rglob("*") if p.is_file())
     return rows, size
@@ -235,7 +236,8 @@ def _write_all(catalog: Catalog, v: int, partial: Path, fmt: ExportFormat, licen
     note = ("One file per table (`sessions`, `frames`, `builds`) in the catalog's schema and "
             "one per array kind (`contact`, `hand_mesh`, `object_mesh`: one row per group, "
             "join on `sessions.<kind>_digest = <kind>.digest`); `manifest.json` lists them "
-            "with their row counts; `report.html` is the version's QA report page.")
+            "with their row counts; `report.html` is the version's QA report page."
+            + (" CSV cells of list columns are JSON text." if fmt is ExportFormat.CSV else ""))
     card = render_card(catalog_uri=catalog.layout.uri, version=v, info=info,
                        sessions=tables["sessions"], frame_counts=_frame_counts(tables["frames"]),
                        schemas={name: tables[name].schema for name in DATA_TABLES},

@@ -34,6 +34,25 @@ _POSE_NAMES = [f"r{r}c{c}" for r in range(4) for c in range(4)]
 _JOINT_NAMES = [f"j{j:02d}.{a}" for j in range(21) for a in "xyz"]
 
 
+FEATURE_DOCS: dict[str, tuple[str, str]] = {
+    "observation.state": ("rad, m", "The session's 20 joint angles of the hand model (rad), then "
+                          "T_c_p, the palm in the frame's camera (16, row-major 4x4, m)."),
+    "T_w_c": ("m", "Virtual camera of the frame in the world frame (row-major 4x4)."),
+    "T_c_o": ("m", "Object in the frame's camera (row-major 4x4)."),
+    "T_c_p": ("m", "Palm in the frame's camera (row-major 4x4)."),
+    "observation.hand_joints_c": ("m", "21 x 3 joints in the frame's camera (catalog joints_c)."),
+    "observation.keypoints_2d_px": ("px", "21 x 2 observed 2D keypoints (catalog joints_2d_px)."),
+    "observation.keypoint_conf": ("1", "Detection confidence per keypoint, 0 = not detected."),
+    "frame": ("frames", "Video frame index of the recorded session (catalog frame)."),
+    "timestamp": ("s", "frame_index / fps."),
+    "frame_index": ("frames", "0 at the episode's first (steady) frame."),
+    "episode_index": ("", "The episode (a session; meta/episodes/ says which)."),
+    "index": ("", "Row over the whole dataset, 0 .. total_frames - 1."),
+    "task_index": ("", "Row of meta/tasks.parquet (an object and an intent)."),
+}
+"""Unit and description of each feature, for the dataset card."""
+
+
 def task_text(object_id: str, intent: str) -> str:
     """The task string of an object and intent."""
     return f"grasp the {object_id} for {intent}"
@@ -43,7 +62,8 @@ def _fixed(values: np.ndarray, width: int, dtype: pa.DataType) -> pa.FixedSizeLi
     return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1), dtype), width)
 
 
-def _features() -> dict[str, dict]:
+def feature_specs() -> dict[str, dict]:
+    """``info.json``'s ``features``: dtype, shape and names of every data column."""
     state_names = [f"joint_angle_{i:02d}" for i in range(_ANGLES)] + \
                   [f"T_c_p.{n}" for n in _POSE_NAMES]
     feats = {
@@ -126,7 +146,7 @@ def write_lerobot(sessions: pa.Table, frames: pa.Table, fps: float, out: Path
         "task_index": pa.array(episode_task[ep] if n else np.zeros(0, np.int64), pa.int64()),
     }
     data = pa.table(columns)
-    feats = _features()
+    feats = feature_specs()
     data_file = out / DATA_PATH.format(chunk_index=0, file_index=0)
     data_file.parent.mkdir(parents=True, exist_ok=True)
     pq.write_table(data, data_file, compression="zstd")
@@ -171,4 +191,5 @@ def write_lerobot(sessions: pa.Table, frames: pa.Table, fps: float, out: Path
     return {"frames": n, "episodes": len(srows), "tasks": len(tasks)}
 
 
-__all__ = ["CODEBASE_VERSION", "DATA_PATH", "EPISODES_PATH", "task_text", "write_lerobot"]
+__all__ = ["CODEBASE_VERSION", "DATA_PATH", "EPISODES_PATH", "FEATURE_DOCS", "feature_specs",
+           "task_text", "write_lerobot"]
