@@ -21,8 +21,10 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from deltalake.exceptions import DeltaError
 
+from graspcap.catalog.card import DEFAULT_LICENCE
 from graspcap.catalog.errors import CatalogError
 from graspcap.catalog.layout import DEFAULT_CATALOG
+from graspcap.catalog.lerobot import DEFAULT_FPS
 from graspcap.schemas.tables import DATA_TABLES
 
 
@@ -37,6 +39,16 @@ def _version_arg(text: str | None) -> int | str | None:
     if text is None:
         return None
     return int(text) if text.isdigit() else text
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0 or not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
+    return value
 
 
 def _print_json(obj: Any) -> None:
@@ -233,7 +245,8 @@ def _cmd_remove(args: argparse.Namespace) -> int:
 def _cmd_export(args: argparse.Namespace) -> int:
     from graspcap.catalog.export import export_version
 
-    report = export_version(_open(args), _version_arg(args.version), args.out, args.format)
+    report = export_version(_open(args), _version_arg(args.version), args.out, args.format,
+                            licence=args.licence, fps=args.fps)
     print(f"exported version {report.version} to {report.out} ({report.bytes / 1e6:.2f} MB): "
           + ", ".join(f"{k} {v}" for k, v in report.rows.items()))
     return 0
@@ -360,10 +373,19 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
     p.add_argument("--reason", help="why (recorded in the new version's builds row)")
     p.set_defaults(func=_guard(_cmd_remove))
     p = sub.add_parser("export", parents=[common],
-                       help="a version as plain Parquet (or CSV) files with its arrays")
-    p.add_argument("version", help="version number or tag")
+                       help="a version as plain Parquet (or CSV) files with its arrays, a "
+                       "dataset card (README.md) and normalisation statistics (stats.json); "
+                       "or as a LeRobot v3.0-style dataset (--format lerobot)")
+    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
     p.add_argument("--out", required=True, help="new folder to write")
-    p.add_argument("--format", choices=["parquet", "csv"], default="parquet")
+    p.add_argument("--format", choices=["parquet", "csv", "lerobot"], default="parquet",
+                   help="parquet or csv: the catalog's tables and arrays; lerobot: "
+                   "data/chunk-000/file-000.parquet + meta/ (docs/catalog.md)")
+    p.add_argument("--licence", default=DEFAULT_LICENCE,
+                   help=f"licence written into the card (default: {DEFAULT_LICENCE!r})")
+    p.add_argument("--fps", type=_positive_float, default=DEFAULT_FPS,
+                   help="frame rate of the grasp videos, for the LeRobot timestamps (the "
+                   f"catalog does not record it; default {DEFAULT_FPS:g})")
     p.set_defaults(func=_guard(_cmd_export))
     p = sub.add_parser("vacuum", parents=[common],
                        help="delete files no kept version needs (newest N plus tagged), and "

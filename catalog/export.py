@@ -10,7 +10,14 @@
 - ``report.html`` and ``pictures/<session>/``: the version's report page
   (``catalog/report_page.py``) beside copies of every session's QA pictures and contact mesh
   (``keypoints.png``, ``reprojection.png``, ``contact.png``, ``strip.png``, ``contact.ply``);
-- ``manifest.json``: catalog, version, build, tags, format, files and row counts.
+- ``manifest.json``: catalog, version, build, tags, format, files and row counts;
+- ``README.md``: the dataset card (``catalog/card.py``: objects, participants, intents, QA
+  summary, conventions, units of every column, licence, citation of the method);
+- ``stats.json``: normalisation statistics of every numeric column of ``sessions`` and
+  ``frames`` and of every array kind (``catalog/stats.py``).
+
+``fmt="lerobot"`` writes a LeRobot v3.0-style layout instead (``catalog/lerobot.py``: Parquet
+data, ``meta/info.json``, episodes, tasks, ``meta/stats.json``) with the same ``README.md``.
 
 Every array group is checked against its digest as it is read: a damaged one fails the export
 naming the group, the file and the sessions that reference it. Everything is written under
@@ -33,8 +40,11 @@ import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
 from graspcap.catalog.arrays import DamagedArrayError, array_digest, read_group
+from graspcap.catalog.card import DEFAULT_LICENCE, render_card
 from graspcap.catalog.errors import CatalogError
 from graspcap.catalog.layout import path_name
+from graspcap.catalog.lerobot import DEFAULT_FPS, FEATURE_DOCS, feature_specs, write_lerobot
+from graspcap.catalog.stats import array_stats, table_stats
 from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DATA_TABLES, ZARR_LAYOUT
 
 if TYPE_CHECKING:
@@ -48,6 +58,7 @@ class ExportFormat(StrEnum):
 
     PARQUET = "parquet"
     CSV = "csv"
+    LEROBOT = "lerobot"
 
 
 @dataclass(frozen=True)
@@ -150,7 +161,48 @@ def _write_report(catalog: Catalog, v: int, partial: Path) -> int:
     return len(copied)
 
 
-def _write_all(catalog: Catalog, v: int, partial: Path, fmt: ExportFormat
+def _version_info(catalog: Catalog, v: int) -> dict:
+    versions = catalog.versions()
+    return versions.to_pylist()[versions["version"].to_pylist().index(v)]
+
+
+def _frame_counts(frames: pa.Table) -> dict[str, int]:
+    counts = frames["session_id"].value_counts().to_pylist()
+    return {c["values"]: c["counts"] for c in counts}
+
+
+def _stats(tables: dict[str, pa.Table], v: int) -> dict:
+    """``stats.json``: per table its numeric quantities, per array kind its arrays."""
+    arrays: dict[str, dict] = {}
+    for kind, spec in ZARR_LAYOUT.items():
+        units = {name: a.unit for name, a in spec.arrays.items()}
+        arrays.update(array_stats(kind, tables[kind], units))
+    return {"version": v, "format_version": CATALOG_FORMAT_VERSION,
+            "sessions": table_stats(tables["sessions"]), "frames": table_stats(tables["frames"]),
+            "arrays": arrays}
+
+
+def _write_lerobot(catalog: Catalog, v: int, partial: Path, licence: str, fps: float
+                   ) -> tuple[dict[str, int], int]:
+    """The LeRobot layout and its card; rows per kind and bytes."""
+    sessions, frames = catalog.table("sessions", v), catalog.table("frames", v)
+    rows = write_lerobot(sessions, frames, fps, partial)
+    files = sorted(str(p.relative_to(partial)) for p in partial.rglob("*") if p.is_file())
+    note = (f"LeRobot v3.0-style layout (`meta/info.json`: fps {fps:g}): one episode per "
+            "session with frames (failed sessions have none), `episode_index` in session_id "
+            "order; `meta/episodes/` maps each episode to its session, object, participant, "
+            "intent and status. Poses are 16 float64, the row-major 4x4.")
+    card = render_card(catalog_uri=catalog.layout.uri, version=v, info=_version_info(catalog, v),
+                       sessions=sessions, frame_counts=_frame_counts(frames),
+                       schemas={"sessions": sessions.schema, "frames": frames.schema},
+                       files=[*files, "README.md"], licence=licence, layout_note=note,
+                       features=feature_specs(), feature_docs=FEATURE_DOCS)
+    (partial / "README.md").write_text(card, encoding="utf-8")
+    size = sum(p.stat().st_size for p in partial.rglob("*") if p.is_file())
+    return rows, size
+
+
+def _write_all(catalog: Catalog, v: int, partial: Path, fmt: ExportFormat, licence: str
                ) -> tuple[dict[str, int], int]:
     """Write every file of the export into ``partial``; return rows per stem and bytes."""
     tables = {name: catalog.table(name, v) for name in DATA_TABLES}
@@ -165,13 +217,14 @@ def _write_all(catalog: Catalog, v: int, partial: Path, fmt: ExportFormat
         rows[stem] = table.num_rows
         files[stem] = path.name
     pictures = _write_report(catalog, v, partial)
-    info = catalog.versions().to_pylist()[catalog.versions()["version"].to_pylist().index(v)]
+    info = _version_info(catalog, v)
     manifest = {
         "catalog": catalog.layout.uri, "version": v, "build_id": info["build_id"],
         "tags": info["tags"], "committed_utc": info["time_utc"].isoformat(),
         "format_version": CATALOG_FORMAT_VERSION, "file_format": fmt.value,
         "exported_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "files": files, "rows": rows, "report": "report.html",
+        "files": files, "rows": rows, "report": "report.html", "card": "README.md",
+        "stats": "stats.json",
         "pictures": {"folder": "pictures/<session>/", "files": pictures},
         "join": {kind: f"sessions.{spec.digest_column} = {kind}.digest"
                  for kind, spec in ZARR_LAYOUT.items()},
@@ -179,14 +232,32 @@ def _write_all(catalog: Catalog, v: int, partial: Path, fmt: ExportFormat
                      "(21 x 3, m); 2D joints: 42 (21 x 2, px); arrays in the object frame (m)",
     }
     (partial / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    (partial / "stats.json").write_text(json.dumps(_stats(tables, v), indent=2) + "\n")
+    note = ("One file per table (`sessions`, `frames`, `builds`) in the catalog's schema and "
+            "one per array kind (`contact`, `hand_mesh`, `object_mesh`: one row per group, "
+            "join on `sessions.<kind>_digest = <kind>.digest`); `manifest.json` lists them "
+            "with their row counts; `report.html` is the version's QA report page."
+            + (" CSV cells of list columns are JSON text." if fmt is ExportFormat.CSV else ""))
+    card = render_card(catalog_uri=catalog.layout.uri, version=v, info=info,
+                       sessions=tables["sessions"], frame_counts=_frame_counts(tables["frames"]),
+                       schemas={name: tables[name].schema for name in DATA_TABLES},
+                       files=[*files.values(), "manifest.json", "stats.json", "report.html",
+                              "pictures/<session>/", "README.md"],
+                       licence=licence, layout_note=note)
+    (partial / "README.md").write_text(card, encoding="utf-8")
     size = sum(p.stat().st_size for p in partial.rglob("*") if p.is_file())
     return rows, size
 
 
 def export_version(catalog: Catalog, version: int | str | None, out: str | Path,
-                   fmt: ExportFormat | str = ExportFormat.PARQUET) -> ExportReport:
-    """Write ``version`` of ``catalog`` to the new folder ``out`` (module docstring)."""
+                   fmt: ExportFormat | str = ExportFormat.PARQUET, *,
+                   licence: str = DEFAULT_LICENCE, fps: float = DEFAULT_FPS) -> ExportReport:
+    """Write ``version`` of ``catalog`` to the new folder ``out`` (module docstring);
+    ``licence`` goes into the card, ``fps`` (the grasp videos' frame rate, which the catalog
+    does not record) into the LeRobot layout's timestamps."""
     fmt = ExportFormat(fmt)
+    if not fps > 0:
+        raise CatalogError(f"fps must be > 0, got {fps}")
     v = catalog.resolve(version)
     out = Path(out).expanduser().resolve()
     if out.exists():
@@ -195,7 +266,10 @@ def export_version(catalog: Catalog, version: int | str | None, out: str | Path,
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     try:
-        rows, size = _write_all(catalog, v, partial, fmt)
+        if fmt is ExportFormat.LEROBOT:
+            rows, size = _write_lerobot(catalog, v, partial, licence, fps)
+        else:
+            rows, size = _write_all(catalog, v, partial, fmt, licence)
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise

@@ -17,7 +17,7 @@ from graspcap.tasks.core.presets import PIPELINE_PRESETS
 from tests.catalog_factory import make_build
 
 FIXED_SETS = {"preset": list(PIPELINE_PRESETS), "difficulty": ["easy", "realistic", "hard"],
-              "format": ["parquet", "csv"], "backend": ["mediapipe", "openpose_json"],
+              "format": ["parquet", "csv", "lerobot"], "backend": ["mediapipe", "openpose_json"],
               "hand": ["right", "left"], "model_complexity": [0, 1]}
 """Options whose values are a fixed set, as the parser must offer them."""
 
