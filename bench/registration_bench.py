@@ -26,8 +26,8 @@ from graspcap.synth.rig import interpolate_pose, smoothstep
 from graspcap.tasks import pipeline
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, pose_error
+from graspcap.tasks.hand.image_masks import hand_mask_from_keypoints
 from graspcap.tasks.object_pose import estimate_adjustment as ea
-from graspcap.tasks.object_pose.adjustment_region import hand_mask_from_keypoints
 
 POSE_STAGES = ("register_object", "estimate_adjustment", "register_scan")
 UPSTREAM = ("load_session", "register_object", "detect_keypoints", "select_steady",

@@ -1,8 +1,8 @@
 """`graspcap catalog versions|show|diff|tag|remove|export|vacuum|verify|migrate` on the command
 line.
 
-``add_catalog_parser(subparsers)`` adds the ``catalog`` command to graspcap's parser. Every
-subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL; before or after
+``add_catalog_parser(subparsers, vacuum_work)`` adds the ``catalog`` command to graspcap's
+parser. Every subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL; before or after
 the subcommand's name), prints text for a
 person or ``--json`` for a script, and exits 2 with the catalog's message on a catalog error
 (missing version or tag, older format, a damaged file: one line per problem, never a
@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -261,10 +263,8 @@ def _cmd_vacuum(args: argparse.Namespace) -> int:
     if args.keep is not None:
         print(cat.vacuum(args.keep).text(args.keep))
     if args.work:
-        from graspcap.flows.work_vacuum import vacuum_work
-
         cat.layout.require_local("cleaning a work area")
-        print(vacuum_work(cat.layout.root / "work").text())
+        print(args.vacuum_work(cat.layout.root / "work").text())
     return 0
 
 
@@ -333,8 +333,11 @@ def _guard(func):
     return run
 
 
-def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Add ``catalog`` and its subcommands to graspcap's ``subparsers``."""
+def add_catalog_parser(subparsers: argparse._SubParsersAction,
+                       vacuum_work: Callable[[Path], Any]) -> argparse.ArgumentParser:
+    """Add ``catalog`` and its subcommands to graspcap's ``subparsers``; ``vacuum_work`` (the
+    work area is the builder's, above the catalog: ``flows.work_vacuum.vacuum_work``) cleans
+    a work area for ``vacuum --work``."""
     catalog_help = (f"catalog folder or URL (file://, s3://, ... read-only; default "
                     f"{DEFAULT_CATALOG}); before or after the subcommand")
     # --catalog before the subcommand (`catalog --catalog X versions`) or after it: the
@@ -392,6 +395,7 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction) -> argparse.Argum
                        "cached stage results no build needs (--work)")
     p.add_argument("--keep", type=int, help="newest versions to keep (>= 1); the others "
                    "stay listed, and those that lose a file can no longer be read")
+    p.set_defaults(vacuum_work=vacuum_work)
     p.add_argument("--work", action="store_true",
                    help="also delete the work area's cached stage results that neither the "
                    "newest build used nor are a session's latest run (results of the last "

@@ -171,6 +171,12 @@ def _cmd_status(args: argparse.Namespace) -> int:
         return 2
 
 
+def _vacuum_work(work: Path):
+    from graspcap.flows.work_vacuum import vacuum_work
+
+    return vacuum_work(work)
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
     from deltalake.exceptions import DeltaError
 
@@ -279,7 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
     when.add_argument("--interval", type=float, help="run every this many seconds")
     p.set_defaults(func=_cmd_serve)
 
-    add_catalog_parser(sub)
+    add_catalog_parser(sub, _vacuum_work)
     add_detect_parser(sub)
     return parser
 

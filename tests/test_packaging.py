@@ -124,7 +124,7 @@ SECTIONS: dict[str, set[str]] = {
     "object_pose.registration": {"core"},
     "object_pose": {"core", "hand", "object_pose.registration"},
     "contact": {"core"},
-    "outputs": {"core", "hand"},
+    "outputs": {"core", "hand", "object_pose", "object_pose.registration"},
 }
 """``tasks/pipeline.py`` (the stage table) sits above them all and may import any; none of
 them imports it."""

@@ -36,7 +36,8 @@ import numpy as np
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, rotation_error_deg
-from graspcap.tasks.object_pose.adjustment_region import grow_mask, hand_mask, near_hand
+from graspcap.tasks.hand.image_masks import grow_mask
+from graspcap.tasks.object_pose.adjustment_region import hand_mask, near_hand
 from graspcap.tasks.object_pose.registration.depth_agreement import views_agreement
 from graspcap.tasks.object_pose.registration.engine import (
     Candidate,

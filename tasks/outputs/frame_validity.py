@@ -34,7 +34,7 @@ import open3d as o3d
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.geometry import inv_T, transform_points
-from graspcap.tasks.object_pose.adjustment_region import grow_mask, hand_mask_from_keypoints
+from graspcap.tasks.hand.image_masks import grow_mask, hand_mask_from_keypoints
 from graspcap.tasks.object_pose.registration.depth_agreement import image_box
 
 OUTSIDE_WINDOW = "outside the steady window"

@@ -12,7 +12,7 @@ import pytest
 
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, pose_error, rotation_error_deg
-from graspcap.tasks.object_pose.adjustment_region import hand_mask_from_keypoints
+from graspcap.tasks.hand.image_masks import hand_mask_from_keypoints
 from graspcap.tasks.object_pose.estimate_adjustment import AdjustmentPath, estimate_adjustment
 from graspcap.tasks.object_pose.register_object import PRESETS as OBJECT_PRESETS
 from graspcap.tasks.object_pose.register_object import register_object
