@@ -147,7 +147,8 @@ def test_images_without_a_session_folder_say_why(mixed, tmp_path):
     with pytest.raises(gc.CatalogError, match=want):
         gc.GraspDataset(cat, images="paths", valid_only=False)[0]
     with pytest.raises(gc.CatalogError, match=want):
-        cat.session(IDS[0]).image_filenames(0)
+        view = cat.session(IDS[0])
+        view.image_filenames(view.frames[0])
 
 
 def test_collate_batches_items_of_different_objects(mixed):
