@@ -200,3 +200,34 @@ def test_torch_dataloader_with_workers(mixed):
     assert first["sessions"]["object_vertices"].shape[-1] == 3
     assert len(first["sessions"]["session_id"]) == len(set(first["session_id"]))
     np.testing.assert_array_equal(first["T_c_o"][5].numpy(), ds[5]["T_c_o"])
+
+
+def test_distorted_images_come_in_the_ideal_pinhole_image_of_K(synth_root, tmp_path):
+    from graspcap.catalog.session_view import SessionSource
+    from graspcap.tasks.core.camera import Camera
+
+    sid = sorted(p.name for p in synth_root.iterdir() if (p / "session.json").is_file())[0]
+    m = _manifest(synth_root, sid)
+    m["color_camera"]["dist"] = [-0.12, 0.03, 0.0, 0.0, 0.0]
+    root = tmp_path / sid
+    frame = 10
+    for kind in ("color", "depth"):  # only the files this test reads
+        rel = m["grasp"][kind].format(index=frame)
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_bytes((synth_root / sid / rel).read_bytes())
+    (root / "session.json").write_text(json.dumps(m))
+    source = SessionSource.find(sid, "b1", root, 1)
+    color_file, depth_file = source.image_filenames(frame)
+    raw_rgb = cv2.imread(str(color_file))[..., ::-1]
+    raw_depth = cv2.imread(str(depth_file), cv2.IMREAD_UNCHANGED)
+    camera = Camera(np.array(m["color_camera"]["K"]), np.array(m["color_camera"]["dist"]),
+                    640, 480)
+    color, depth = source.color(frame), source.depth(frame)
+    assert color.shape == raw_rgb.shape and not np.array_equal(color, raw_rgb)
+    np.testing.assert_array_equal(color, camera.undistort_image(np.ascontiguousarray(raw_rgb),
+                                                                nearest=False))
+    np.testing.assert_array_equal(depth, camera.undistort_image(raw_depth).astype(np.float32)
+                                  * np.float32(m["depth_scale_m"]))
+    np.testing.assert_array_equal(source.dist, m["color_camera"]["dist"])
+    with pytest.raises(IndexError, match=f"session '{sid}': frame 40 outside the video's 0..39"):
+        source.image_filenames(40)
