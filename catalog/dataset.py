@@ -158,7 +158,10 @@ class GraspDataset:
         self.version = self._catalog.resolve(version)
         self.unit = Unit(unit)
         self.valid_only = valid_only
-        self.images = Images({True: "decoded", False: "none"}.get(images, images))
+        choice = {True: "decoded", False: "none"}.get(images, images)
+        if choice not in set(Images):
+            raise ValueError(f"GraspDataset(images={images!r}): one of True, False, 'paths'")
+        self.images = Images(choice)
         if self.images is not Images.NONE and self.unit is not Unit.FRAMES:
             raise ValueError(f"GraspDataset(images={images!r}): images are per frame; "
                              "use unit='frames'")
@@ -270,11 +273,12 @@ class GraspDataset:
         return item
 
     def _source(self, session_id: str) -> SessionSource:
-        sources = self._load()["sources"]
+        state = self._load()
+        sources = state["sources"]
         if session_id not in sources:
-            if "dirs" not in self._load():
-                self._load()["dirs"] = session_dirs(self._catalog, self.version)
-            build_id, root = self._load()["dirs"][session_id]
+            if "dirs" not in state:  # the builds table, read once per process
+                state["dirs"] = session_dirs(self._catalog, self.version)
+            build_id, root = state["dirs"][session_id]
             sources[session_id] = SessionSource.find(session_id, build_id, root, self.version)
         return sources[session_id]
 

@@ -85,6 +85,8 @@ def test_image_items_decode_the_recorded_session_files(warm, synth_root):
     assert batch["K"].shape == (3, 3, 3) and batch["color_path"][2] == items[1]["color_path"]
     with pytest.raises(ValueError, match="images are per frame"):
         gc.GraspDataset(catalog, unit="sessions", images=True)
+    with pytest.raises(ValueError, match=r"images='rgb'\): one of True, False, 'paths'"):
+        gc.GraspDataset(catalog, images="rgb")
 
 
 def test_session_view_is_contactpose_shaped(warm, synth_root):
