@@ -147,13 +147,15 @@ class GraspDataset:
         are not filtered by it.
     images : False, True (= "decoded") or "paths": the frame's images in frame items (see
         the module docstring); needs ``unit="frames"`` and the session folders.
+    session_root : where the session folders are now, when they moved since the build: each
+        is looked up under it by its recorded folder's name (None: where the build read it).
     """
 
     def __init__(self, catalog: Catalog | str | Path, version: int | str | None = None,
                  unit: str = "frames", status: tuple[str, ...] = ("ok",),
                  objects: list[str] | None = None, participants: list[str] | None = None,
                  intents: list[str] | None = None, valid_only: bool = True,
-                 images: bool | str = False):
+                 images: bool | str = False, session_root: str | Path | None = None):
         self._catalog = catalog if isinstance(catalog, Catalog) else open_catalog(catalog)
         self.version = self._catalog.resolve(version)
         self.unit = Unit(unit)
@@ -162,6 +164,7 @@ class GraspDataset:
         if choice not in set(Images):
             raise ValueError(f"GraspDataset(images={images!r}): one of True, False, 'paths'")
         self.images = Images(choice)
+        self.session_root = None if session_root is None else str(session_root)
         if self.images is not Images.NONE and self.unit is not Unit.FRAMES:
             raise ValueError(f"GraspDataset(images={images!r}): images are per frame; "
                              "use unit='frames'")
@@ -277,7 +280,7 @@ class GraspDataset:
         sources = state["sources"]
         if session_id not in sources:
             if "dirs" not in state:  # the builds table, read once per process
-                state["dirs"] = session_dirs(self._catalog, self.version)
+                state["dirs"] = session_dirs(self._catalog, self.version, self.session_root)
             build_id, root = state["dirs"][session_id]
             sources[session_id] = SessionSource.find(session_id, build_id, root, self.version)
         return sources[session_id]
@@ -312,7 +315,7 @@ class GraspDataset:
     def session(self, session_id: str) -> SessionView:
         """The ContactPose-style view of ``session_id`` at the dataset's version
         (``Catalog.session``)."""
-        return SessionView(self._catalog, session_id, self.version)
+        return SessionView(self._catalog, session_id, self.version, self.session_root)
 
     def session_qa(self, session_id: str) -> dict[str, Any]:
         """``status``, ``qa_flags`` and ``qa_notes`` of a session of the dataset: why QA flagged

@@ -8,7 +8,8 @@ that folder's ``session.json`` (its ``grasp.color`` / ``grasp.depth`` patterns o
 index, ``color_camera``, ``depth_scale_m``). So the session folders must still exist at the
 path the build read them from for anything here that touches an image or the intrinsics; a
 missing folder, manifest or file is an error naming the session, the build and the path.
-Files are not re-hashed against the row's ``input_digest``.
+Sessions moved since the build: ``session_root=`` names a folder that now holds them, each
+under its recorded folder's name. Files are not re-hashed against the row's ``input_digest``.
 
 Images come in the ideal pinhole image of ``K`` (the frame every stage's geometry works in):
 with a non-zero ``color_camera.dist`` they are resampled (``Camera.undistort_image``: colour
@@ -37,10 +38,12 @@ if TYPE_CHECKING:
 MANIFEST = "session.json"
 
 
-def session_dirs(catalog: Catalog, version: int) -> dict[str, tuple[str, Path | None]]:
+def session_dirs(catalog: Catalog, version: int, session_root: str | Path | None = None
+                 ) -> dict[str, tuple[str, Path | None]]:
     """``{session_id: (build_id, session folder or None)}`` of every session of ``version``:
     the folder the build that wrote the session's row read it from (None where that build
-    recorded none, e.g. a catalog committed without ``graspcap build``)."""
+    recorded none, e.g. a catalog committed without ``graspcap build``); with
+    ``session_root``, the folder of that name under it instead (sessions moved since)."""
     recorded: dict[str, dict[str, str]] = {}
     for row in catalog.table("builds", version).select(
             ["build_id", "parameters_json"]).to_pylist():
@@ -54,6 +57,8 @@ def session_dirs(catalog: Catalog, version: int) -> dict[str, tuple[str, Path | 
     out = {}
     for row in catalog.table("sessions", version).select(["session_id", "build_id"]).to_pylist():
         folder = recorded.get(row["build_id"], {}).get(row["session_id"])
+        if folder is not None and session_root is not None:
+            folder = Path(session_root) / Path(folder).name
         out[row["session_id"]] = (row["build_id"], None if folder is None else Path(folder))
     return out
 
@@ -79,7 +84,9 @@ class SessionSource:
         path = root / MANIFEST
         if not path.is_file():
             raise CatalogError(f"{where}: {path} is missing; images are read from the session "
-                               "folder the build read, which must still exist at that path")
+                               "folder the build read, which must still exist at that path "
+                               "(moved sessions: pass session_root=, the folder now holding "
+                               "them)")
         try:
             manifest = SessionManifest.model_validate(json.loads(path.read_text("utf-8")))
         except (ValueError, OSError) as exc:  # pydantic's ValidationError is a ValueError
@@ -154,9 +161,11 @@ class SessionView:
     module docstring). Units: metres, pixels; ``T_a_b`` maps b into a.
     """
 
-    def __init__(self, catalog: Catalog, session_id: str, version: int | str | None = None):
+    def __init__(self, catalog: Catalog, session_id: str, version: int | str | None = None,
+                 session_root: str | Path | None = None):
         self.version = catalog.resolve(version)
         self.session_id = session_id
+        self._session_root = session_root
         self._catalog = catalog
         catalog._session_row(session_id, self.version)  # KeyError naming the version
         frames = catalog.table("frames", self.version, columns=[
@@ -174,7 +183,8 @@ class SessionView:
     @cached_property
     def source(self) -> SessionSource:
         """The session's folder and manifest (read on first use)."""
-        build_id, root = session_dirs(self._catalog, self.version)[self.session_id]
+        build_id, root = session_dirs(self._catalog, self.version,
+                                      self._session_root)[self.session_id]
         return SessionSource.find(self.session_id, build_id, root, self.version)
 
     def _i(self, frame: int) -> int:

@@ -233,3 +233,25 @@ def test_distorted_images_come_in_the_ideal_pinhole_image_of_K(synth_root, tmp_p
     np.testing.assert_array_equal(source.dist, m["color_camera"]["dist"])
     with pytest.raises(IndexError, match=f"session '{sid}': frame 40 outside the video's 0..39"):
         source.image_filenames(40)
+
+
+def test_moved_session_folders_are_found_under_session_root(warm, synth_root, tmp_path):
+    catalog, _ = warm
+    moved = tmp_path / "moved"
+    for folder in synth_root.iterdir():
+        if (folder / "session.json").is_file():  # the manifest is all "paths" reads
+            (moved / folder.name).mkdir(parents=True)
+            (moved / folder.name / "session.json").write_bytes(
+                (folder / "session.json").read_bytes())
+    ds = gc.GraspDataset(catalog, images="paths", session_root=moved)
+    item = ds[len(ds) - 1]
+    sid, frame = item["session_id"], int(item["frame"])
+    m = _manifest(synth_root, sid)
+    assert item["color_path"] == str(moved / sid / m["grasp"]["color"].format(index=frame))
+    view = gc.open(catalog).session(sid, session_root=moved)
+    assert view.image_filenames(frame)[1] == moved / sid / m["grasp"]["depth"].format(index=frame)
+    assert ds.session(sid).image_filenames(frame) == view.image_filenames(frame)
+    with pytest.raises(gc.CatalogError, match=f"{tmp_path / 'empty' / sid / 'session.json'} is "
+                       "missing; .* pass session_root="):
+        gc.GraspDataset(catalog, images="paths",
+                        session_root=tmp_path / "empty").session(sid).image_filenames(frame)
