@@ -9,6 +9,7 @@ Contract (columns, encodings, Zarr layout, format version): ``graspcap.schemas.t
 """
 
 from graspcap.catalog.arrays import DamagedArrayError
+from graspcap.catalog.collate import collate_fn
 from graspcap.catalog.commit import BuildCommit, BuildInfo, ObjectMesh, SessionArrays
 from graspcap.catalog.dataset import GraspDataset
 from graspcap.catalog.errors import (
@@ -24,5 +25,5 @@ from graspcap.catalog.vacuum import VacuumReport
 __all__ = [
     "BuildCommit", "BuildInfo", "Catalog", "CatalogError", "CatalogFormatError",
     "CatalogLockTimeout", "CatalogSchemaError", "DamagedArrayError", "GraspDataset",
-    "ObjectMesh", "SessionArrays", "VacuumReport", "VersionNotFound", "open",
+    "ObjectMesh", "SessionArrays", "VacuumReport", "VersionNotFound", "collate_fn", "open",
 ]

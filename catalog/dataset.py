@@ -14,6 +14,20 @@ its depth contradicts is left out; ``valid_only=False`` keeps every frame (the r
 the items' ``*_reason`` columns). The dataset pickles as its catalog root, pinned version
 and item keys; tables and arrays are opened lazily in whichever process indexes it, so it works
 with a torch ``DataLoader`` with workers.
+
+Arrays in items are writable. A frame's or session's row values are the item's own copies; the
+session arrays (meshes, contact map, refined hand: ``collate.SESSION_ARRAYS``) are read once
+per session and process and shared by that session's items (copy one before changing it in
+place); ``mesh_id`` names the object mesh (its digest: :meth:`GraspDataset.mesh`).
+:func:`graspcap.catalog.collate.collate_fn` batches items of any objects, session arrays once
+per session of the batch.
+
+``images=True`` adds each frame item's colour and depth frame, decoded, with its files and
+intrinsics (``images="paths"``: without decoding), read from the session folder the build
+recorded (``graspcap.catalog.session_view``: the folder must still exist):
+``color`` (h, w, 3) uint8 RGB, ``depth`` (h, w) float32 metres (0: no reading), ``K`` (3, 3),
+``image_size`` (2,) int64 (width, height), ``color_path``, ``depth_path`` (absolute paths as
+str; ``color_path`` is "" for a session without a colour video).
 """
 
 from __future__ import annotations
@@ -27,7 +41,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from graspcap.catalog.arrays import DamagedArrayError
+from graspcap.catalog.arrays import DamagedArrayError, read_group
+from graspcap.catalog.session_view import SessionSource, SessionView, session_dirs
 from graspcap.catalog.store import Catalog
 from graspcap.catalog.store import open as open_catalog
 from graspcap.schemas.tables import FRAMES_SCHEMA, SESSIONS_SCHEMA, Status
@@ -38,6 +53,16 @@ class Unit(StrEnum):
 
     FRAMES = "frames"
     SESSIONS = "sessions"
+
+
+class Images(StrEnum):
+    """What frame items carry of the frame's images (``GraspDataset(images=...)``)."""
+
+    NONE = "none"
+    PATHS = "paths"
+    """Files, ``K`` and image size, no decoding."""
+    DECODED = "decoded"
+    """Also the decoded ``color`` and ``depth``."""
 
 
 class SplitKey(StrEnum):
@@ -57,6 +82,11 @@ _CACHE_SESSIONS = 64
 _CACHE_MESHES = 64
 """Object meshes kept per process, by digest (sessions of one object usually share one; with
 a mesh per session, an unbounded cache would hold every session's)."""
+
+
+def _own(value: Any) -> Any:
+    """``value`` as the item's own, writable object (a copy of an array row)."""
+    return value.copy() if isinstance(value, np.ndarray) else value
 
 
 def _shape(field: pa.Field) -> tuple[int, ...] | None:
@@ -115,16 +145,29 @@ class GraspDataset:
     valid_only : frame items only from frames none of whose :data:`VALIDITY_FLAGS` is False
         (True or null: see the module docstring); False keeps every frame. Sessions as items
         are not filtered by it.
+    images : False, True (= "decoded") or "paths": the frame's images in frame items (see
+        the module docstring); needs ``unit="frames"`` and the session folders.
+    session_root : where the session folders are now, when they moved since the build: each
+        is looked up under it by its recorded folder's name (None: where the build read it).
     """
 
     def __init__(self, catalog: Catalog | str | Path, version: int | str | None = None,
                  unit: str = "frames", status: tuple[str, ...] = ("ok",),
                  objects: list[str] | None = None, participants: list[str] | None = None,
-                 intents: list[str] | None = None, valid_only: bool = True):
+                 intents: list[str] | None = None, valid_only: bool = True,
+                 images: bool | str = False, session_root: str | Path | None = None):
         self._catalog = catalog if isinstance(catalog, Catalog) else open_catalog(catalog)
         self.version = self._catalog.resolve(version)
         self.unit = Unit(unit)
         self.valid_only = valid_only
+        choice = {True: "decoded", False: "none"}.get(images, images)
+        if choice not in set(Images):
+            raise ValueError(f"GraspDataset(images={images!r}): one of True, False, 'paths'")
+        self.images = Images(choice)
+        self.session_root = None if session_root is None else str(session_root)
+        if self.images is not Images.NONE and self.unit is not Unit.FRAMES:
+            raise ValueError(f"GraspDataset(images={images!r}): images are per frame; "
+                             "use unit='frames'")
         sessions = every = self._catalog.table("sessions", self.version)
         for col, allowed in (("status", status), ("object_id", objects),
                              ("participant", participants), ("intent", intents)):
@@ -178,7 +221,7 @@ class GraspDataset:
             scols = _columns(sessions.select(_SESSION_FIELDS), SESSIONS_SCHEMA)
             srow = {s: i for i, s in enumerate(scols["session_id"])}
             state = {"sessions": scols, "srow": srow, "arrays": OrderedDict(),
-                     "objects": OrderedDict()}
+                     "objects": OrderedDict(), "sources": {}}
             if self.unit is Unit.FRAMES:
                 frames = self._frames_table()
                 state["frames"] = _columns(frames.drop_columns(["build_id"]), FRAMES_SCHEMA)
@@ -210,6 +253,8 @@ class GraspDataset:
         arrays = {"contact": contact, "contact_observed": observed, "hand_vertices": hand_v,
                   "hand_faces": hand_f, "hand_joints_o": joints,
                   "object_vertices": obj_v, "object_faces": obj_f}
+        arrays = {k: a if a.flags.writeable else np.array(a) for k, a in arrays.items()}
+        arrays["mesh_id"] = digest
         cache[session_id] = arrays
         if len(cache) > _CACHE_SESSIONS:
             cache.popitem(last=False)
@@ -222,11 +267,55 @@ class GraspDataset:
         state = self._load()
         session_id, _ = self._keys[index]
         i = state["srow"][session_id]
-        item = {name: col[i] for name, col in state["sessions"].items()}
+        item = {name: _own(col[i]) for name, col in state["sessions"].items()}
         if self.unit is Unit.FRAMES:
-            item.update({name: col[index] for name, col in state["frames"].items()})
+            item.update({name: _own(col[index]) for name, col in state["frames"].items()})
         item.update(self._session_arrays(session_id))
+        if self.images is not Images.NONE:
+            item.update(self._images(session_id, int(item["frame"])))
         return item
+
+    def _source(self, session_id: str) -> SessionSource:
+        state = self._load()
+        sources = state["sources"]
+        if session_id not in sources:
+            if "dirs" not in state:  # the builds table, read once per process
+                state["dirs"] = session_dirs(self._catalog, self.version, self.session_root)
+            build_id, root = state["dirs"][session_id]
+            sources[session_id] = SessionSource.find(session_id, build_id, root, self.version)
+        return sources[session_id]
+
+    def _images(self, session_id: str, frame: int) -> dict[str, Any]:
+        source = self._source(session_id)
+        color, depth = source.image_filenames(frame)
+        out = {"K": source.K, "image_size": source.image_size,
+               "color_path": "" if color is None else str(color), "depth_path": str(depth)}
+        if self.images is Images.DECODED:
+            out["color"] = source.color(frame)
+            out["depth"] = source.depth(frame)
+        return out
+
+    def session_arrays(self, session_id: str) -> dict[str, Any]:
+        """The arrays every item of ``session_id`` shares (``collate.SESSION_ARRAYS``) and its
+        ``mesh_id``; shared with the items, so copy an array before changing it in place."""
+        if session_id not in self._session_meta:
+            raise KeyError(f"session {session_id!r} is not in this dataset (catalog version "
+                           f"{self.version}, {len(self.session_ids)} sessions)")
+        return dict(self._session_arrays(session_id))
+
+    def mesh(self, mesh_id: str) -> tuple[np.ndarray, np.ndarray]:
+        """The object mesh ``mesh_id`` (an item's ``mesh_id``): vertices (n, 3) float32 in the
+        object frame (m), faces (m, 3) int32."""
+        objects = self._load()["objects"]
+        if mesh_id not in objects:
+            g = read_group(self._catalog.layout, mesh_id, ("vertices", "faces"))
+            return g["vertices"], g["faces"]
+        return objects[mesh_id]
+
+    def session(self, session_id: str) -> SessionView:
+        """The ContactPose-style view of ``session_id`` at the dataset's version
+        (``Catalog.session``)."""
+        return SessionView(self._catalog, session_id, self.version, self.session_root)
 
     def session_qa(self, session_id: str) -> dict[str, Any]:
         """``status``, ``qa_flags`` and ``qa_notes`` of a session of the dataset: why QA flagged

@@ -335,6 +335,17 @@ class Catalog:
         g = read_group(self.layout, digest, ("vertices", "faces"))
         return g["vertices"], g["faces"]
 
+    def session(self, session_id: str, version: int | str | None = None, *,
+                session_root: str | Path | None = None):
+        """A ContactPose-style view of one session (``object_pose(frame)``, ``hand_joints``,
+        ``K``, ``P``, ``projected_hand_joints``, ``image_filenames``, ``frames``):
+        :class:`graspcap.catalog.session_view.SessionView`. Images and intrinsics are read from
+        the session folder the build recorded, which must still exist (or, moved, be under
+        ``session_root`` by its folder name)."""
+        from graspcap.catalog.session_view import SessionView
+
+        return SessionView(self, session_id, version, session_root)
+
     # writing ----------------------------------------------------------------------------
     def commit(self, build: BuildCommit) -> int:
         """Commit ``build`` as the next version, atomically; return its number."""
