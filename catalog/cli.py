@@ -4,8 +4,9 @@ line.
 ``add_catalog_parser(subparsers, vacuum_work)`` adds the ``catalog`` command to graspcap's
 parser. Every subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL;
 before or after the subcommand's name), prints text for a person or ``--json`` for a
-script, and exits 2 with the catalog's message on a catalog error (missing version or tag, older format, a damaged file: one line per problem, never a
-traceback). Prefect-free, like every catalog reader.
+script, and exits 2 with the catalog's message on a catalog error (missing version or tag,
+older format, a damaged file: one line per problem, never a traceback). Prefect-free, like
+every catalog reader.
 """
 
 from __future__ import annotations
