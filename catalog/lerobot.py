@@ -18,7 +18,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
-from graspcap.catalog.stats import _Accumulator
+from graspcap.catalog.stats import Accumulator
 
 CODEBASE_VERSION = "v3.0"
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
@@ -98,7 +98,7 @@ def _feature_stats(data: pa.Table, feats: dict[str, dict]) -> dict[str, dict]:
     out = {}
     for name, spec in feats.items():
         width = spec["shape"][0]
-        acc = _Accumulator(width)
+        acc = Accumulator(width)
         for chunk in data.column(name).chunks:
             values = chunk.flatten() if pa.types.is_fixed_size_list(chunk.type) else chunk
             acc.update(values.to_numpy(zero_copy_only=False).reshape(-1, width))

@@ -32,7 +32,7 @@ _UV = ["u", "v"]
 
 
 @dataclass
-class _Accumulator:
+class Accumulator:
     """Per-dimension running count, mean, M2, min, max; values kept for the percentiles."""
 
     dims: int
@@ -162,7 +162,7 @@ def _chunks(table: pa.Table | pa.RecordBatch, column: str) -> Iterable[pa.Array]
 def column_stats(table: pa.Table, q: Quantity) -> dict:
     """One entry of ``stats.json`` for quantity ``q`` of ``table``."""
     dims = len(q.names) if q.names else 1
-    acc = _Accumulator(dims)
+    acc = Accumulator(dims)
     for chunk in _chunks(table, q.column):
         if pa.types.is_boolean(chunk.type):
             chunk = pc.cast(chunk, pa.int8())
@@ -199,7 +199,7 @@ def array_stats(kind: str, table: pa.Table, units: dict[str, str]) -> dict[str, 
         q = Quantity(f.name, f.name, names, units.get(f.name, ""),
                      "per coordinate over every group's rows" if names else
                      "over every group's elements (bool as 0/1)")
-        acc = _Accumulator(k)
+        acc = Accumulator(k)
         for chunk in _chunks(table, f.name):
             flat = chunk.flatten()
             while pa.types.is_fixed_size_list(flat.type) or pa.types.is_list(flat.type):
