@@ -97,12 +97,6 @@ class SessionSource:
                                "folder was replaced after the build")
         return cls(session_id, root, manifest)
 
-    @cached_property
-    def _session(self):
-        from graspcap.tasks.session.load_session import Session  # readers, path checks
-
-        return Session(root=self.root.resolve(), manifest=self.manifest)
-
     @property
     def K(self) -> np.ndarray:
         """``(3, 3) float64``: the colour (and aligned depth) camera's intrinsics, pixels."""
@@ -136,15 +130,37 @@ class SessionSource:
         if path is None:
             raise CatalogError(f"session {self.session_id!r}: {self.root / MANIFEST} has no "
                                "grasp.color (the session gave keypoints instead of video)")
-        bgr = self._session.read_color(path.relative_to(self.root))
-        rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-        return self._session.color_camera.undistort_image(rgb, nearest=False)
+        rgb = cv2.cvtColor(self._read(path, cv2.IMREAD_COLOR, np.uint8), cv2.COLOR_BGR2RGB)
+        return self._ideal(rgb, nearest=False)
 
     def depth(self, frame: int) -> np.ndarray:
         """``(h, w) float32`` metres of grasp frame ``frame`` (0: no reading), in the ideal
         pinhole image of ``K``."""
         _, path = self.image_filenames(frame)
-        return self._session.read_depth_m(path.relative_to(self.root))
+        raw = self._read(path, cv2.IMREAD_UNCHANGED, np.uint16)
+        depth = raw.astype(np.float32) * np.float32(self.manifest.depth_scale_m)
+        return self._ideal(depth, nearest=True)
+
+    def _read(self, path: Path, flags: int, dtype: type) -> np.ndarray:
+        image = cv2.imread(str(path), flags) if path.is_file() else None
+        if image is None or image.dtype != dtype:
+            what = "missing or unreadable" if image is None else f"{image.dtype}, not {dtype}"
+            raise CatalogError(f"session {self.session_id!r}: {path} is {what}")
+        return image
+
+    def _ideal(self, image: np.ndarray, *, nearest: bool) -> np.ndarray:
+        """``image`` resampled into the ideal pinhole image of ``K`` (``dist`` undone), as the
+        pipeline's stages read it (``tasks/core/camera.py``, which the catalog does not
+        import: the same ``cv2.initUndistortRectifyMap`` with ``newCameraMatrix = K``); as is
+        when ``dist`` is zero. ``nearest`` for depth (no values blended across an edge)."""
+        dist = self.dist
+        if not np.any(dist):
+            return image
+        K = self.K
+        h, w = image.shape[:2]
+        map_x, map_y = cv2.initUndistortRectifyMap(K, dist, None, K, (w, h), cv2.CV_32FC1)
+        return cv2.remap(image, map_x, map_y, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
 def _rows(column, shape: tuple[int, ...]) -> np.ndarray:
