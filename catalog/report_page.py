@@ -258,6 +258,24 @@ COLOURS = {"fail": "#d62728", "flag": "#ff9f1a", "bar": "#4c78a8", "axis": "#444
            "median": "#4c78a8"}
 
 
+def _svg_head(width: int, height: int, title: str, heading: str) -> list[str]:
+    """The opening of a plot: the element, its tooltip title and its visible heading
+    (``heading`` is HTML already escaped)."""
+    return [f'<svg class="plot" width="{width}" height="{height}" '
+            f'viewBox="0 0 {width} {height}" role="img">',
+            f'<title>{_e(title)}</title>', heading]
+
+
+def _padded_range(values: list[float], pad_share: float) -> tuple[float, float]:
+    """(lo, hi) covering ``values``, widened when they are all equal, padded by
+    ``pad_share`` of the span on each side."""
+    lo, hi = min(values), max(values)
+    if hi - lo < 1e-12:
+        lo, hi = lo - (abs(lo) * 0.1 or 1.0), hi + (abs(hi) * 0.1 or 1.0)
+    pad = (hi - lo) * pad_share
+    return lo - pad, hi + pad
+
+
 def histogram_svg(m: QaMetric, values: list[float], limits: Mapping[str, float | None],
                   width: int = 320, height: int = 170, bins: int = 12) -> str:
     """An inline SVG histogram of ``values`` with the flag (amber) and fail (red) limits as
@@ -266,20 +284,14 @@ def histogram_svg(m: QaMetric, values: list[float], limits: Mapping[str, float |
     span = values + marks
     left, right, top, bottom = 36, 10, 22, 30
     pw, ph = width - left - right, height - top - bottom
-    parts = [f'<svg class="plot" width="{width}" height="{height}" '
-             f'viewBox="0 0 {width} {height}" role="img">',
-             f'<title>{_e(m.label)}: histogram over the sessions</title>',
-             f'<text x="{left}" y="14" class="ptitle">{_e(m.label)}'
-             f'{" (" + _e(m.unit) + ")" if m.unit else ""}'
-             f'{" ↑ worse" if m.higher_is_worse else " ↓ worse"}</text>']
+    parts = _svg_head(width, height, f"{m.label}: histogram over the sessions",
+                      f'<text x="{left}" y="14" class="ptitle">{_e(m.label)}'
+                      f'{" (" + _e(m.unit) + ")" if m.unit else ""}'
+                      f'{" ↑ worse" if m.higher_is_worse else " ↓ worse"}</text>')
     if not span:
         parts.append(f'<text x="{left}" y="{top + ph / 2}">no values</text></svg>')
         return "".join(parts)
-    lo, hi = min(span), max(span)
-    if hi - lo < 1e-12:
-        lo, hi = lo - (abs(lo) * 0.1 or 1.0), hi + (abs(hi) * 0.1 or 1.0)
-    pad = (hi - lo) * 0.05
-    lo, hi = lo - pad, hi + pad
+    lo, hi = _padded_range(span, 0.05)
     width_bin = (hi - lo) / bins
     counts = [0] * bins
     for x in values:
@@ -325,21 +337,15 @@ def versions_svg(m: QaMetric, medians: Mapping[int, float], current: int,
     version ringed, the current limits dashed."""
     left, right, top, bottom = 44, 10, 22, 26
     pw, ph = width - left - right, height - top - bottom
-    parts = [f'<svg class="plot" width="{width}" height="{height}" '
-             f'viewBox="0 0 {width} {height}" role="img">',
-             f'<title>{_e(m.label)}: median per version</title>',
-             f'<text x="{left}" y="14" class="ptitle">{_e(m.label)}: median per version'
-             '</text>']
+    parts = _svg_head(width, height, f"{m.label}: median per version",
+                      f'<text x="{left}" y="14" class="ptitle">{_e(m.label)}: median per '
+                      'version</text>')
     if not medians:
         parts.append(f'<text x="{left}" y="{top + ph / 2}">no values</text></svg>')
         return "".join(parts)
     vs = sorted(medians)
-    ys = [medians[v] for v in vs] + [x for x in limits.values() if x is not None]
-    lo, hi = min(ys), max(ys)
-    if hi - lo < 1e-12:
-        lo, hi = lo - (abs(lo) * 0.1 or 1.0), hi + (abs(hi) * 0.1 or 1.0)
-    pad = (hi - lo) * 0.08
-    lo, hi = lo - pad, hi + pad
+    lo, hi = _padded_range([medians[v] for v in vs]
+                           + [x for x in limits.values() if x is not None], 0.08)
     v0, v1 = vs[0], max(vs[-1], vs[0] + 1)
 
     def sx(v: float) -> float:
