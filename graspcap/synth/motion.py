@@ -18,6 +18,7 @@ from scipy.ndimage import uniform_filter1d
 from scipy.spatial.transform import Rotation
 
 from graspcap.synth.config import CaptureConfig, SynthConfig
+from graspcap.synth.rig import smoothstep
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import make_T
 
@@ -207,9 +208,9 @@ def wild_motion(
             Ms = np.empty((n_frames, 4, 4))
             for i, tau in enumerate(taus):
                 if tau <= turn_at:
-                    angle = first * _ease(tau / turn_at)
+                    angle = first * smoothstep(tau / turn_at)
                 else:
-                    angle = first + (back - first) * _ease((tau - turn_at) / (1 - turn_at))
+                    angle = first + (back - first) * smoothstep((tau - turn_at) / (1 - turn_at))
                 rotvec = np.radians(angle) * axis + np.radians(
                     (wobble * np.sin(np.pi * tau)) @ wobble_axes)
                 shift = shrink * shift_dir * np.sin(np.pi * shift_freq * tau)
@@ -221,7 +222,3 @@ def wild_motion(
     raise StageError("synth", f"no motion turning the hand {lo:g}-{hi:g} deg stays in view and "
                      f"above the table in {2 * MOTION_DRAWS} draws")
 
-
-def _ease(x: float) -> float:
-    x = min(max(x, 0.0), 1.0)
-    return x * x * (3 - 2 * x)
