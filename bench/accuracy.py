@@ -28,8 +28,8 @@ from graspcap.synth.evaluate import (
     confusion_markdown,
     estimate_from_results,
     evaluate,
-    good_session,
     load_truth,
+    misses,
     qa_confusion,
 )
 from graspcap.tasks.core.errors import StageError
@@ -126,9 +126,10 @@ def run(profile: str, sessions: int, frames: tuple[int, ...], root: Path, seed: 
             continue
         verdicts[r["verdict"]] += 1
         session_metrics, t = r["metrics"], r["timings"]
-        good, why = good_session(session_metrics)
+        missed = misses(session_metrics)
+        good, why = not missed, "; ".join(text for _, text in missed)
         judged.append((good, r["verdict"]))
-        not_good.update(w.split(" ")[0] for w in why.split("; ") if w)
+        not_good.update(q for q, _ in missed)
         for k, v in session_metrics.items():
             metrics[k].append(v)
         off = [k for k, lim in OFF_LIMITS.items() if session_metrics.get(k, 0.0) > lim]

@@ -40,7 +40,7 @@ from graspcap.synth.evaluate import (
     confusion_markdown,
     estimate_from_results,
     evaluate,
-    good_session,
+    misses,
     qa_confusion,
 )
 from graspcap.tasks.core.errors import StageError
@@ -128,9 +128,11 @@ def collect(out: Path, counts: dict[str, int], frames: tuple[int, ...], fresh: b
 def row(d: Path, profile: str, length: int, results: dict[str, Any], error: str | None
         ) -> dict[str, Any]:
     truth = evaluate(d, estimate_from_results(results))
-    good, why = good_session(truth, error)
+    missed = misses(truth, error)
     out: dict[str, Any] = {"session": d.name, "profile": profile, "frames": length,
-                           "label": "good" if good else "not good", "not_good_because": why}
+                           "label": "not good" if missed else "good",
+                           "not_good_because": "; ".join(text for _, text in missed),
+                           "missed": "; ".join(q for q, _ in missed)}
     if error:
         out |= {"verdict": "failed", "reasons": f"stage error: {error}"}
     else:
@@ -150,28 +152,15 @@ def _line(r: dict[str, Any]) -> str:
             f"{r['reasons'][:150]}")
 
 
-def _causes(rows: list[dict[str, Any]]) -> Counter:
-    """Why the sessions are not good: the quantity out of tolerance, or "stage failed"."""
-    out: Counter = Counter()
-    for r in rows:
-        why = r["not_good_because"]
-        if r["label"] == "good":
-            continue
-        if why.startswith("stage failed"):
-            out["stage failed"] += 1
-            continue
-        out.update(w.split(" ")[0] for w in why.split("; ") if w)
-    return out
-
-
 def summary(rows: list[dict[str, Any]]) -> None:
     for profile in sorted({r["profile"] for r in rows}):
         mine = [r for r in rows if r["profile"] == profile]
         print(f"\n### {profile}: {len(mine)} sessions\n")
         print(confusion_markdown(qa_confusion([(r["label"] == "good", r["verdict"])
                                                for r in mine])))
+        missed = Counter(q for r in mine for q in r["missed"].split("; ") if q)
         print("\nnot good because (sessions per quantity; a session may count twice): "
-              + ", ".join(f"{k} {n}" for k, n in _causes(mine).most_common()))
+              + ", ".join(f"{k} {n}" for k, n in missed.most_common()))
         stages = Counter(r["reasons"].removeprefix("stage error: ").split(":")[0]
                          for r in mine if r["reasons"].startswith("stage error: "))
         flags = Counter(re.split(r" [-\d.]+", f)[0] for r in mine if r["verdict"] != "ok"

@@ -289,24 +289,32 @@ are medians over the session's frames, ``contact_near_hand_refined`` the share o
 contacted vertices within 3 mm of that hand."""
 
 
-def good_session(errors: Mapping[str, float], stage_error: str | None = None
-                 ) -> tuple[bool, str]:
-    """(whether the session is good by :data:`GOOD_IF`, why not): a session a stage refused
-    is not good, nor one missing a quantity (it could not be measured)."""
+def misses(errors: Mapping[str, float], stage_error: str | None = None
+           ) -> list[tuple[str, str]]:
+    """Why a session is not good by :data:`GOOD_IF`, as (quantity, reason) pairs; empty when
+    it is good. A session a stage refused misses ``("stage failed", ...)``; a quantity that
+    could not be measured is a miss too."""
     if stage_error:
-        return False, f"stage failed: {stage_error}"
+        return [("stage failed", f"stage failed: {stage_error}")]
     errors = dict(errors)
     final = errors.get("refined_joints_mm", errors.get("fit_joints_mm"))
     if final is not None:
         errors["final_joints_mm"] = final
-    why = []
+    out = []
     for name, (limit, op) in GOOD_IF.items():
         value = errors.get(name)
         if value is None or not np.isfinite(value):
-            why.append(f"{name} not measured")
+            out.append((name, f"{name} not measured"))
         elif not (value <= limit if op == "<=" else value >= limit):
-            why.append(f"{name} {value:.2f} (good {op} {limit:g})")
-    return not why, "; ".join(why)
+            out.append((name, f"{name} {value:.2f} (good {op} {limit:g})"))
+    return out
+
+
+def good_session(errors: Mapping[str, float], stage_error: str | None = None
+                 ) -> tuple[bool, str]:
+    """(whether the session is good by :data:`GOOD_IF`, why not): :func:`misses` joined."""
+    why = misses(errors, stage_error)
+    return not why, "; ".join(text for _, text in why)
 
 
 def qa_confusion(rows: list[tuple[bool, str]]) -> dict[str, Any]:
