@@ -33,6 +33,8 @@ from graspcap.tasks.hand.mesh import sphere_hull, tapered_capsule
 MODEL_VERSION = "hand_model/1"
 _EYE4 = np.eye(4)
 _EYE4.setflags(write=False)
+_ONES20 = np.ones(20)
+_ONES20.setflags(write=False)
 
 FINGERS = ("thumb", "index", "middle", "ring", "little")
 ANGLE_NAMES: tuple[str, ...] = tuple(
@@ -162,6 +164,13 @@ to the skin: the radius of the hand surface there. Multiply by ``scale``."""
 SURFACE_OFFSET_M.setflags(write=False)
 
 
+TEMPLATE_BONE_LENGTHS_M = np.concatenate(
+    [np.linalg.norm(_BASE_M, axis=1)[:, None], _SEGMENT_LENGTH_M], axis=1
+).reshape(20)
+"""(20,) Bone lengths at scale 1 and unit ``bone_scale``, metres, ``SKELETON`` order."""
+TEMPLATE_BONE_LENGTHS_M.setflags(write=False)
+
+
 class HandSide(StrEnum):
     """Which hand; the left is the right mirrored in the palm frame's x."""
 
@@ -200,16 +209,32 @@ def _check_angles(angles: np.ndarray) -> np.ndarray:
     return angles
 
 
-def _keypoints_palm(angles: np.ndarray) -> np.ndarray:
-    """Right-hand keypoints (b, 21, 3) in the palm frame at scale 1 for angles (b, 20)."""
+def check_bone_scale(bone_scale: np.ndarray | None) -> np.ndarray:
+    """(20,) per-bone length factors (``SKELETON`` order); ``None`` is the template (ones)."""
+    if bone_scale is None:
+        return _ONES20
+    bone_scale = np.asarray(bone_scale, dtype=float)
+    if bone_scale.shape != (20,) or not np.all(np.isfinite(bone_scale)) or np.any(bone_scale <= 0):
+        raise ValueError(f"bone_scale must be (20,) positive finite factors, got {bone_scale!r}")
+    return bone_scale
+
+
+def _keypoints_palm(angles: np.ndarray, bone_scale: np.ndarray | None = None) -> np.ndarray:
+    """Right-hand keypoints (b, 21, 3) in the palm frame at scale 1 for angles (b, 20).
+
+    ``bone_scale`` (20,) multiplies each bone's template length, in ``SKELETON`` order (bone
+    ``k - 1`` ends at keypoint ``k``): per finger the wrist-to-base vector (the palm's
+    proportions) and the three segments."""
     b = len(angles)
     a = angles.reshape(b, 5, 4)
+    f = check_bone_scale(bone_scale).reshape(5, 4)
+    base = _BASE_M * f[:, :1]
     phi = np.cumsum(a[:, :, 1:], axis=2)  # (b, 5, 3) accumulated flexion
-    local = _directions(a[:, :, :1], phi) * _SEGMENT_LENGTH_M[None, :, :, None]
+    local = _directions(a[:, :, :1], phi) * (_SEGMENT_LENGTH_M * f[:, 1:])[None, :, :, None]
     chain = np.cumsum(local @ _BASE_RT, axis=2)  # (b, 5, 3, 3) palm-frame bone vectors summed
     fingers = np.empty((b, 5, 4, 3))
-    fingers[:, :, 0] = _BASE_M
-    fingers[:, :, 1:] = _BASE_M[None, :, None] + chain
+    fingers[:, :, 0] = base
+    fingers[:, :, 1:] = base[None, :, None] + chain
     points = np.zeros((b, 21, 3))
     points[:, 1:] = fingers.reshape(b, 20, 3)
     return points
@@ -292,19 +317,29 @@ class HandModel:
     # --- keypoints ----------------------------------------------------------------------
 
     def keypoints_batch(
-        self, angles: np.ndarray, T_w_p: np.ndarray = _EYE4, scale: float = 1.0
+        self,
+        angles: np.ndarray,
+        T_w_p: np.ndarray = _EYE4,
+        scale: float = 1.0,
+        bone_scale: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Keypoints (b, 21, 3) in the world for angles (b, 20); one ``T_w_p`` and ``scale``."""
+        """Keypoints (b, 21, 3) in the world for angles (b, 20); one ``T_w_p``, ``scale`` and
+        ``bone_scale`` ((20,) per-bone length factors on top of ``scale``, ``SKELETON``
+        order; None = the template's proportions)."""
         angles = np.asarray(angles, dtype=float)
         if angles.ndim != 2 or angles.shape[1] != 20:
             raise ValueError(f"angles must be (b, 20), got {angles.shape}")
-        return self._to_world(_keypoints_palm(angles), T_w_p, scale)
+        return self._to_world(_keypoints_palm(angles, bone_scale), T_w_p, scale)
 
     def keypoints(
-        self, angles: np.ndarray, T_w_p: np.ndarray = _EYE4, scale: float = 1.0
+        self,
+        angles: np.ndarray,
+        T_w_p: np.ndarray = _EYE4,
+        scale: float = 1.0,
+        bone_scale: np.ndarray | None = None,
     ) -> np.ndarray:
         """Keypoints (21, 3) in the world, in ``KEYPOINT_NAMES`` order."""
-        return self.keypoints_batch(_check_angles(angles)[None], T_w_p, scale)[0]
+        return self.keypoints_batch(_check_angles(angles)[None], T_w_p, scale, bone_scale)[0]
 
     def _to_world(self, points_p: np.ndarray, T_w_p: np.ndarray, scale: float) -> np.ndarray:
         """Right-hand palm-frame points (..., 3) -> mirrored if left, scaled, into the world."""
@@ -376,5 +411,5 @@ def _mesh_template() -> HandMesh:
 __all__ = [
     "ANGLE_NAMES", "FINGERS", "FINGERTIPS", "KEYPOINT_NAMES", "KEYPOINT_PARENTS", "MODEL_VERSION",
     "PART_BONES", "RIGID_PALM_POINTS", "SKELETON", "SURFACE_OFFSET_M", "Capsules", "HandMesh",
-    "HandModel", "HandSide",
+    "TEMPLATE_BONE_LENGTHS_M", "HandModel", "HandSide", "check_bone_scale",
 ]  # fmt: skip

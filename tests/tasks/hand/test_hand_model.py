@@ -351,3 +351,21 @@ def test_mesh_is_rigidly_transformed(model):
         transform_points(T_w_p, scale * model.mesh(angles).vertices),
         atol=1e-12,
     )
+
+
+def test_bone_scale_changes_exactly_its_bone_lengths():
+    """Per-bone factors multiply the matching parent-to-child distances (straight fingers,
+    where a bone length is the keypoint distance) and no other; None is the template."""
+    from graspcap.tasks.hand.model import SKELETON, TEMPLATE_BONE_LENGTHS_M
+
+    model = HandModel(HandSide.LEFT)
+    angles = model.rest_angles()
+    factors = np.linspace(0.85, 1.15, 20)
+    kp0 = model.keypoints(angles, scale=1.0)
+    kp = model.keypoints(angles, scale=1.0, bone_scale=factors)
+    lengths = lambda p: np.array([np.linalg.norm(p[c] - p[a]) for a, c in SKELETON])  # noqa: E731
+    np.testing.assert_allclose(lengths(kp0), TEMPLATE_BONE_LENGTHS_M, atol=1e-12)
+    np.testing.assert_allclose(lengths(kp), TEMPLATE_BONE_LENGTHS_M * factors, atol=1e-12)
+    np.testing.assert_array_equal(model.keypoints(angles, bone_scale=np.ones(20)), kp0)
+    with pytest.raises(ValueError, match="bone_scale"):
+        model.keypoints(angles, bone_scale=np.ones(19))
