@@ -187,3 +187,34 @@ def _signal_group(proc: subprocess.Popen, sig: int) -> None:
         os.killpg(proc.pid, sig)
     except ProcessLookupError:
         pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tests.browser URL OUT.png``: a screenshot of a page (how
+    ``docs/report_page.png`` is made), as a 256-colour PNG to keep it small."""
+    import argparse
+    import io
+
+    from PIL import Image
+
+    ap = argparse.ArgumentParser(description=main.__doc__)
+    ap.add_argument("url")
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--width", type=int, default=1280)
+    ap.add_argument("--height", type=int, default=900)
+    ap.add_argument("--full", action="store_true", help="the whole page's height")
+    ap.add_argument("--wait", default="", help="text to wait for before the screenshot")
+    args = ap.parse_args(argv)
+    with HeadlessChromium(width=args.width, height=args.height) as browser:
+        browser.open(args.url)
+        if args.wait:
+            browser.wait_for_text(args.wait)
+        png = browser.screenshot(full_page=args.full)
+    image = Image.open(io.BytesIO(png)).convert("RGB").quantize(colors=256)
+    image.save(args.out, optimize=True)
+    print(f"{args.out}: {image.width} x {image.height}, {args.out.stat().st_size} bytes")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -172,3 +172,27 @@ def test_serve_shows_the_builds_runs_and_logs_in_a_real_browser(warm, synth_root
     port = int(ui.rsplit(":", 1)[1])
     with socket.socket() as s:  # the supervised server is gone with it
         assert s.connect_ex(("127.0.0.1", port)) != 0
+
+
+def test_the_report_page_opens_from_disk_in_a_real_browser(warm):
+    """The build's report page in headless Chromium from ``file://``: every session's row and
+    every picture loads (no server; the test of the page's HTML is tests/report_html.py)."""
+    binary, why = find_chromium()
+    if binary is None:
+        pytest.skip(why)
+    catalog, report = warm
+    page = Path(report.report_page)
+    with HeadlessChromium(binary) as browser:
+        browser.open(page.as_uri())
+        text = browser.wait_for_text("Sessions of version 1", timeout_s=60)
+        for sid in report.added:
+            assert sid in text
+        images = browser.evaluate(  # the thumbnails load lazily: load each now, wait for it
+            "Promise.all(Array.from(document.images).map(i => { i.loading = 'eager'; "
+            "return i.decode().then(() => [true, i.naturalWidth, i.getAttribute('src')], "
+            "() => [false, 0, i.getAttribute('src')]); }))")
+        assert images, "no pictures on the page"
+        broken = [src for loaded, width, src in images if not (loaded and width > 0)]
+        assert broken == [], broken
+        png = browser.screenshot()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
