@@ -206,6 +206,16 @@ def server_env(host: str, port: int, environ: dict[str, str] | None = None) -> d
     return env
 
 
+def _die_with_parent() -> None:
+    """In the server's child process (Linux): SIGTERM when the process that started it dies,
+    even by SIGKILL, so no server outlives ``graspcap serve``."""
+    import ctypes
+    import signal
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 @contextlib.contextmanager
 def local_server(port: int | None = None, timeout_s: float = 180.0,
                  log_file: Path | None = None) -> Iterator[str]:
@@ -218,7 +228,8 @@ def local_server(port: int | None = None, timeout_s: float = 180.0,
     proc = subprocess.Popen(
         [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1",
          "--port", str(port)], stdout=log, stderr=subprocess.STDOUT,
-        env=server_env("127.0.0.1", port), start_new_session=True)
+        env=server_env("127.0.0.1", port), start_new_session=True,
+        preexec_fn=_die_with_parent if sys.platform == "linux" else None)
     try:
         deadline = time.monotonic() + timeout_s
         while True:

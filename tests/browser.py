@@ -68,7 +68,8 @@ class HeadlessChromium:
     def __enter__(self) -> HeadlessChromium:
         from websockets.sync.client import connect
 
-        self._profile = tempfile.TemporaryDirectory(prefix="graspcap-chromium-")
+        self._profile = tempfile.TemporaryDirectory(prefix="graspcap-chromium-",
+                                                    ignore_cleanup_errors=True)
         profile = Path(self._profile.name)
         self._proc = subprocess.Popen(
             [self.binary, "--headless", "--no-sandbox", "--disable-gpu",
@@ -105,6 +106,10 @@ class HeadlessChromium:
             except subprocess.TimeoutExpired:
                 _signal_group(self._proc, signal.SIGKILL)
                 self._proc.wait()
+            deadline = time.monotonic() + 10  # the group's last members, still writing the
+            while _signal_group(self._proc, 0) and time.monotonic() < deadline:  # profile
+                time.sleep(0.1)
+            _signal_group(self._proc, signal.SIGKILL)
             self._proc = None
         if self._profile is not None:
             self._profile.cleanup()
@@ -181,12 +186,14 @@ class HeadlessChromium:
         return base64.b64decode(self.send("Page.captureScreenshot", **params)["data"])
 
 
-def _signal_group(proc: subprocess.Popen, sig: int) -> None:
-    """``sig`` to the process group ``proc`` leads (started with ``start_new_session``)."""
+def _signal_group(proc: subprocess.Popen, sig: int) -> bool:
+    """``sig`` to the process group ``proc`` leads (started with ``start_new_session``);
+    False when the group has no process left (``sig`` 0 only asks)."""
     try:
         os.killpg(proc.pid, sig)
+        return True
     except ProcessLookupError:
-        pass
+        return False
 
 
 def main(argv: list[str] | None = None) -> int:
