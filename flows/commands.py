@@ -262,6 +262,12 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
         watcher = RunWatcher(api, f"{build_flow.name}/{name}", work / "builds.jsonl",
                              when, sys.stdout)
         watcher.start()
+        import warnings
+
+        # Prefect's SIGTERM handler calls the runner's async stop without awaiting it (the
+        # runner stops all the same): its RuntimeWarning asks nothing of the user
+        warnings.filterwarnings("ignore", "coroutine 'Runner.astop' was never awaited",
+                                RuntimeWarning)
         try:
             prefect_serve(deployment, print_starting_message=False)
         except KeyboardInterrupt:
