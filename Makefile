@@ -16,11 +16,18 @@ export MKL_NUM_THREADS ?= 1
 help:  ## List the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-11s %s\n", $$1, $$2}'
 
-system-libs:  ## Install the system libraries the wheels need (Open3D: libusb-1.0)
+system-libs:  ## Install the system libraries the wheels need (Open3D: libusb-1.0) and, where apt can, chromium-headless-shell (browser tests)
 	@if ! ldconfig -p | grep -q 'libusb-1.0.so.0'; then \
 		echo "installing libusb-1.0-0 (needed by Open3D)"; \
 		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+	@if ! command -v chromium-headless-shell >/dev/null && ! command -v chromium >/dev/null; then \
+		echo "installing chromium-headless-shell (the browser tests; they skip without it)"; \
+		SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+		{ $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq --no-install-recommends \
+			chromium-headless-shell >/dev/null; } \
+		|| echo "chromium-headless-shell not installed: the browser tests will be skipped"; \
 	fi
 
 $(STAMP): pyproject.toml constraints.txt

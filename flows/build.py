@@ -194,15 +194,25 @@ def _input_digest(work: WorkArea, session_dir: Path) -> str:
         return hashlib.sha256(b"missing files").hexdigest()
 
 
-def _watch(submitted: Mapping[str, Mapping[str, Any]], session_ids: Mapping[str, str]) -> None:
-    """Wait for every task, reporting each as it finishes (``flows/progress.py``), the stages
-    settled without a task first; ``session_ids`` by session directory, as in ``submitted``."""
+def _watch(submitted: Mapping[str, Mapping[str, Any]], session_ids: Mapping[str, str],
+           log: logging.Logger | logging.LoggerAdapter | None = None) -> None:
+    """Wait for every task, reporting each as it finishes (``flows/progress.py``) and in the
+    run's log (``log``, INFO: one line per stage), the stages settled without a task first;
+    ``session_ids`` by session directory, as in ``submitted``."""
     tracker = Tracker({session_ids[d]: len(f) for d, f in submitted.items()})
+
+    def finished(sid: str, stage: str, state: str) -> None:
+        event = tracker.finished(sid, stage, state)
+        if log is not None:
+            log.info("%s: %s %s (task %d/%d%s)", sid, stage, state, event.done, event.total,
+                     f"; session {event.sessions_done}/{event.sessions_total} done"
+                     if event.session_done else "")
+
     owner: dict[Any, list[tuple[str, str]]] = {}
     for d, futures in submitted.items():
         for name, fut in futures.items():
             if isinstance(fut, Settled):
-                tracker.finished(session_ids[d], name, fut.state)
+                finished(session_ids[d], name, fut.state)
             else:
                 key = fut.future if isinstance(fut, InSession) else fut
                 owner.setdefault(key, []).append((session_ids[d], name))
@@ -212,8 +222,8 @@ def _watch(submitted: Mapping[str, Mapping[str, Any]], session_ids: Mapping[str,
         value = state.result(raise_on_failure=False) if state.is_completed() else None
         for sid, name in owner[fut]:  # a session task (Dask) says how each stage ended
             inner = value.get(name) if isinstance(value, dict) else None
-            tracker.finished(sid, name, inner.state if isinstance(inner, Settled)
-                             else state.name or state.type.value)
+            finished(sid, name, inner.state if isinstance(inner, Settled)
+                     else state.name or state.type.value)
 
 
 def _outcome(fut: Any) -> tuple[str, Any, str | None]:
@@ -306,7 +316,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                                         replay_failures=not retry_failed, settle=True,
                                         per_session=per_session)
                  for d, sid in zip(dirs, ids, strict=True) if str(d) not in duplicate}
-    _watch(submitted, {str(d): sid for d, sid in zip(dirs, ids, strict=True)})
+    log = _run_log()
+    _watch(submitted, {str(d): sid for d, sid in zip(dirs, ids, strict=True)}, log)
     outcomes = {d: _stage_outcomes(f) for d, f in submitted.items()}
     # the stored result each stage used, by session (`catalog vacuum --work` keeps them)
     used = {sid: {name: ref.key for name, ref in outcomes[str(d)][0].items()}
@@ -428,6 +439,9 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
               "preset": preset, "retry_failed": retry_failed, "work": str(work.root),
               "configs": {n: json.loads(c.canonical_json()) for n, c in configs.items()},
               "not_sessions": [str(p) for p in found.not_sessions]}
+    run = FlowRunContext.get()
+    if run is not None and getattr(run, "flow_run", None) is not None:
+        params["flow_run_id"] = str(run.flow_run.id)  # the Prefect run (UI) of this build
     seconds = {"discover": t_discover - t0, "run": t_run - t_discover, "rows": t_rows - t_run}
     draft = BuildReport(build_id, None, previous, tuple(reports), seconds, params)
     new_version = None
@@ -452,8 +466,24 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     report = BuildReport(build_id, new_version, previous, tuple(reports), seconds, params)
     report = dataclasses.replace(report, report_page=_report_page(cat, report))
     _log_build(work, {**report.record(), "keys": used})
-    _qa_artifact(report, rows)
+    _qa_artifact(cat, report)
+    if log is not None:
+        for s in report.sessions:
+            if s.outcome == Outcome.FAILED:
+                log.info("%s failed%s: %s", s.session_id,
+                            f" in {s.failed_stage}" if s.failed_stage else "", s.error)
+        log.info("%s", report.summary())
     return report
+
+
+def _run_log() -> logging.Logger | logging.LoggerAdapter | None:
+    """The flow run's logger (lines in the run's log in Prefect's UI), None outside a run."""
+    try:
+        from prefect.logging import get_run_logger
+
+        return get_run_logger()
+    except Exception:  # noqa: BLE001 - MissingContextError: called as a plain function
+        return None
 
 
 def _session_id(session_dir: Path) -> str:
@@ -529,20 +559,52 @@ def _report_page(cat: gc.Catalog, report: BuildReport) -> str | None:
         return None
 
 
-def _qa_artifact(report: BuildReport, rows: list[dict]) -> None:
-    """The build's QA summary as a Prefect table artifact (shows in the UI with a server)."""
+QA_ARTIFACT_KEY = "graspcap-build-qa"
+
+
+def qa_table(cat: gc.Catalog, report: BuildReport) -> list[dict[str, Any]]:
+    """The build's QA table: one row per session of the build, every row with the same
+    columns (Prefect's UI takes them from the first row): the outcome, status and error, the
+    flag reasons (``qa_flags``) and notes (``qa_notes``) joined by ``"; "``, and every
+    ``qa_*`` metric column, as the version the build made (else the catalog's latest) holds
+    them; empty where a session has no row (a failure with none written) or no value."""
+    from graspcap.schemas.qa import qa_columns
+
+    metrics = [m.column for m in qa_columns()]
+    version = report.catalog_version if report.catalog_version is not None \
+        else cat.latest_version()
+    stored: dict[str, dict] = {}
+    if version is not None:
+        table = cat.table("sessions", version=version)
+        wanted = [c for c in ("session_id", "qa_flags", "qa_notes", *metrics)
+                  if c in table.column_names]
+        stored = {r["session_id"]: r for r in table.select(wanted).to_pylist()}
+    out = []
+    for s in report.sessions:
+        row = stored.get(s.session_id, {})
+        item: dict[str, Any] = {
+            "session": s.session_id, "outcome": str(s.outcome), "status": s.status or "",
+            "ran": len(s.ran), "cached": len(s.cached), "error": s.error or "",
+            "flags": "; ".join(row.get("qa_flags") or ()),
+            "qa_notes": "; ".join(row.get("qa_notes") or ())}
+        for column in metrics:
+            value = row.get(column)
+            item[column] = None if isinstance(value, float) and value != value else value
+        out.append(item)
+    return out
+
+
+def _qa_artifact(cat: gc.Catalog, report: BuildReport) -> None:
+    """The build's QA table (:func:`qa_table`) as a Prefect table artifact (shows in the UI
+    with a server), described by the build's summary."""
     try:
         from prefect.artifacts import create_table_artifact
 
-        by_id = {r["session_id"]: r for r in rows}
-        table = [{"session": s.session_id, "outcome": str(s.outcome), "status": s.status,
-                  "ran": len(s.ran), "cached": len(s.cached), "error": s.error or "",
-                  **{k: v for k, v in by_id.get(s.session_id, {}).items()
-                     if k.startswith("qa_")}} for s in report.sessions]
-        create_table_artifact(table, key="graspcap-build-qa",
+        create_table_artifact(qa_table(cat, report), key=QA_ARTIFACT_KEY,
                               description=report.summary().replace("\n", "  \n"))
-    except Exception:  # noqa: BLE001 - an artifact is feedback, never a reason to fail
-        pass
+    except Exception as exc:  # noqa: BLE001 - an artifact is feedback, never a reason to fail
+        logging.getLogger(__name__).warning("build %s: QA artifact not made: %s: %s",
+                                            report.build_id, type(exc).__name__, exc)
 
 
 def build_dataset(roots: Sequence[Path | str], catalog: Path | str, preset: str = "default", *,

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import sys
 import time
 import traceback
@@ -217,14 +218,20 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
     ``cron`` or ``interval_s`` is :data:`EXIT_USAGE`, one line, before anything starts.
 
     ``serve`` refuses Prefect's ephemeral API, so without ``PREFECT_API_URL`` a local Prefect
-    server is started on 127.0.0.1 (database under the catalog's work area), supervised, and
-    stopped when this returns (Ctrl-C).
+    server is started on 127.0.0.1 (database: the one ``graspcap build`` uses, under the
+    catalog's work area, so its UI lists the earlier builds too), its UI calling its own API,
+    supervised and stopped when this returns (Ctrl-C). Once the deployment is registered it
+    prints the UI and API addresses and a ``prefect deployment run`` command that works pasted
+    in another shell; then one line per finished run (:func:`run_line`). The runs log each
+    stage to the API (level INFO unless ``PREFECT_LOGGING_LEVEL`` is set; the console shows
+    warnings only).
     """
     from contextlib import nullcontext
 
     from graspcap.flows.runtime import local_server, schedule_problem
 
     work = Path(catalog).expanduser().resolve() / "work"
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "INFO")  # the runs' logs, in the UI
     env = configure(work, create=False)
     problem = schedule_problem(cron, interval_s)
     if problem is not None:  # before anything is made or started
@@ -233,11 +240,14 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
     if "PREFECT_HOME" in env:
         Path(env["PREFECT_HOME"]).mkdir(parents=True, exist_ok=True)
     own = "PREFECT_API_URL" not in os.environ
+    # Ctrl-C stops the server even when a shell started this in the background (which
+    # ignores SIGINT for its children)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     server = local_server(log_file=work / "prefect-server.log") if own else nullcontext(None)
     with server as url:
         if url:
             os.environ["PREFECT_API_URL"] = url
-            print(f"Prefect server (UI and API) at {url.removesuffix('/api')}", flush=True)
+        api = os.environ["PREFECT_API_URL"]
         from prefect import serve as prefect_serve
 
         from graspcap.flows.build import build_flow
@@ -248,8 +258,125 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
         # one is still going waits instead of redoing the same cold work beside it
         deployment = build_flow.to_deployment(
             name=name, cron=cron, interval=interval_s, parameters=params, concurrency_limit=1)
+        when = f"cron {cron!r}" if cron is not None else f"every {interval_s:g} s"
+        watcher = RunWatcher(api, f"{build_flow.name}/{name}", work / "builds.jsonl",
+                             when, sys.stdout)
+        watcher.start()
+        import warnings
+
+        # Prefect's SIGTERM handler calls the runner's async stop without awaiting it (the
+        # runner stops all the same): its RuntimeWarning asks nothing of the user
+        warnings.filterwarnings("ignore", "coroutine 'Runner.astop' was never awaited",
+                                RuntimeWarning)
         try:
-            prefect_serve(deployment, print_starting_message=True)
+            prefect_serve(deployment, print_starting_message=False)
         except KeyboardInterrupt:
             pass
+        finally:
+            watcher.stop()
     return 0
+
+
+def serve_banner(api_url: str, deployment: str, when: str) -> str:
+    """What ``graspcap serve`` prints once its deployment is registered: the UI and API
+    addresses and a command that starts a build now from any shell (the API named in it)."""
+    import shlex
+
+    ui = api_url.rstrip("/").removesuffix("/api")
+    run = (f"PREFECT_API_URL={shlex.quote(api_url)} {shlex.quote(sys.executable)} -m prefect "
+           f"deployment run {shlex.quote(deployment)}")
+    return "\n".join([
+        f"Prefect UI:  {ui}  (the builds' flow runs: {ui}/runs)",
+        f"Prefect API: {api_url}",
+        f"serving {deployment} ({when}); Ctrl-C stops it",
+        "run a build now, from another shell:",
+        f"  {run}"])
+
+
+def run_line(run_name: str, state: str, message: str | None, record: dict | None) -> str:
+    """One line for a finished flow run of ``graspcap serve``: the build's outcome from its
+    record (``builds.jsonl``: version made, sessions added / changed / unchanged / failed,
+    the report page), else Prefect's state and message (a run that wrote no record)."""
+    head = f"[{time.strftime('%H:%M:%S')}] run {run_name} {state}"
+    if record is None:
+        return f"{head}: {(message or 'no build record').splitlines()[0]}"
+    s = record["summary"]
+    if record.get("error"):
+        return f"{head}: build {record['build_id']} FAILED, nothing committed: " \
+               f"{str(record['error']).splitlines()[0]}"
+    version = record.get("catalog_version")
+    made = (f"catalog version {version}" if version is not None
+            else f"no new version (still {record.get('previous_version')})")
+    failed = "".join(f"; FAILED {sid}: {why.splitlines()[0] if why else ''}"
+                     for sid, why in s["failed"].items())
+    page = f"; report {record['report_page']}" if record.get("report_page") else ""
+    return (f"{head}: build {record['build_id']}: {made}: {len(s['added'])} added, "
+            f"{len(s['changed'])} changed, {len(s['unchanged'])} unchanged, "
+            f"{len(s['failed'])} failed{failed}{page}")
+
+
+class RunWatcher:
+    """A thread beside ``prefect.serve``: waits until the deployment is registered, prints
+    :func:`serve_banner`, then one :func:`run_line` per flow run of the deployment that
+    reaches a final state (runs already final when it starts are not repeated)."""
+
+    FINAL = ("COMPLETED", "FAILED", "CRASHED", "CANCELLED")
+
+    def __init__(self, api_url: str, deployment: str, builds_log: Path, when: str,
+                 out, poll_s: float = 2.0):
+        import threading
+
+        self.api_url, self.deployment, self.builds_log = api_url, deployment, builds_log
+        self.when, self.out, self.poll_s = when, out, poll_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="graspcap-serve-runs",
+                                        daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+    def _say(self, text: str) -> None:
+        print(text, file=self.out, flush=True)
+
+    def _run(self) -> None:
+        from prefect.client.orchestration import get_client
+        from prefect.client.schemas.filters import (
+            DeploymentFilter,
+            DeploymentFilterId,
+            FlowRunFilter,
+            FlowRunFilterState,
+            FlowRunFilterStateType,
+        )
+        from prefect.client.schemas.objects import StateType
+
+        deployment_id = None
+        seen: set[str] | None = None
+        while not self._stop.is_set():
+            try:
+                with get_client(sync_client=True) as client:
+                    if deployment_id is None:
+                        deployment_id = client.read_deployment_by_name(self.deployment).id
+                        self._say(serve_banner(self.api_url, self.deployment, self.when))
+                    runs = client.read_flow_runs(
+                        deployment_filter=DeploymentFilter(id=DeploymentFilterId(
+                            any_=[deployment_id])),
+                        flow_run_filter=FlowRunFilter(state=FlowRunFilterState(
+                            type=FlowRunFilterStateType(any_=[StateType(t)
+                                                              for t in self.FINAL]))))
+            except Exception:  # noqa: BLE001 - not registered yet, or the API busy: poll again
+                self._stop.wait(self.poll_s)
+                continue
+            new = [r for r in runs if seen is not None and str(r.id) not in seen]
+            seen = (seen or set()) | {str(r.id) for r in runs}
+            if new:
+                records = {str((rec.get("parameters") or {}).get("flow_run_id")): rec
+                           for rec in _build_records(self.builds_log)[0]}
+                for r in sorted(new, key=lambda r: r.end_time or r.created):
+                    state = r.state.name if r.state else "?"
+                    self._say(run_line(r.name, state, r.state.message if r.state else None,
+                                       records.get(str(r.id))))
+            self._stop.wait(self.poll_s)

@@ -8,7 +8,13 @@ run otherwise pays ~1 s joining the heartbeat thread), the ephemeral API gets 12
 a loaded machine, logs are quiet (WARNING), the ephemeral server sends no analytics and the
 client none either (``DO_NOT_TRACK=1``: without it Prefect prints its telemetry notice on a
 terminal the first time it runs in a new home, that is in every new catalog, across the build's
-progress bars). Every setting the user put in the environment wins.
+progress bars). Prefect's console handler shows warnings only (``graspcap build`` draws its
+own progress), whatever level reaches the API; the ``graspcap`` loggers reach the run's log
+(``PREFECT_LOGGING_EXTRA_LOGGERS``). Every setting the user put in the environment wins.
+
+``graspcap serve``'s supervised server (:func:`local_server`) gets its own address as the
+address its UI calls (``PREFECT_UI_API_URL``; Prefect's default is 127.0.0.1:4200 whatever
+port the server listens on) and no promotional banners.
 
 :func:`configure` must run before ``prefect`` is imported (the CLI does it first thing).
 """
@@ -32,6 +38,9 @@ DEFAULTS = {
     "PREFECT_SERVER_LOGGING_LEVEL": "CRITICAL",
     "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
     "DO_NOT_TRACK": "1",
+    "PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL": "WARNING",
+    "PREFECT_LOGGING_EXTRA_LOGGERS": "graspcap",
+    "PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW": "ignore",  # a graspcap log outside a run
 }
 
 
@@ -176,18 +185,51 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+UI_API_URL_KEYS = ("PREFECT_UI_API_URL", "PREFECT_SERVER_UI_API_URL")
+"""Where a user may have named the API the UI calls (a proxy in front of the server)."""
+
+
+def server_env(host: str, port: int, environ: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment of a supervised ``prefect server start --host HOST --port PORT``:
+    ``environ`` (default ``os.environ``) with the server's own API address as the one its UI
+    calls (unless the user named one), the same host and port as Prefect's settings (what
+    ``prefect`` commands and the server's own services read), telemetry and the UI's
+    promotional content off unless set."""
+    env = dict(os.environ if environ is None else environ)
+    if not any(key in env for key in UI_API_URL_KEYS):
+        env["PREFECT_UI_API_URL"] = f"http://{host}:{port}/api"
+    env["PREFECT_SERVER_API_HOST"] = host
+    env["PREFECT_SERVER_API_PORT"] = str(port)
+    for key, value in {"PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
+                       "PREFECT_SERVER_UI_SHOW_PROMOTIONAL_CONTENT": "false"}.items():
+        env.setdefault(key, value)
+    return env
+
+
+def _die_with_parent() -> None:
+    """In the server's child process (Linux): SIGTERM when the process that started it dies,
+    even by SIGKILL, so no server outlives ``graspcap serve``."""
+    import ctypes
+    import signal
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 @contextlib.contextmanager
 def local_server(port: int | None = None, timeout_s: float = 180.0,
                  log_file: Path | None = None) -> Iterator[str]:
-    """Run ``prefect server start`` on 127.0.0.1 as a child process until the block exits;
-    yields its API URL once ``/api/health`` answers."""
+    """Run ``prefect server start`` on 127.0.0.1 as a child process until the block exits
+    (environment: :func:`server_env`, so its UI calls this server's API); yields its API URL
+    once ``/api/health`` answers."""
     port = port or free_port()
     url = f"http://127.0.0.1:{port}/api"
     log = open(log_file, "ab") if log_file else subprocess.DEVNULL  # noqa: SIM115
     proc = subprocess.Popen(
         [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1",
-         "--port", str(port)], stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ),
-        start_new_session=True)
+         "--port", str(port)], stdout=log, stderr=subprocess.STDOUT,
+        env=server_env("127.0.0.1", port), start_new_session=True,
+        preexec_fn=_die_with_parent if sys.platform == "linux" else None)
     try:
         deadline = time.monotonic() + timeout_s
         while True:

@@ -435,6 +435,22 @@ def test_progress_reports_every_task_and_the_qa_artifact_is_made(warm, synth_roo
     assert sorted(r["session"] for r in table) == sorted(ids)
     assert all(r["outcome"] == "unchanged" and r["cached"] == len(STAGES) for r in table)
     assert report.build_id in latest.description
+    # every session (unchanged ones too) with every qa_* value and the flag reasons, every
+    # row with the same columns (the UI takes them from the first row)
+    from graspcap.schemas.qa import qa_columns
+
+    metrics = [m.column for m in qa_columns()]
+    assert all(list(r) == list(table[0]) for r in table)
+    assert {"flags", "qa_notes", *metrics} <= set(table[0])
+    stored = {r["session_id"]: r for r in gc.open(catalog).table("sessions").to_pylist()}
+    for r in table:
+        row = stored[r["session"]]
+        assert r["status"] == row["status"]
+        assert r["flags"] == "; ".join(row["qa_flags"] or ())
+        for m in metrics:
+            v = row[m]
+            assert r[m] == (None if isinstance(v, float) and v != v else v), m
+    assert any(r[m] is not None for r in table for m in metrics)
 
 
 def test_console_progress_draws_bars_on_a_terminal():
