@@ -20,7 +20,7 @@ it (short bones, which noisy joints measure poorly, stay near the template).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
@@ -138,10 +138,8 @@ class HandFit:
     at_limit : (20,) bool
         Angles within ``at_limit_tol_deg`` of a joint limit.
     bone_scale : (20,) float
-        The hand's shape: per-bone length factors on top of ``scale`` (``hand.shape``; ones
-        when not estimated).
-    shape_check : ShapeCheck
-        The shape against the anatomical prior (``hand.shape.check_shape``).
+        The hand's shape: per-bone length factors on top of ``scale`` (``hand.shape``; ones,
+        the default, when not estimated).
     """
 
     side: HandSide
@@ -153,8 +151,12 @@ class HandFit:
     rmse_mm: float
     palm_rmse_mm: float
     at_limit: np.ndarray
-    bone_scale: np.ndarray
-    shape_check: ShapeCheck
+    bone_scale: np.ndarray = field(default_factory=lambda: np.ones(20))
+
+    @property
+    def shape_check(self) -> ShapeCheck:
+        """The shape against the anatomical prior (``hand.shape.check_shape``)."""
+        return check_shape(self.bone_scale)
 
     @property
     def bone_lengths_m(self) -> np.ndarray:
@@ -378,7 +380,6 @@ def fit_hand(
         palm_rmse_mm=palm_rmse_mm,
         at_limit=at_limit,
         bone_scale=bone_scale,
-        shape_check=check_shape(bone_scale),
     )
 
 
