@@ -14,7 +14,12 @@ per session and as medians:
   ``graspcap.synth.evaluate`` measures it (the accuracy bench's ``fit_joints_mm``);
 - ``capacity_mm``: the same fits to the *true* joints (moved into the estimate's frame): what
   the model itself cannot take, without the SfM's error;
-- ``bone_err_pct``: RMS relative error of the fitted hand's 20 bone lengths against the truth's.
+- ``pa_mm``: mean joint error of the fitted hand against the truth after the best similarity
+  (Umeyama): the hand's shape and pose alone, without the SfM's global error (camera, scale);
+- ``noisy_pa_mm``: ``pa_mm`` of the fits to the true joints plus Gaussian noise of
+  ``--noise-mm`` per coordinate (seeded by the session): an SfM at the issue's target accuracy;
+- ``bone_err_pct``: RMS relative error of the fitted hand's 20 bone lengths against the truth's
+  (includes the SfM's scale error).
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import numpy as np
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import _anchor, _mpjpe_mm, load_truth
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.core.geometry import inv_T, transform_points
+from graspcap.tasks.core.geometry import inv_T, transform_points, umeyama
 from graspcap.tasks.hand.fit_hand import PRESETS, fit_hand
 from graspcap.tasks.hand.model import SKELETON, HandSide
 from graspcap.tasks.pipeline import SESSION_STAGE, STAGES, configs_for, run_stage
@@ -78,7 +83,17 @@ def collect(profile: str, seed: int, sessions: int, frames: int, cache: Path) ->
             print(out.name, "ok", flush=True)
 
 
-def _score(z, estimate_shape: bool, oracle: bool) -> tuple[float, float]:
+def _pa_mm(est: np.ndarray, truth: np.ndarray) -> float:
+    T, s = umeyama(est, truth)
+    return 1e3 * float(np.linalg.norm(transform_points(T, s * est) - truth, axis=1).mean())
+
+
+SHAPE_NOISE_MM: float | None = None
+"""``--shape-noise-mm``: fit_hand's ``shape_noise_mm`` for the shape fits (None: its default)."""
+
+
+def _score(z, estimate_shape: bool, oracle: bool, noise_mm: float = 0.0, seed: int = 0
+           ) -> tuple[float, float, float]:
     truth = {"joints_w": z["truth_joints_w"], "T_w_c": z["truth_T_w_c"],
              "steady_from": int(z["truth_steady_from"])}
     steady = int(z["steady_from"])
@@ -87,17 +102,22 @@ def _score(z, estimate_shape: bool, oracle: bool) -> tuple[float, float]:
     if oracle:  # the true joints in the estimate's world (through the anchor camera)
         T_c_w_true = inv_T(truth["T_w_c"][at - truth["steady_from"]])
         joints = transform_points(z["T_w_c"][at - steady] @ T_c_w_true, truth["joints_w"])
+        joints = joints + np.random.default_rng(seed).normal(0.0, 1e-3 * noise_mm, (21, 3))
     valid = z["joint_valid"].astype(bool) & np.all(np.isfinite(joints), axis=1)
-    cfg = PRESETS["default"].model_copy(update={"estimate_shape": estimate_shape})
+    update: dict = {"estimate_shape": estimate_shape}
+    if SHAPE_NOISE_MM is not None:
+        update["shape_noise_mm"] = SHAPE_NOISE_MM
+    cfg = PRESETS["default"].model_copy(update=update)
     fit = fit_hand(np.where(valid[:, None], joints, np.nan), HandSide(str(z["side"])), cfg,
                    weights=valid.astype(float))
     err = _mpjpe_mm(fit.joints_fit_w, z["T_w_c"], steady, truth, at)
-    bones = fit.scale * fit.bone_lengths_m
-    rel = bones / _bones(truth["joints_w"]) - 1.0
-    return err, 100.0 * float(np.sqrt(np.mean(rel**2)))
+    rel = fit.bone_lengths_m / _bones(truth["joints_w"]) - 1.0
+    est_true = transform_points(z["T_w_c"][at - steady], fit.joints_fit_w)  # estimate's camera
+    tru_cam = transform_points(inv_T(truth["T_w_c"][at - truth["steady_from"]]), truth["joints_w"])
+    return err, _pa_mm(est_true, tru_cam), 100.0 * float(np.sqrt(np.mean(rel**2)))
 
 
-def score(profile: str, seed: int, sessions: int, cache: Path) -> None:
+def score(profile: str, seed: int, sessions: int, cache: Path, noise_mm: float) -> None:
     rows = []
     failed = 0
     for i in range(sessions):
@@ -107,20 +127,26 @@ def score(profile: str, seed: int, sessions: int, cache: Path) -> None:
         z = np.load(path, allow_pickle=False)
         if str(z["failed"]):
             failed += 1
-            print(f"[{seed}, {i}] failed: {z['failed']}")
+            print(f"[{seed}, {i}] stopped: {z['failed']}")
             continue
-        t_err, t_bone = _score(z, False, False)
-        s_err, s_bone = _score(z, True, False)
-        t_cap, _ = _score(z, False, True)
-        s_cap, _ = _score(z, True, True)
-        rows.append((t_err, s_err, t_cap, s_cap, t_bone, s_bone))
-        print(f"[{seed}, {i}] fit_joints_mm {t_err:6.2f} -> {s_err:6.2f}   capacity_mm "
-              f"{t_cap:5.2f} -> {s_cap:5.2f}   bone_err_pct {t_bone:5.1f} -> {s_bone:5.1f}")
+        t_err, t_pa, t_bone = _score(z, False, False)
+        s_err, s_pa, s_bone = _score(z, True, False)
+        t_cap, _, _ = _score(z, False, True)
+        s_cap, _, _ = _score(z, True, True)
+        _, t_npa, _ = _score(z, False, True, noise_mm, i)
+        _, s_npa, _ = _score(z, True, True, noise_mm, i)
+        rows.append((t_err, s_err, t_cap, s_cap, t_bone, s_bone, t_pa, s_pa, t_npa, s_npa))
+        print(f"[{seed}, {i}] fit_joints_mm {t_err:6.2f} -> {s_err:6.2f}   pa_mm {t_pa:5.2f} -> "
+              f"{s_pa:5.2f}   capacity_mm {t_cap:5.2f} -> {s_cap:5.2f}   noisy_pa_mm "
+              f"{t_npa:5.2f} -> {s_npa:5.2f}   bone_err_pct "
+              f"{t_bone:5.1f} -> {s_bone:5.1f}")
     if rows:
         m = np.median(np.array(rows), axis=0)
-        print(f"{profile} seed {seed}: {len(rows)} fitted, {failed} failed before fit_hand; "
+        print(f"{profile} seed {seed}: {len(rows)} fitted, {failed} stopped before fit_hand; "
               f"medians template -> shape: fit_joints_mm {m[0]:.2f} -> {m[1]:.2f}, capacity_mm "
-              f"{m[2]:.2f} -> {m[3]:.2f}, bone_err_pct {m[4]:.1f} -> {m[5]:.1f}")
+              f"{m[2]:.2f} -> {m[3]:.2f}, pa_mm {m[6]:.2f} -> {m[7]:.2f}, noisy_pa_mm "
+              f"{m[8]:.2f} -> {m[9]:.2f}, bone_err_pct "
+              f"{m[4]:.1f} -> {m[5]:.1f}")
 
 
 def main() -> None:
@@ -131,11 +157,15 @@ def main() -> None:
     parser.add_argument("--sessions", type=int, default=8)
     parser.add_argument("--frames", type=int, default=40)
     parser.add_argument("--cache", type=Path, default=Path("/tmp/hand_shape_cache"))
+    parser.add_argument("--shape-noise-mm", type=float, default=None)
+    parser.add_argument("--noise-mm", type=float, default=1.5)
     args = parser.parse_args()
+    global SHAPE_NOISE_MM
+    SHAPE_NOISE_MM = args.shape_noise_mm
     if args.command == "collect":
         collect(args.profile, args.seed, args.sessions, args.frames, args.cache)
     else:
-        score(args.profile, args.seed, args.sessions, args.cache)
+        score(args.profile, args.seed, args.sessions, args.cache, args.noise_mm)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,9 @@ degrees: Umeyama sees only six noisy points, the refinement sees all of them. Wi
 factors (``hand.shape``), under their anatomical prior: the prior's whitened residuals times
 ``shape_noise_mm`` (the SfM joints' assumed noise per coordinate) stand beside the joint
 residuals, so a bone moves off the template's proportions only as far as the joints pay for
-it (short bones, which noisy joints measure poorly, stay near the template).
+it (short bones, which noisy joints measure poorly, stay near the template). It runs after
+the template's refinement, and only when that leaves at most ``max_shape_rmse_mm``: a larger
+residual is the joints' error, which a shape would absorb.
 """
 
 from __future__ import annotations
@@ -103,6 +105,11 @@ class FitHandConfig(StageConfig):
     nearer the template."""
     max_shape_sd: float = 4.0
     """Bound of each bone's log length factor, in the prior's marginal SDs."""
+    max_shape_rmse_mm: float = 10.0
+    """The shape is estimated only when the template's proportions leave at most this RMS
+    joint residual: other hands' proportions leave 4.6-9.4 mm (``bench/wild_hand_misfit.py``,
+    the wild rig's +-15 % bones); beyond that the joints' own errors dominate, and a shape
+    fitted to them would absorb them."""
 
 
 PRESETS: dict[str, FitHandConfig] = {
@@ -110,7 +117,6 @@ PRESETS: dict[str, FitHandConfig] = {
     "paper": FitHandConfig(mode=FitMode.PALM_THEN_IK),
     "noisy": FitHandConfig(robust_scale_mm=3.0, loss=RobustLoss.CAUCHY, max_palm_shift_mm=15.0,
                            shape_noise_mm=3.0),
-    "template": FitHandConfig(estimate_shape=False),
 }
 
 
@@ -140,6 +146,8 @@ class HandFit:
     bone_scale : (20,) float
         The hand's shape: per-bone length factors on top of ``scale`` (``hand.shape``; ones,
         the default, when not estimated).
+    shape_note : str
+        Why the shape was not estimated though ``estimate_shape`` asked (empty otherwise).
     """
 
     side: HandSide
@@ -152,6 +160,7 @@ class HandFit:
     palm_rmse_mm: float
     at_limit: np.ndarray
     bone_scale: np.ndarray = field(default_factory=lambda: np.ones(20))
+    shape_note: str = ""
 
     @property
     def shape_check(self) -> ShapeCheck:
@@ -277,6 +286,7 @@ def _refine(
     scale0: float,
     angles0: np.ndarray,
     config: FitHandConfig,
+    shape: bool,
 ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
     """Palm turn (3, rad), shift (3, mm), log scale, angles and (with ``estimate_shape``) the
     20 log bone factors together; bounded and robust. Returns (T_w_p, scale, angles,
@@ -287,7 +297,6 @@ def _refine(
     sw = 1e3 * np.sqrt(w)[None, :, None]
     prior = model.rest_angles()
     lam = config.prior_weight_mm_per_rad
-    shape = config.estimate_shape
     n = 27 + (20 if shape else 0)
 
     def batch(X: np.ndarray) -> np.ndarray:
@@ -361,10 +370,19 @@ def fit_hand(
     T_w_p, scale, palm_rmse_mm = _palm_similarity(model, joints, used, config)
     targets_p = transform_points(inv_T(T_w_p), np.where(used[:, None], joints, 0.0)) / scale
     angles = _solve_angles(model, targets_p, w, scale, config)
-    bone_scale = np.ones(20)
+    bone_scale, note = np.ones(20), ""
     if config.mode == FitMode.JOINT_REFINE:
-        T_w_p, scale, angles, bone_scale = _refine(model, joints, w, T_w_p, scale, angles,
-                                                   config)
+        T_w_p, scale, angles, _ = _refine(model, joints, w, T_w_p, scale, angles, config, False)
+        if config.estimate_shape:
+            d = np.linalg.norm(model.keypoints(angles, T_w_p, scale) - joints, axis=1)[used]
+            rmse_mm = 1e3 * float(np.sqrt(np.mean(d**2)))
+            if rmse_mm <= config.max_shape_rmse_mm:
+                T_w_p, scale, angles, bone_scale = _refine(model, joints, w, T_w_p, scale,
+                                                           angles, config, True)
+            else:
+                note = (f"the template's fit leaves {rmse_mm:.1f} mm RMS > "
+                        f"{config.max_shape_rmse_mm} mm: the joints' errors, not the hand's "
+                        "proportions; the template's proportions kept")
     fit_w = model.keypoints(angles, T_w_p, scale, bone_scale)
     residual_mm = 1e3 * np.linalg.norm(fit_w - joints, axis=1)
     tol = np.radians(config.at_limit_tol_deg)
@@ -380,6 +398,7 @@ def fit_hand(
         palm_rmse_mm=palm_rmse_mm,
         at_limit=at_limit,
         bone_scale=bone_scale,
+        shape_note=note,
     )
 
 
