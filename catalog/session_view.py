@@ -34,7 +34,6 @@ from graspcap.schemas.session import SessionManifest
 
 if TYPE_CHECKING:
     from graspcap.catalog.store import Catalog
-    from graspcap.tasks.hand.model import HandMesh
 
 MANIFEST = "session.json"
 
@@ -237,37 +236,21 @@ class SessionView:
 
     @cached_property
     def _hand_row(self) -> dict:
-        """The session's hand model columns of ``sessions``."""
+        """The session's ``hand_shape`` column of ``sessions``."""
         table = self._catalog.table("sessions", self.version, columns=[
-            "session_id", "status", "hand", "T_w_p", "hand_scale", "joint_angles_rad",
-            "hand_shape"])
+            "session_id", "hand_shape"])
         return table.filter(pc.equal(table["session_id"], self.session_id)).to_pylist()[0]
 
     @property
     def hand_shape(self) -> np.ndarray | None:
         """``(20,)`` the hand's bone lengths in metres (``sessions.hand_shape``, skeleton
         order; ``graspcap.tasks.hand.shape.BONE_NAMES``), or None on a row written before
-        format 7 (or of a failed session)."""
+        format 7 (the template's proportions) or of a failed session. The hand model's
+        parameters: ``graspcap.tasks.hand.shape.bone_scale_from_lengths(hand_shape,
+        hand_scale)``, then ``HandModel.mesh(joint_angles_rad, T_w_p, hand_scale,
+        bone_scale)`` rebuilds the final hand (the ``sessions`` row's columns)."""
         value = self._hand_row["hand_shape"]
         return None if value is None else np.asarray(value, dtype=float)
-
-    def hand_model_mesh(self) -> HandMesh:
-        """The final hand rebuilt from the row's model parameters (``hand``, ``T_w_p``,
-        ``hand_scale``, ``joint_angles_rad`` and ``hand_shape``; the template's proportions on
-        a row written before format 7), in the world (the first steady camera), metres."""
-        from graspcap.tasks.hand.model import HandModel, HandSide
-        from graspcap.tasks.hand.shape import bone_scale_from_lengths
-
-        row = self._hand_row
-        if row["T_w_p"] is None or row["hand_scale"] is None:
-            raise CatalogError(f"session {self.session_id!r} has no fitted hand (status "
-                               f"{row['status']!r})")
-        scale = float(row["hand_scale"])
-        shape = self.hand_shape
-        bone_scale = None if shape is None else bone_scale_from_lengths(shape, scale)
-        return HandModel(HandSide(row["hand"])).mesh(
-            np.asarray(row["joint_angles_rad"], dtype=float),
-            np.asarray(row["T_w_p"], dtype=float).reshape(4, 4), scale, bone_scale)
 
     def P(self, frame: int) -> np.ndarray:  # noqa: N802 - ContactPose's name
         """``(3, 4)`` projection of object-frame points into frame ``frame``: ``K @ T_c_o[:3]``

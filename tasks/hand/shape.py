@@ -46,7 +46,7 @@ keypoint vector (metacarpal and carpus); the thumb's ``base`` is wrist to CMC an
 ``metacarpal`` CMC to MCP."""
 
 BONE_SD = np.array([
-    0.10, 0.07, 0.07, 0.08,  # thumb: base (wrist-CMC), metacarpal, proximal, distal
+    0.10, 0.08, 0.09, 0.10,  # thumb: base (wrist-CMC), metacarpal, proximal, distal
     0.04, 0.05, 0.06, 0.07,  # index: wrist-MCP, proximal, middle, distal
     0.04, 0.05, 0.06, 0.07,  # middle
     0.04, 0.05, 0.06, 0.07,  # ring
