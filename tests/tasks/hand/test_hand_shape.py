@@ -29,6 +29,7 @@ from graspcap.tasks.hand.shape import (
     prior_jacobian,
     prior_residuals,
 )
+from graspcap.tasks.outputs.qa_metrics import stage_notes
 
 SIDES = [HandSide.RIGHT, HandSide.LEFT]
 GRASP = np.array([0.5, 0.2, 0.3, 0.3] + [0.0, 0.6, 0.7, 0.4] * 4)
@@ -157,9 +158,13 @@ def test_a_template_hand_stays_near_the_template():
 
 def test_joints_no_hand_explains_keep_the_template():
     """Joints 15 mm off at random: the template's fit leaves more than max_shape_rmse_mm, so
-    the shape is not fitted to the noise, and the fit says why."""
+    the shape is not fitted to the noise, and the fit (and QA's notes) say why."""
     rng = np.random.default_rng(7)
     _, joints, _ = _hand(rng, None, 0.015)
     fit = fit_hand(joints, HandSide.RIGHT)
     np.testing.assert_array_equal(fit.bone_scale, np.ones(20))
     assert "the template's proportions kept" in fit.shape_note
+    assert f"fit_hand: {fit.shape_note}" in stage_notes({"fit_hand": fit})
+    good = fit_hand(_hand(rng, None, 0.001)[1], HandSide.RIGHT)
+    assert good.shape_note == "" and not any(n.startswith("fit_hand") for n in
+                                             stage_notes({"fit_hand": good}))
