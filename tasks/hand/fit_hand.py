@@ -16,8 +16,10 @@ factors (``hand.shape``), under their anatomical prior: the prior's whitened res
 ``shape_noise_mm`` (the SfM joints' assumed noise per coordinate) stand beside the joint
 residuals, so a bone moves off the template's proportions only as far as the joints pay for
 it (short bones, which noisy joints measure poorly, stay near the template). It runs after
-the template's refinement, and only when that leaves at most ``max_shape_rmse_mm``: a larger
-residual is the joints' error, which a shape would absorb.
+the template's refinement, and only when that leaves at most ``max_shape_rmse_mm`` (a larger
+residual is the joints' error, which a shape would absorb); the shape is kept only when it
+explains significantly more of the joints than fitting 20 parameters to noise would
+(``shape_test_p``), else the template's fit stands.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from enum import StrEnum
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
@@ -105,6 +108,11 @@ class FitHandConfig(StageConfig):
     nearer the template."""
     max_shape_sd: float = 4.0
     """Bound of each bone's log length factor, in the prior's marginal SDs."""
+    shape_test_p: float = 0.01
+    """The shape is kept only when it explains more of the joints than 20 parameters fitted to
+    noise of ``shape_noise_mm`` would with this probability: the drop of the joints' squared
+    residual, in units of ``shape_noise_mm`` squared, above the chi-square quantile (20 degrees
+    of freedom; a likelihood-ratio test against the template's proportions). 1: always kept."""
     max_shape_rmse_mm: float = 10.0
     """The shape is estimated only when the template's proportions leave at most this RMS
     joint residual: other hands' proportions leave 4.6-9.4 mm (``bench/wild_hand_misfit.py``,
@@ -147,7 +155,12 @@ class HandFit:
         The hand's shape: per-bone length factors on top of ``scale`` (``hand.shape``; ones,
         the default, when not estimated).
     shape_note : str
-        Why the shape was not estimated though ``estimate_shape`` asked (empty otherwise).
+        Why the shape was not estimated though ``estimate_shape`` asked because the joints are
+        too far off for it (empty otherwise; QA notes it).
+    shape_chi2 : float
+        The shape's likelihood-ratio statistic against the template's proportions (drop of the
+        joints' squared residual over ``shape_noise_mm`` squared; NaN when not estimated); the
+        shape is kept when it is above the ``shape_test_p`` quantile.
     """
 
     side: HandSide
@@ -161,6 +174,7 @@ class HandFit:
     at_limit: np.ndarray
     bone_scale: np.ndarray = field(default_factory=lambda: np.ones(20))
     shape_note: str = ""
+    shape_chi2: float = float("nan")
 
     @property
     def shape_check(self) -> ShapeCheck:
@@ -370,15 +384,23 @@ def fit_hand(
     T_w_p, scale, palm_rmse_mm = _palm_similarity(model, joints, used, config)
     targets_p = transform_points(inv_T(T_w_p), np.where(used[:, None], joints, 0.0)) / scale
     angles = _solve_angles(model, targets_p, w, scale, config)
-    bone_scale, note = np.ones(20), ""
+    bone_scale, note, chi2_stat = np.ones(20), "", float("nan")
     if config.mode == FitMode.JOINT_REFINE:
         T_w_p, scale, angles, _ = _refine(model, joints, w, T_w_p, scale, angles, config, False)
         if config.estimate_shape:
-            d = np.linalg.norm(model.keypoints(angles, T_w_p, scale) - joints, axis=1)[used]
-            rmse_mm = 1e3 * float(np.sqrt(np.mean(d**2)))
+            target = np.where(used[:, None], joints, 0.0)
+
+            def rss_mm2(T, s, a, b=None) -> float:
+                d2 = np.sum((model.keypoints(a, T, s, b) - target) ** 2, axis=1)
+                return 1e6 * float(np.sum(w[used] * d2[used]))
+
+            rss0 = rss_mm2(T_w_p, scale, angles)
+            rmse_mm = float(np.sqrt(rss0 / np.sum(w[used])))
             if rmse_mm <= config.max_shape_rmse_mm:
-                T_w_p, scale, angles, bone_scale = _refine(model, joints, w, T_w_p, scale,
-                                                           angles, config, True)
+                shaped = _refine(model, joints, w, T_w_p, scale, angles, config, True)
+                chi2_stat = (rss0 - rss_mm2(*shaped)) / config.shape_noise_mm**2
+                if chi2_stat > chi2.ppf(1.0 - config.shape_test_p, 20):
+                    T_w_p, scale, angles, bone_scale = shaped
             else:
                 note = (f"the template's fit leaves {rmse_mm:.1f} mm RMS > "
                         f"{config.max_shape_rmse_mm} mm: the joints' errors, not the hand's "
@@ -399,6 +421,7 @@ def fit_hand(
         at_limit=at_limit,
         bone_scale=bone_scale,
         shape_note=note,
+        shape_chi2=chi2_stat,
     )
 
 

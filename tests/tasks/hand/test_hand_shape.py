@@ -134,20 +134,26 @@ def test_fit_recovers_a_known_shape_from_noisy_joints(side):
         plain = fit_hand(joints, side, template)
         plain_mm = 1e3 * np.linalg.norm(plain.joints_fit_w - truth, axis=1).mean()
         assert err_mm < 1.0 < plain_mm, (err_mm, plain_mm)
-        assert fit.shape_check.plausible and fit.shape_note == ""
+        assert fit.shape_check.plausible and fit.shape_note == "" and fit.shape_chi2 > 37.6
         np.testing.assert_array_equal(plain.bone_scale, np.ones(20))
         np.testing.assert_allclose(_lengths(fit.joints_fit_w), fit.bone_lengths_m)
 
 
 def test_a_template_hand_stays_near_the_template():
-    """A template hand's joints with 2 mm noise (the default's assumed level; a 20 mm bone's
-    length is then measured to about 14 %): every bone within 15 % of the truth, 6 % RMS, the
-    shape plausible, and the joints no worse than 0.6 mm over the template fit's."""
+    """A template hand's joints with 2 mm noise (the default's assumed level): the
+    likelihood-ratio test finds no shape (every fit keeps the template exactly). Forced to keep
+    its shape (``shape_test_p`` 1), the fit moves a bone by at most 15 % (a 20 mm bone's length
+    is measured to about 14 % at that noise), 6 % RMS, stays plausible, and its joints are no
+    worse than 0.6 mm over the template fit's."""
     rng = np.random.default_rng(6)
     template = PRESETS["default"].model_copy(update={"estimate_shape": False})
+    forced = PRESETS["default"].model_copy(update={"shape_test_p": 1.0})
     for _ in range(4):
         truth, joints, scale = _hand(rng, None, 0.002)
         fit = fit_hand(joints, HandSide.RIGHT)
+        np.testing.assert_array_equal(fit.bone_scale, np.ones(20))
+        assert 0.0 < fit.shape_chi2 < 37.6  # chi-square(20) 99 % quantile
+        fit = fit_hand(joints, HandSide.RIGHT, forced)
         log_b = np.log(fit.bone_lengths_m / (scale * TEMPLATE_BONE_LENGTHS_M))
         assert np.abs(log_b).max() < 0.15 and np.sqrt(np.mean(log_b**2)) < 0.06, log_b
         assert fit.shape_check.plausible
