@@ -90,6 +90,8 @@ def _pa_mm(est: np.ndarray, truth: np.ndarray) -> float:
 
 SHAPE_NOISE_MM: float | None = None
 """``--shape-noise-mm``: fit_hand's ``shape_noise_mm`` for the shape fits (None: its default)."""
+SHAPE_TEST_P: float | None = None
+"""``--shape-test-p``: fit_hand's ``shape_test_p`` (None: its default)."""
 
 
 def _score(z, estimate_shape: bool, oracle: bool, noise_mm: float = 0.0, seed: int = 0
@@ -107,6 +109,8 @@ def _score(z, estimate_shape: bool, oracle: bool, noise_mm: float = 0.0, seed: i
     update: dict = {"estimate_shape": estimate_shape}
     if SHAPE_NOISE_MM is not None:
         update["shape_noise_mm"] = SHAPE_NOISE_MM
+    if SHAPE_TEST_P is not None:
+        update["shape_test_p"] = SHAPE_TEST_P
     cfg = PRESETS["default"].model_copy(update=update)
     fit = fit_hand(np.where(valid[:, None], joints, np.nan), HandSide(str(z["side"])), cfg,
                    weights=valid.astype(float))
@@ -159,9 +163,10 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, default=Path("/tmp/hand_shape_cache"))
     parser.add_argument("--shape-noise-mm", type=float, default=None)
     parser.add_argument("--noise-mm", type=float, default=1.5)
+    parser.add_argument("--shape-test-p", type=float, default=None)
     args = parser.parse_args()
-    global SHAPE_NOISE_MM
-    SHAPE_NOISE_MM = args.shape_noise_mm
+    global SHAPE_NOISE_MM, SHAPE_TEST_P
+    SHAPE_NOISE_MM, SHAPE_TEST_P = args.shape_noise_mm, args.shape_test_p
     if args.command == "collect":
         collect(args.profile, args.seed, args.sessions, args.frames, args.cache)
     else:

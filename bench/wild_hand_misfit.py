@@ -7,7 +7,9 @@ Random wild hands (sizes 0.8-1.2) in a power-grasp pose with +-0.15 rad of noise
 20 angles; best of three starts) and the RMS joint residual printed in millimetres: with the
 template's proportions (one global scale), and with the per-subject shape too (20 per-bone
 length factors under ``hand.shape``'s prior, weighed as ``fit_hand`` weighs it:
-``shape_noise_mm`` 2 mm), so the prior's pull is part of what is measured.
+``shape_noise_mm`` 2 mm), so the prior's pull is part of what is measured (fit_hand's
+likelihood-ratio test, which keeps the template where the shape explains little, is not
+applied: this is the model's capacity).
 """
 
 from __future__ import annotations

@@ -108,7 +108,7 @@ class FitHandConfig(StageConfig):
     nearer the template."""
     max_shape_sd: float = 4.0
     """Bound of each bone's log length factor, in the prior's marginal SDs."""
-    shape_test_p: float = 0.01
+    shape_test_p: float = 0.001
     """The shape is kept only when it explains more of the joints than 20 parameters fitted to
     noise of ``shape_noise_mm`` would with this probability: the drop of the joints' squared
     residual, in units of ``shape_noise_mm`` squared, above the chi-square quantile (20 degrees
