@@ -25,7 +25,7 @@ from functools import lru_cache
 import numpy as np
 import open3d as o3d
 from scipy.ndimage import map_coordinates
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, cKDTree
 
 from graspcap.tasks.hand.model import PART_BONES, SURFACE_OFFSET_M, HandModel, HandSide
 
@@ -77,12 +77,16 @@ def _palm_grid(side: HandSide, palm: tuple[float, ...] | None) -> Grid:
         bone_scale = np.ones(20)
         bone_scale[::4] = palm
     mesh = model.mesh(model.rest_angles(), bone_scale=bone_scale)
-    faces = mesh.faces[mesh.part[mesh.faces[:, 0]] == 0]
-    tri = mesh.vertices[faces]
-    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    offsets = np.einsum("ij,ij->i", normals, tri[:, 0])
     palm_v = mesh.vertices[mesh.part == 0]
+    if bone_scale is None:  # the template's palm is a convex hull: its own faces' planes
+        faces = mesh.faces[mesh.part[mesh.faces[:, 0]] == 0]
+        tri = mesh.vertices[faces]
+        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        offsets = np.einsum("ij,ij->i", normals, tri[:, 0])
+    else:  # a shaped palm's moved spheres need not stay convex: the planes of its hull
+        hull = ConvexHull(palm_v)
+        normals, offsets = hull.equations[:, :3], -hull.equations[:, 3]
     lo = palm_v.min(0) - _PALM_GRID_MARGIN_M
     hi = palm_v.max(0) + _PALM_GRID_MARGIN_M
     pts, shape = _grid_points(lo, hi, _PALM_GRID_STEP_M)
