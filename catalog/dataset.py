@@ -74,7 +74,7 @@ class SplitKey(StrEnum):
 
 _SESSION_FIELDS = ["session_id", "participant", "object_id", "intent", "hand", "status",
                    "steady_from", "T_w_o_stage1", "T_adj", "T_w_p", "T_turntable_o_scan",
-                   "hand_scale", "joint_angles_rad", "joints_w", "joints_fit_w"]
+                   "hand_scale", "joint_angles_rad", "hand_shape", "joints_w", "joints_fit_w"]
 _QA_FIELDS = ["status", "qa_flags", "qa_notes"]
 VALIDITY_FLAGS = ("hand_used", "camera_solved", "object_supported")
 """``frames`` columns a frame item needs to be True or null in (``valid_only``)."""

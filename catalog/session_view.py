@@ -234,6 +234,24 @@ class SessionView:
         ``hand_joints()`` without a frame), metres."""
         return np.array(self._catalog.hand_joints(self.session_id, self.version))
 
+    @cached_property
+    def _hand_row(self) -> dict:
+        """The session's ``hand_shape`` column of ``sessions``."""
+        table = self._catalog.table("sessions", self.version, columns=[
+            "session_id", "hand_shape"])
+        return table.filter(pc.equal(table["session_id"], self.session_id)).to_pylist()[0]
+
+    @property
+    def hand_shape(self) -> np.ndarray | None:
+        """``(20,)`` the hand's bone lengths in metres (``sessions.hand_shape``, skeleton
+        order; ``graspcap.tasks.hand.shape.BONE_NAMES``), or None on a row written before
+        format 7 (the template's proportions) or of a failed session. The hand model's
+        parameters: ``graspcap.tasks.hand.shape.bone_scale_from_lengths(hand_shape,
+        hand_scale)``, then ``HandModel.mesh(joint_angles_rad, T_w_p, hand_scale,
+        bone_scale)`` rebuilds the final hand (the ``sessions`` row's columns)."""
+        value = self._hand_row["hand_shape"]
+        return None if value is None else np.asarray(value, dtype=float)
+
     def P(self, frame: int) -> np.ndarray:  # noqa: N802 - ContactPose's name
         """``(3, 4)`` projection of object-frame points into frame ``frame``: ``K @ T_c_o[:3]``
         (ContactPose's ``P``); ``uvw = P @ [x, 1]``, pixels ``uvw[:2] / uvw[2]``."""

@@ -34,19 +34,19 @@ LABEL_COLUMNS = ("participant", "object_id", "intent")
 QA_COLUMNS = tuple(m.name for m in qa_columns())
 """``qa_<name>`` columns of ``sessions``, filled from ``QaReport.metrics[<name>]``."""
 FORMAT_3_QA = tuple(m.column for m in qa_columns() if m.column_format == 3)
-NEWEST_COLUMNS = ("keypoint_backend", *FORMAT_3_QA, "qa_flags")
-"""``sessions`` columns formats 2, 3 and 4 added: :func:`predates_columns` reads them."""
+NEWEST_COLUMNS = ("keypoint_backend", *FORMAT_3_QA, "qa_flags", "hand_shape")
+"""``sessions`` columns formats 2, 3, 4 and 7 added: :func:`predates_columns` reads them."""
 
 
 def predates_columns(row: Mapping[str, Any]) -> bool:
-    """Whether a ``sessions`` row with results was written before format 2's, 3's or 4's
+    """Whether a ``sessions`` row with results was written before format 2's, 3's, 4's or 7's
     columns existed (a migrated catalog's old rows): such a row has no keypoint backend, none
     of format 3's QA metrics (a row written since has ``qa_window_outlier_share`` whenever
-    reconstruct_hand ran), or no ``qa_flags`` (a row with results always has a list, empty or not).
-    The build rewrites it, and its ``frames`` rows (format 4's ``camera_solved``), from the
-    session's cached stage results."""
+    reconstruct_hand ran), no ``qa_flags`` (a row with results always has a list, empty or not)
+    or no ``hand_shape`` (a row with results always has one). The build rewrites it, and its
+    ``frames`` rows (format 4's ``camera_solved``), from the session's cached stage results."""
     return (row["keypoint_backend"] is None or all(row[c] is None for c in FORMAT_3_QA)
-            or row["qa_flags"] is None)
+            or row["qa_flags"] is None or row.get("hand_shape") is None)
 
 
 @dataclass(frozen=True)
@@ -115,6 +115,7 @@ def session_rows(results: Mapping[str, Any], *, labels: Mapping[str, str], input
         "T_w_o_stage1": _flat(T_w_o1), "T_adj": _flat(T_adj), "T_w_p": _flat(T_w_p),
         "T_turntable_o_scan": _flat(T_turntable_o),
         "hand_scale": float(fit.scale), "joint_angles_rad": _flat(angles_rad),
+        "hand_shape": _flat(fit.bone_lengths_m),
         "joints_w": _flat(sfm.joints_w), "joints_fit_w": _flat(joints_hand_w),
         **{f"qa_{name}": qa.metrics.get(name) for name in QA_COLUMNS},
         "qa_flags": list(qa.flags), "qa_notes": list(qa.notes),

@@ -28,7 +28,7 @@ import pyarrow as pa
 
 from graspcap.schemas.qa import qa_columns
 
-CATALOG_FORMAT_VERSION = 6
+CATALOG_FORMAT_VERSION = 7
 """Bumped on any change of the tables' columns, their encodings, their Delta table properties or
 the Zarr layout (``docs/data_changelog.md``)."""
 
@@ -119,6 +119,12 @@ SESSIONS_SCHEMA = pa.schema([
        "about the symmetry axis; the pose nearest stage 1 was kept, so it can be degrees off "
        "about that axis), or a refinement rejected in favour of the stage-3 fit. Empty when "
        "none. Format 4; null where QA did not run and on rows written before.", nullable=True),
+    _f("hand_shape", pa.list_(_F64, 20), "The fitted hand's shape: its 20 bone lengths in "
+       "metres (hand_scale included), in the skeleton's order (per finger thumb to little: "
+       "wrist to the finger's base keypoint, then its three segments; "
+       "graspcap.tasks.hand.shape.BONE_NAMES). The model's per-bone factors are hand_shape / "
+       "(hand_scale * TEMPLATE_BONE_LENGTHS_M). Format 7; null when failed and on rows "
+       "written before.", nullable=True, unit="m", shape="20"),
     _f("input_digest", _STR, "sha256 of the session's input bytes."),
     _f("code_version", _STR, "graspcap version (and git revision) that built the row."),
     _f("build_id", _STR, "Build that wrote the row (see the builds table)."),

@@ -11,6 +11,7 @@ import graspcap.catalog as gc
 from graspcap.catalog import BuildCommit, BuildInfo, ObjectMesh, SessionArrays
 from graspcap.schemas.tables import FRAMES_SCHEMA
 from graspcap.tasks.core.geometry import from_rotvec
+from graspcap.tasks.hand.model import TEMPLATE_BONE_LENGTHS_M
 
 OBJECT_VERTICES = {"mug": 40, "drill": 60, "bowl": 30}
 
@@ -60,6 +61,8 @@ def session_row(session_id: str, rng: np.random.Generator, *, status: str = "ok"
     row["qa_notes"] = None if failed else (
         ["estimate_adjustment: ambiguous (the pose nearest stage 1 kept)"]
         if object_id == "mug" else [])
+    # format 7: the hand's bone lengths (no draw either)
+    row["hand_shape"] = None if failed else (row["hand_scale"] * TEMPLATE_BONE_LENGTHS_M).tolist()
     return row
 
 

@@ -10,25 +10,42 @@ independent blocks), with a weak pull towards the rest angles for DoFs the joint
 
 In ``joint_refine`` mode (the default) a last bounded, robust least squares moves palm pose,
 scale and angles together against all 21 joints, the palm by at most a few millimetres and
-degrees: Umeyama sees only six noisy points, the refinement sees all of them.
+degrees: Umeyama sees only six noisy points, the refinement sees all of them. With
+``estimate_shape`` (the default) it also estimates the hand's shape, 20 per-bone length
+factors (``hand.shape``), under their anatomical prior: the prior's whitened residuals times
+``shape_noise_mm`` (the SfM joints' assumed noise per coordinate) stand beside the joint
+residuals, so a bone moves off the template's proportions only as far as the joints pay for
+it (short bones, which noisy joints measure poorly, stay near the template). It runs after
+the template's refinement, and only when that leaves at most ``max_shape_rmse_mm`` (a larger
+residual is the joints' error, which a shape would absorb); the shape is kept only when it
+explains significantly more of the joints than fitting 20 parameters to noise would
+(``shape_test_p``), else the template's fit stands.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, make_T, transform_points, umeyama
 from graspcap.tasks.hand.ik import MOVING, central_jacobian, closed_form_angles
-from graspcap.tasks.hand.model import RIGID_PALM_POINTS, HandMesh, HandModel, HandSide
+from graspcap.tasks.hand.model import (
+    RIGID_PALM_POINTS,
+    TEMPLATE_BONE_LENGTHS_M,
+    HandMesh,
+    HandModel,
+    HandSide,
+)
+from graspcap.tasks.hand.shape import MARGINAL_SD, ShapeCheck, check_shape, prior_residuals_log
 
-STAGE_VERSION = "fit_hand/1"
+STAGE_VERSION = "fit_hand/2"
 STAGE = "fit_hand"
 _RIGID = np.array(RIGID_PALM_POINTS)
 _MOVING = np.array(MOVING).reshape(-1)  # the 15 keypoints the angles move
@@ -82,12 +99,32 @@ class FitHandConfig(StageConfig):
     """An angle within this of a joint limit is reported as at the limit."""
     max_evaluations: int = 200
     """Cap on residual evaluations of each least squares."""
+    estimate_shape: bool = True
+    """Joint refinement: estimate the 20 per-bone length factors (``hand.shape``) under their
+    prior; False keeps the template's proportions (one global scale)."""
+    shape_noise_mm: float = 2.0
+    """Assumed SD (mm, per coordinate) of the target joints: a bone factor one prior SD off
+    the template costs as much as a joint coordinate this far off. Larger: the shape stays
+    nearer the template."""
+    max_shape_sd: float = 4.0
+    """Bound of each bone's log length factor, in the prior's marginal SDs."""
+    shape_test_p: float = 0.001
+    """The shape is kept only when it explains more of the joints than 20 parameters fitted to
+    noise of ``shape_noise_mm`` would with this probability: the drop of the joints' squared
+    residual, in units of ``shape_noise_mm`` squared, above the chi-square quantile (20 degrees
+    of freedom; a likelihood-ratio test against the template's proportions). 1: always kept."""
+    max_shape_rmse_mm: float = 10.0
+    """The shape is estimated only when the template's proportions leave at most this RMS
+    joint residual: other hands' proportions leave 4.6-9.4 mm (``bench/wild_hand_misfit.py``,
+    the wild rig's +-15 % bones); beyond that the joints' own errors dominate, and a shape
+    fitted to them would absorb them."""
 
 
 PRESETS: dict[str, FitHandConfig] = {
     "default": FitHandConfig(),
     "paper": FitHandConfig(mode=FitMode.PALM_THEN_IK),
-    "noisy": FitHandConfig(robust_scale_mm=3.0, loss=RobustLoss.CAUCHY, max_palm_shift_mm=15.0),
+    "noisy": FitHandConfig(robust_scale_mm=3.0, loss=RobustLoss.CAUCHY, max_palm_shift_mm=15.0,
+                           shape_noise_mm=3.0),
 }
 
 
@@ -114,6 +151,16 @@ class HandFit:
         RMS residual of the rigid palm points right after the Umeyama fit.
     at_limit : (20,) bool
         Angles within ``at_limit_tol_deg`` of a joint limit.
+    bone_scale : (20,) float
+        The hand's shape: per-bone length factors on top of ``scale`` (``hand.shape``; ones,
+        the default, when not estimated).
+    shape_note : str
+        Why the shape was not estimated though ``estimate_shape`` asked because the joints are
+        too far off for it (empty otherwise; QA notes it).
+    shape_chi2 : float
+        The shape's likelihood-ratio statistic against the template's proportions (drop of the
+        joints' squared residual over ``shape_noise_mm`` squared; NaN when not estimated); the
+        shape is kept when it is above the ``shape_test_p`` quantile.
     """
 
     side: HandSide
@@ -125,10 +172,25 @@ class HandFit:
     rmse_mm: float
     palm_rmse_mm: float
     at_limit: np.ndarray
+    bone_scale: np.ndarray = field(default_factory=lambda: np.ones(20))
+    shape_note: str = ""
+    shape_chi2: float = float("nan")
+
+    @property
+    def shape_check(self) -> ShapeCheck:
+        """The shape against the anatomical prior (``hand.shape.check_shape``)."""
+        return check_shape(self.bone_scale)
+
+    @property
+    def bone_lengths_m(self) -> np.ndarray:
+        """(20,) the fitted hand's bone lengths, metres, ``SKELETON`` order (the catalog's
+        ``hand_shape``)."""
+        return self.scale * self.bone_scale * TEMPLATE_BONE_LENGTHS_M
 
     def mesh(self) -> HandMesh:
         """The posed hand surface in the world (``HandModel.mesh``)."""
-        return HandModel(self.side).mesh(self.angles_rad, self.T_w_p, self.scale)
+        return HandModel(self.side).mesh(self.angles_rad, self.T_w_p, self.scale,
+                                         self.bone_scale)
 
 
 def _check_inputs(joints_w, weights) -> tuple[np.ndarray, np.ndarray]:
@@ -207,6 +269,29 @@ def _solve_angles(
     return np.clip(sol.x, lo, hi)
 
 
+def _robust(res: np.ndarray, loss: RobustLoss, f: float) -> np.ndarray:
+    """Residuals whose squares are ``least_squares``' robust cost of ``res`` (so that other
+    residuals beside them stay quadratic): ``sign(r) f sqrt(rho((r / f)^2))``."""
+    z = (res / f) ** 2
+    if loss == RobustLoss.LINEAR:
+        return res
+    if loss == RobustLoss.SOFT_L1:
+        rho = 2.0 * (np.sqrt(1.0 + z) - 1.0)
+    elif loss == RobustLoss.HUBER:
+        rho = np.where(z <= 1.0, z, 2.0 * np.sqrt(z) - 1.0)
+    else:
+        rho = np.log1p(z)
+    return np.sign(res) * f * np.sqrt(rho)
+
+
+def _batch_keypoints(model: HandModel, angles: np.ndarray, log_shape: np.ndarray | None
+                     ) -> np.ndarray:
+    """Palm-frame keypoints (b, 21, 3) at scale 1 for angles (b, 20) and per-row log bone
+    factors (b, 20) (None: the template)."""
+    return model.keypoints_batch(angles, bone_scale=None if log_shape is None
+                                 else np.exp(log_shape))
+
+
 def _refine(
     model: HandModel,
     joints: np.ndarray,
@@ -215,23 +300,32 @@ def _refine(
     scale0: float,
     angles0: np.ndarray,
     config: FitHandConfig,
-) -> tuple[np.ndarray, float, np.ndarray]:
-    """Palm turn (3, rad), shift (3, mm), log scale and angles together; bounded and robust."""
+    shape: bool,
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """Palm turn (3, rad), shift (3, mm), log scale, angles and (with ``estimate_shape``) the
+    20 log bone factors together; bounded and robust. Returns (T_w_p, scale, angles,
+    bone_scale)."""
     R0, t0 = T0[:3, :3], T0[:3, 3]
     used = w > 0
     target = np.where(used[:, None], joints, 0.0)
     sw = 1e3 * np.sqrt(w)[None, :, None]
     prior = model.rest_angles()
     lam = config.prior_weight_mm_per_rad
+    n = 27 + (20 if shape else 0)
 
     def batch(X: np.ndarray) -> np.ndarray:
         R = R0 @ Rotation.from_rotvec(X[:, :3]).as_matrix()  # (b, 3, 3)
         t = t0 + 1e-3 * X[:, 3:6]
         s = scale0 * np.exp(X[:, 6])
-        kp_p = model.keypoints_batch(X[:, 7:])  # palm frame, scale 1
+        kp_p = _batch_keypoints(model, X[:, 7:27], X[:, 27:] if shape else None)
         kp_w = s[:, None, None] * np.einsum("bij,bkj->bki", R, kp_p) + t[:, None]
         res = (sw * (kp_w - target)).reshape(len(X), -1)
-        return np.concatenate([res, lam * (X[:, 7:] - prior)], axis=1)
+        angle_prior = lam * (X[:, 7:27] - prior)
+        if not shape:
+            return np.concatenate([res, angle_prior], axis=1)
+        res = _robust(res, config.loss, config.robust_scale_mm)
+        shape_prior = config.shape_noise_mm * prior_residuals_log(X[:, 27:])
+        return np.concatenate([res, angle_prior, shape_prior], axis=1)
 
     turn = np.radians(config.max_palm_turn_deg)
     shift = config.max_palm_shift_mm
@@ -239,16 +333,22 @@ def _refine(
     ls_hi = min(np.log1p(config.max_scale_change), np.log(config.max_scale / scale0))
     lo = np.concatenate([[-turn] * 3, [-shift] * 3, [min(ls_lo, 0.0)], model.lower_rad])
     hi = np.concatenate([[turn] * 3, [shift] * 3, [max(ls_hi, 0.0)], model.upper_rad])
-    x0 = np.concatenate([np.zeros(7), angles0])
     step = np.concatenate([[1e-6] * 3, [1e-3] * 3, [1e-6], [1e-6] * 20])
+    if shape:
+        lo = np.concatenate([lo, -config.max_shape_sd * MARGINAL_SD])
+        hi = np.concatenate([hi, config.max_shape_sd * MARGINAL_SD])
+        step = np.concatenate([step, [1e-6] * 20])
+    x0 = np.concatenate([np.zeros(7), angles0, np.zeros(n - 27)])
     sol = least_squares(
         lambda x: batch(x[None])[0], x0, jac=lambda x: central_jacobian(batch, x, step),
-        bounds=(lo, hi), method="trf", loss=config.loss.value, f_scale=config.robust_scale_mm,
-        max_nfev=config.max_evaluations,
+        bounds=(lo, hi), method="trf", max_nfev=config.max_evaluations,
+        **({} if shape else {"loss": config.loss.value, "f_scale": config.robust_scale_mm}),
     )  # fmt: skip
     x = sol.x
     T = make_T(R0 @ Rotation.from_rotvec(x[:3]).as_matrix(), t0 + 1e-3 * x[3:6])
-    return T, float(scale0 * np.exp(x[6])), np.clip(x[7:], model.lower_rad, model.upper_rad)
+    angles = np.clip(x[7:27], model.lower_rad, model.upper_rad)
+    bone_scale = np.exp(np.clip(x[27:], lo[27:], hi[27:])) if shape else np.ones(20)
+    return T, float(scale0 * np.exp(x[6])), angles, bone_scale
 
 
 def fit_hand(
@@ -257,7 +357,8 @@ def fit_hand(
     config: FitHandConfig = PRESETS["default"],
     weights: np.ndarray | None = None,
 ) -> HandFit:
-    """Fit palm pose, scale and the 20 angles of the ``side`` hand model to 3D joints.
+    """Fit palm pose, scale, the 20 angles and (``estimate_shape``, joint refinement only) the
+    per-bone shape of the ``side`` hand model to 3D joints.
 
     Parameters
     ----------
@@ -283,9 +384,28 @@ def fit_hand(
     T_w_p, scale, palm_rmse_mm = _palm_similarity(model, joints, used, config)
     targets_p = transform_points(inv_T(T_w_p), np.where(used[:, None], joints, 0.0)) / scale
     angles = _solve_angles(model, targets_p, w, scale, config)
+    bone_scale, note, chi2_stat = np.ones(20), "", float("nan")
     if config.mode == FitMode.JOINT_REFINE:
-        T_w_p, scale, angles = _refine(model, joints, w, T_w_p, scale, angles, config)
-    fit_w = model.keypoints(angles, T_w_p, scale)
+        T_w_p, scale, angles, _ = _refine(model, joints, w, T_w_p, scale, angles, config, False)
+        if config.estimate_shape:
+            target = np.where(used[:, None], joints, 0.0)
+
+            def rss_mm2(T, s, a, b=None) -> float:
+                d2 = np.sum((model.keypoints(a, T, s, b) - target) ** 2, axis=1)
+                return 1e6 * float(np.sum(w[used] * d2[used]))
+
+            rss0 = rss_mm2(T_w_p, scale, angles)
+            rmse_mm = float(np.sqrt(rss0 / np.sum(w[used])))
+            if rmse_mm <= config.max_shape_rmse_mm:
+                shaped = _refine(model, joints, w, T_w_p, scale, angles, config, True)
+                chi2_stat = (rss0 - rss_mm2(*shaped)) / config.shape_noise_mm**2
+                if chi2_stat > chi2.ppf(1.0 - config.shape_test_p, 20):
+                    T_w_p, scale, angles, bone_scale = shaped
+            else:
+                note = (f"the template's fit leaves {rmse_mm:.1f} mm RMS > "
+                        f"{config.max_shape_rmse_mm} mm: the joints' errors, not the hand's "
+                        "proportions; the template's proportions kept")
+    fit_w = model.keypoints(angles, T_w_p, scale, bone_scale)
     residual_mm = 1e3 * np.linalg.norm(fit_w - joints, axis=1)
     tol = np.radians(config.at_limit_tol_deg)
     at_limit = (angles <= model.lower_rad + tol) | (angles >= model.upper_rad - tol)
@@ -299,6 +419,9 @@ def fit_hand(
         rmse_mm=float(np.sqrt(np.mean(residual_mm[used] ** 2))),
         palm_rmse_mm=palm_rmse_mm,
         at_limit=at_limit,
+        bone_scale=bone_scale,
+        shape_note=note,
+        shape_chi2=chi2_stat,
     )
 
 

@@ -18,7 +18,12 @@ right hand, away from it for a left hand). Keypoints 0, 1, 5, 9, 13, 17 are
 fixed in the palm. Flexion positive bends towards the palm (+z); abduction positive turns a finger
 towards the thumb side (radial) and the thumb's metacarpal away from the palm
 (palmar abduction). The left hand is the mirror image (x -> -x) with the same
-angle meaning. One global ``scale`` multiplies every length, radii included.
+angle meaning. One global ``scale`` multiplies every length, radii included; the
+per-subject shape ``bone_scale`` (20 per-bone length factors, ``hand.shape``) stretches each
+bone on top of it: the keypoints move along the bones, each phalanx's surface is stretched
+along its bone (its end sphere moves), and the palm follows its moved knuckles (the base
+spheres move with their bases, the others by the linear map that best moves the finger bases).
+Radii are not part of the shape.
 """
 
 from __future__ import annotations
@@ -202,6 +207,13 @@ class Capsules:
     part: np.ndarray
 
 
+def _check_shape(bone_scale: np.ndarray | None) -> np.ndarray:
+    f = check_bone_scale(bone_scale)
+    if f.shape != (20,):
+        raise ValueError(f"bone_scale must be (20,) here, got {f.shape}")
+    return f
+
+
 def _check_angles(angles: np.ndarray) -> np.ndarray:
     angles = np.asarray(angles, dtype=float)
     if angles.shape != (20,):
@@ -210,11 +222,13 @@ def _check_angles(angles: np.ndarray) -> np.ndarray:
 
 
 def check_bone_scale(bone_scale: np.ndarray | None) -> np.ndarray:
-    """(20,) per-bone length factors (``SKELETON`` order); ``None`` is the template (ones)."""
+    """(20,) per-bone length factors (``SKELETON`` order); ``None`` is the template (ones).
+    A batch (b, 20), one shape per pose, passes too (``keypoints_batch``)."""
     if bone_scale is None:
         return _ONES20
     bone_scale = np.asarray(bone_scale, dtype=float)
-    if bone_scale.shape != (20,) or not np.all(np.isfinite(bone_scale)) or np.any(bone_scale <= 0):
+    if (bone_scale.ndim not in (1, 2) or bone_scale.shape[-1] != 20
+            or not np.all(np.isfinite(bone_scale)) or np.any(bone_scale <= 0)):
         raise ValueError(f"bone_scale must be (20,) positive finite factors, got {bone_scale!r}")
     return bone_scale
 
@@ -227,14 +241,16 @@ def _keypoints_palm(angles: np.ndarray, bone_scale: np.ndarray | None = None) ->
     proportions) and the three segments."""
     b = len(angles)
     a = angles.reshape(b, 5, 4)
-    f = check_bone_scale(bone_scale).reshape(5, 4)
-    base = _BASE_M * f[:, :1]
+    f = check_bone_scale(bone_scale).reshape(-1, 5, 4)  # (1 or b, 5, 4)
+    if len(f) not in (1, b):
+        raise ValueError(f"bone_scale has {len(f)} shapes for {b} poses")
+    base = _BASE_M * f[:, :, :1]  # (1 or b, 5, 3)
     phi = np.cumsum(a[:, :, 1:], axis=2)  # (b, 5, 3) accumulated flexion
-    local = _directions(a[:, :, :1], phi) * (_SEGMENT_LENGTH_M * f[:, 1:])[None, :, :, None]
+    local = _directions(a[:, :, :1], phi) * (_SEGMENT_LENGTH_M * f[:, :, 1:])[..., None]
     chain = np.cumsum(local @ _BASE_RT, axis=2)  # (b, 5, 3, 3) palm-frame bone vectors summed
     fingers = np.empty((b, 5, 4, 3))
     fingers[:, :, 0] = base
-    fingers[:, :, 1:] = base[None, :, None] + chain
+    fingers[:, :, 1:] = base[:, :, None] + chain
     points = np.zeros((b, 21, 3))
     points[:, 1:] = fingers.reshape(b, 20, 3)
     return points
@@ -265,15 +281,26 @@ def _segment_rotations(angles: np.ndarray) -> np.ndarray:
     return np.einsum("fab,fjbc->fjac", _BASE_R, local)
 
 
-def _palm_capsules() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Palm as five capsules: wrist region to each knuckle, and wrist to the thumb base."""
+def _palm_capsules(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Palm as five capsules: wrist region to each knuckle, and wrist to the thumb base, for
+    per-bone factors ``f`` (5, 4) (the starts follow the palm's linear map)."""
     starts = np.array(
         [[0.010, 0.010, 0.004], [0.012, 0.018, 0.0], [0.0, 0.018, 0.0],
          [-0.012, 0.018, 0.0], [-0.022, 0.018, 0.002]]
     )  # fmt: skip
-    ends = _BASE_M.copy()
+    ends = _BASE_M * f[:, :1]
     radii = np.array([0.012, 0.0125, 0.0130, 0.0125, 0.0120])
-    return starts, ends, radii
+    return starts @ _palm_map(f).T, ends, radii
+
+
+def _palm_map(f: np.ndarray) -> np.ndarray:
+    """(3, 3) linear map of the palm for per-bone factors ``f`` (5, 4): least squares from the
+    template's finger bases (index to little) to the moved ones; identity for the template."""
+    if np.all(f[:, 0] == 1.0):
+        return np.eye(3)
+    src = _BASE_M[1:]
+    A, *_ = np.linalg.lstsq(src, src * f[1:, :1], rcond=None)  # src @ A ~ dst
+    return A.T
 
 
 class HandModel:
@@ -325,7 +352,7 @@ class HandModel:
     ) -> np.ndarray:
         """Keypoints (b, 21, 3) in the world for angles (b, 20); one ``T_w_p``, ``scale`` and
         ``bone_scale`` ((20,) per-bone length factors on top of ``scale``, ``SKELETON``
-        order; None = the template's proportions)."""
+        order; or (b, 20), one shape per pose; None = the template's proportions)."""
         angles = np.asarray(angles, dtype=float)
         if angles.ndim != 2 or angles.shape[1] != 20:
             raise ValueError(f"angles must be (b, 20), got {angles.shape}")
@@ -351,11 +378,17 @@ class HandModel:
     # --- surfaces -----------------------------------------------------------------------
 
     def capsules(
-        self, angles: np.ndarray, T_w_p: np.ndarray = _EYE4, scale: float = 1.0
+        self,
+        angles: np.ndarray,
+        T_w_p: np.ndarray = _EYE4,
+        scale: float = 1.0,
+        bone_scale: np.ndarray | None = None,
     ) -> Capsules:
-        """Five palm capsules (part 0) then one per phalanx (parts 1..15), in the world."""
-        kp_p = _keypoints_palm(_check_angles(angles)[None])[0]  # right hand, scale 1
-        palm_start, palm_end, palm_r = _palm_capsules()
+        """Five palm capsules (part 0) then one per phalanx (parts 1..15), in the world, for
+        the shape ``bone_scale`` (None: the template's)."""
+        f = _check_shape(bone_scale)
+        kp_p = _keypoints_palm(_check_angles(angles)[None], f)[0]  # right hand, scale 1
+        palm_start, palm_end, palm_r = _palm_capsules(f.reshape(5, 4))
         bones = np.array(PART_BONES)
         start = np.concatenate([palm_start, kp_p[bones[:, 0]]])
         end = np.concatenate([palm_end, kp_p[bones[:, 1]]])
@@ -369,16 +402,60 @@ class HandModel:
             part=part,
         )
 
-    def mesh(self, angles: np.ndarray, T_w_p: np.ndarray = _EYE4, scale: float = 1.0) -> HandMesh:
-        """The posed surface: 16 closed parts (palm, 15 phalanges) concatenated, in the world."""
+    def mesh(
+        self,
+        angles: np.ndarray,
+        T_w_p: np.ndarray = _EYE4,
+        scale: float = 1.0,
+        bone_scale: np.ndarray | None = None,
+    ) -> HandMesh:
+        """The posed surface: 16 closed parts (palm, 15 phalanges) concatenated, in the world,
+        for the shape ``bone_scale`` (None: the template's). Same vertex count and faces for
+        every shape and pose."""
         angles = _check_angles(angles)
+        f = _check_shape(bone_scale)
         tmpl = self._template
-        kp = _keypoints_palm(angles[None])[0]  # right hand, scale 1
+        kp = _keypoints_palm(angles[None], f)[0]  # right hand, scale 1
         R = np.concatenate([np.eye(3)[None], _segment_rotations(angles).reshape(15, 3, 3)])
         origin = np.concatenate([np.zeros((1, 3)), kp[np.array(PART_BONES)[:, 0]]])
-        v = np.einsum("nij,nj->ni", R[tmpl.part], tmpl.vertices) + origin[tmpl.part]
+        local = tmpl.vertices
+        if bone_scale is not None:
+            local = local + _shape_offsets(f.reshape(5, 4))
+        v = np.einsum("nij,nj->ni", R[tmpl.part], local) + origin[tmpl.part]
         faces = tmpl.faces[:, ::-1] if self._mirror else tmpl.faces
         return HandMesh(vertices=self._to_world(v, T_w_p, scale), faces=faces, part=tmpl.part)
+
+
+def _sphere_of(vertices: np.ndarray, spheres: np.ndarray) -> np.ndarray:
+    """Which of ``spheres`` (k, 4: centre, radius) each hull vertex (n, 3) was sampled from:
+    the one whose surface (as ``sphere_hull`` samples it, radius times a common factor) is
+    nearest."""
+    d = np.linalg.norm(vertices[:, None] - spheres[None, :, :3], axis=2) / spheres[None, :, 3]
+    ratio = np.median(d.min(axis=1))  # the samples' common distance in radii (about 1.01)
+    return np.argmin(np.abs(d - ratio), axis=1)
+
+
+_SHAPE_PARTS: dict[str, np.ndarray] = {}
+"""The template's per-vertex shape handles: ``palm_sphere`` (palm vertices' sphere in
+``_PALM_SPHERES``), ``end`` (phalanx vertices on the end sphere, bool) over all vertices."""
+
+
+def _shape_offsets(f: np.ndarray) -> np.ndarray:
+    """(n, 3) offsets of the template's vertices, each in its part's frame, for per-bone
+    factors ``f`` (5, 4): a phalanx's end sphere moves along the bone (+y) by its change of
+    length; a palm sphere on a finger base moves with the base; the other palm spheres by the
+    palm's linear map (``_palm_map``)."""
+    tmpl = _mesh_template()
+    out = np.zeros_like(tmpl.vertices)
+    dl = (_SEGMENT_LENGTH_M * (f[:, 1:] - 1.0)).reshape(15)  # parts 1..15
+    end = _SHAPE_PARTS["end"]
+    out[end, 1] = dl[tmpl.part[end] - 1]
+    centres = _PALM_SPHERES[:, :3]
+    moved = centres @ _palm_map(f).T
+    moved[-5:] = _BASE_M * f[:, :1]
+    palm = tmpl.part == 0
+    out[palm] = (moved - centres)[_SHAPE_PARTS["palm_sphere"]]
+    return out
 
 
 def _build_template() -> HandMesh:
@@ -393,8 +470,16 @@ def _build_template() -> HandMesh:
     vertices = np.concatenate([v for v, _ in parts])
     faces = np.concatenate([f + o for (_, f), o in zip(parts, offsets[:-1], strict=True)])
     part = np.repeat(np.arange(len(parts)), [len(v) for v, _ in parts])
-    for arr in (vertices, faces, part):
+    palm_sphere = _sphere_of(vertices[part == 0], _PALM_SPHERES)
+    end = np.zeros(len(vertices), bool)
+    for k in range(1, 16):
+        f, j = divmod(k - 1, 3)
+        ends = np.array([[0.0, 0.0, 0.0, _RADIUS_M[f, j]],
+                         [0.0, _SEGMENT_LENGTH_M[f, j], 0.0, _RADIUS_M[f, j + 1]]])
+        end[part == k] = _sphere_of(vertices[part == k], ends) == 1
+    for arr in (vertices, faces, part, palm_sphere, end):
         arr.setflags(write=False)
+    _SHAPE_PARTS.update(palm_sphere=palm_sphere, end=end)
     return HandMesh(vertices=vertices, faces=faces, part=part)
 
 

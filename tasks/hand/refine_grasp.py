@@ -6,7 +6,7 @@ drawn to contacted object points, the hand surface is pushed away from points ob
 contact, and the hand may not penetrate the object. Here, in the object's frame (the object at
 the first steady frame, ``T_w_o`` of estimate_adjustment), a bounded least squares moves the
 palm by a small correction (turn about the wrist, shift; the scale stays) and the 20 angles
-inside the joint limits, minimising
+inside the joint limits (fit_hand's per-bone shape, ``bone_scale``, stays), minimising
 
 - attraction: signed distance of each observed contacted vertex (``contact >= threshold``) to
   the hand surface, soft-L1, only for vertices within ``capture_radius_mm`` of the hand when a
@@ -43,7 +43,7 @@ from graspcap.tasks.hand.surface import (
     penetration_mm,
 )
 
-STAGE_VERSION = "refine_grasp/2"
+STAGE_VERSION = "refine_grasp/3"
 STAGE = "refine_grasp"
 _N_POSE = 6
 
@@ -139,6 +139,8 @@ class GraspRefinement:
     side : HandSide
     scale : float
         fit_hand's scale (unchanged).
+    bone_scale : (20,) float
+        fit_hand's shape (unchanged): per-bone length factors (``hand.shape``).
     T_w_p, T_o_p : (4, 4) float
         Refined palm pose in the world of the first steady frame and in the object frame.
     angles_rad : (20,) float
@@ -164,6 +166,7 @@ class GraspRefinement:
 
     side: HandSide
     scale: float
+    bone_scale: np.ndarray
     T_w_p: np.ndarray
     T_o_p: np.ndarray
     angles_rad: np.ndarray
@@ -201,17 +204,20 @@ def _check(fit, side, T_w_o, V, F, contact, observed):
             raise StageError(STAGE, f"{name} has {len(a)} values for {len(V)} object vertices")
     if not np.all(np.isfinite(c[o.astype(bool)])):
         raise StageError(STAGE, "contact is not finite (NaN or inf) at observed vertices")
-    hand = [fit.T_w_p, fit.angles_rad, fit.scale]
+    hand = [fit.T_w_p, fit.angles_rad, fit.scale, fit.bone_scale]
     if not all(np.all(np.isfinite(np.asarray(h, dtype=float))) for h in hand):
-        raise StageError(STAGE, "the fitted hand (T_w_p, angles_rad, scale) is not finite")
+        raise StageError(STAGE, "the fitted hand (T_w_p, angles_rad, scale, bone_scale) is "
+                         "not finite")
     return T, V, F.astype(np.int64), np.where(o.astype(bool), c, 0.0), o.astype(bool)
 
 
 class _Problem:
     """Residuals of the refinement for parameters x = (turn (3) rad, shift (3) mm, angles)."""
 
-    def __init__(self, model, surface, sdf, T0, angles0, V, contact, observed, config):
+    def __init__(self, model, surface, sdf, T0, angles0, V, contact, observed, config,
+                 bone_scale):
         self.model, self.surface, self.sdf, self.cfg = model, surface, sdf, config
+        self.bone_scale = bone_scale
         self.R0, self.t0 = T0[:3, :3], T0[:3, 3]
         self.angles0 = angles0
         self.V, self.contact, self.observed = V, contact, observed
@@ -225,7 +231,7 @@ class _Problem:
     def pose(self, X: np.ndarray):
         R = self.R0 @ Rotation.from_rotvec(X[:, :3]).as_matrix()
         t = self.t0 + 1e-3 * X[:, 3:6]
-        kp_p = self.model.keypoints_batch(X[:, _N_POSE:])  # palm frame, scale 1
+        kp_p = self.model.keypoints_batch(X[:, _N_POSE:], bone_scale=self.bone_scale)
         kp = self.surface.scale * np.einsum("bij,bkj->bki", R, kp_p) + t[:, None]
         return kp, R, t
 
@@ -332,16 +338,18 @@ def refine_grasp(
     T_w_o, V, F, contact, observed = _check(fit, side, T_w_o, object_vertices, object_faces,
                                             contact, observed)
     model = HandModel(fit.side)
-    surface = HandSurface(fit.side, fit.scale, config.samples_per_bone)
+    shape = np.asarray(fit.bone_scale, dtype=float)
+    surface = HandSurface(fit.side, fit.scale, config.samples_per_bone, shape)
     T_o_w = inv_T(T_w_o)
     T0 = T_o_w @ np.asarray(fit.T_w_p, dtype=float)
     angles0 = model.clip(fit.angles_rad)
 
     def result(T_o_p, angles, before, after, iterations, n_att, n_rep, reason, kept=0.0):
-        mesh = model.mesh(angles, T_o_p, fit.scale)
-        joints_o = model.keypoints(angles, T_o_p, fit.scale)
+        mesh = model.mesh(angles, T_o_p, fit.scale, shape)
+        joints_o = model.keypoints(angles, T_o_p, fit.scale, shape)
         return GraspRefinement(
-            side=fit.side, scale=float(fit.scale), T_w_p=T_w_o @ T_o_p, T_o_p=T_o_p,
+            side=fit.side, scale=float(fit.scale), bone_scale=shape, T_w_p=T_w_o @ T_o_p,
+            T_o_p=T_o_p,
             angles_rad=angles, joints_o=joints_o, joints_w=transform_points(T_w_o, joints_o),
             hand_vertices_o=mesh.vertices, hand_faces=np.asarray(mesh.faces, np.int64),
             before=before, after=after, iterations=iterations, n_attract=n_att, n_repel=n_rep,
@@ -349,9 +357,9 @@ def refine_grasp(
         )  # fmt: skip
 
     def measure(T_o_p, angles):
-        kp = model.keypoints(angles, T_o_p, fit.scale)[None]
+        kp = model.keypoints(angles, T_o_p, fit.scale, shape)[None]
         d = surface.distance(V, kp, T_o_p[None, :3, :3], T_o_p[None, :3, 3])[0]
-        mesh = model.mesh(angles, T_o_p, fit.scale)
+        mesh = model.mesh(angles, T_o_p, fit.scale, shape)
         return _metrics(V, F, contact, observed, mesh.vertices, mesh.faces, d, config)
 
     before = measure(T0, angles0)
@@ -359,7 +367,7 @@ def refine_grasp(
         reason = "no observed vertex has contact; the stage-3 fit is kept"
         return result(T0, angles0, before, before, 0, 0, 0, reason)
 
-    hand_v = model.mesh(angles0, T0, fit.scale).vertices
+    hand_v = model.mesh(angles0, T0, fit.scale, shape).vertices
     reach_m = 1e-3 * config.max_palm_shift_mm + 0.03  # fingers move too
     probe_m = 0.02  # beyond this from the object every probe is outside it
     sdf = object_sdf_grid(
@@ -367,7 +375,7 @@ def refine_grasp(
         np.minimum(hand_v.max(0) + reach_m, V.max(0) + probe_m), 1e-3 * config.grid_step_mm,
         band_m=probe_m,
     )  # fmt: skip
-    prob = _Problem(model, surface, sdf, T0, angles0, V, contact, observed, config)
+    prob = _Problem(model, surface, sdf, T0, angles0, V, contact, observed, config, shape)
     turn, shift = np.radians(config.max_palm_turn_deg), config.max_palm_shift_mm
     dA = np.radians(config.max_angle_change_deg)
     lo = np.concatenate([[-turn] * 3, [-shift] * 3, np.maximum(model.lower_rad, angles0 - dA)])
@@ -399,7 +407,7 @@ def refine_grasp(
 
     def depth_mm(share: float) -> float:
         T, angles = hand_at(share)
-        return penetration_mm(V, F, model.mesh(angles, T, fit.scale).vertices)[0]
+        return penetration_mm(V, F, model.mesh(angles, T, fit.scale, shape).vertices)[0]
 
     kept = 1.0
     if depth_mm(1.0) > before.penetration_max_mm:

@@ -20,12 +20,12 @@ the grid's box. Everything is deterministic.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cache
+from functools import lru_cache
 
 import numpy as np
 import open3d as o3d
 from scipy.ndimage import map_coordinates
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, cKDTree
 
 from graspcap.tasks.hand.model import PART_BONES, SURFACE_OFFSET_M, HandModel, HandSide
 
@@ -62,17 +62,31 @@ def _grid_points(lo: np.ndarray, hi: np.ndarray, step: float) -> tuple[np.ndarra
     return grid.reshape(-1, 3), tuple(n)
 
 
-@cache
-def palm_grid(side: HandSide) -> Grid:
-    """Signed distance (m) to the palm part of the ``side`` model at scale 1, palm frame."""
+def palm_grid(side: HandSide, bone_scale: np.ndarray | None = None) -> Grid:
+    """Signed distance (m) to the palm part of the ``side`` model at scale 1, palm frame, for
+    the shape ``bone_scale`` (20,) (None: the template's; only the palm's five factors matter)."""
+    palm = None if bone_scale is None else tuple(float(v) for v in np.asarray(bone_scale)[::4])
+    return _palm_grid(HandSide(side), None if palm == (1.0,) * 5 else palm)
+
+
+@lru_cache(maxsize=16)
+def _palm_grid(side: HandSide, palm: tuple[float, ...] | None) -> Grid:
     model = HandModel(side)
-    mesh = model.mesh(model.rest_angles())
-    faces = mesh.faces[mesh.part[mesh.faces[:, 0]] == 0]
-    tri = mesh.vertices[faces]
-    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    offsets = np.einsum("ij,ij->i", normals, tri[:, 0])
+    bone_scale = None
+    if palm is not None:
+        bone_scale = np.ones(20)
+        bone_scale[::4] = palm
+    mesh = model.mesh(model.rest_angles(), bone_scale=bone_scale)
     palm_v = mesh.vertices[mesh.part == 0]
+    if bone_scale is None:  # the template's palm is a convex hull: its own faces' planes
+        faces = mesh.faces[mesh.part[mesh.faces[:, 0]] == 0]
+        tri = mesh.vertices[faces]
+        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        offsets = np.einsum("ij,ij->i", normals, tri[:, 0])
+    else:  # a shaped palm's moved spheres need not stay convex: the planes of its hull
+        hull = ConvexHull(palm_v)
+        normals, offsets = hull.equations[:, :3], -hull.equations[:, 3]
     lo = palm_v.min(0) - _PALM_GRID_MARGIN_M
     hi = palm_v.max(0) + _PALM_GRID_MARGIN_M
     pts, shape = _grid_points(lo, hi, _PALM_GRID_STEP_M)
@@ -202,16 +216,18 @@ class HandSurface:
     """Signed distances to the posed hand model's surface and penetration samples, batched.
 
     Poses are given as keypoints ``kp`` (b, 21, 3), palm rotations ``R`` (b, 3, 3) and origins
-    ``t`` (b, 3) in one frame (the object's); ``scale`` is fixed.
+    ``t`` (b, 3) in one frame (the object's); ``scale`` and the shape ``bone_scale`` (20,)
+    (None: the template's) are fixed.
     """
 
-    def __init__(self, side: HandSide, scale: float, samples_per_bone: int = 5):
+    def __init__(self, side: HandSide, scale: float, samples_per_bone: int = 5,
+                 bone_scale: np.ndarray | None = None):
         self.scale = float(scale)
         r = SURFACE_OFFSET_M * self.scale
         self.r_start, self.r_end = r[BONES[:, 0]], r[BONES[:, 1]]
-        self.palm = palm_grid(HandSide(side))
+        self.palm = palm_grid(HandSide(side), bone_scale)
         model = HandModel(side)
-        mesh = model.mesh(model.rest_angles())
+        mesh = model.mesh(model.rest_angles(), bone_scale=bone_scale)
         self.palm_samples_p = mesh.vertices[mesh.part == 0] * self.scale  # palm frame, scaled
         self.t = np.linspace(0.0, 1.0, samples_per_bone)
         # (15 * s,) sphere radii along the bones

@@ -36,7 +36,7 @@ from graspcap.tasks.outputs.qa_measures import (
     window_outlier_share,
 )
 
-STAGE_VERSION = "qa_metrics/7"
+STAGE_VERSION = "qa_metrics/8"
 STAGE = "qa_metrics"
 
 
@@ -298,7 +298,8 @@ def stage_notes(results: Mapping[str, Any]) -> list[str]:
 
     Also what the stages noted about unusual input: keypoint frames dropped (far outside the
     image, corrupt) or with several candidate hands, scan views sharing an angle or skipped,
-    thermal views left out, a contact map from one view."""
+    thermal views left out, a contact map from one view; the hand's shape left at the template's
+    proportions because the joints were too far off for it (``HandFit.shape_note``)."""
     notes = []
     if _attr(results, "refine_grasp", "accepted") is False:
         notes.append(f"refine_grasp: refinement rejected, the stage-3 fit kept "
@@ -315,6 +316,8 @@ def stage_notes(results: Mapping[str, Any]) -> list[str]:
     notes += [f"register_object: {n}" for n in _attr(results, "register_object", "notes") or ()]
     notes += [f"register_scan: {n}" for n in _attr(results, "register_scan", "notes") or ()]
     notes += [f"build_contactmap: {n}" for n in _attr(results, "build_contactmap", "notes") or ()]
+    if _attr(results, "fit_hand", "shape_note"):
+        notes.append(f"fit_hand: {_attr(results, 'fit_hand', 'shape_note')}")
     return notes
 
 

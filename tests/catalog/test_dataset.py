@@ -143,3 +143,28 @@ def test_duckdb_and_polars_read_the_parquet(catalog, module):
     else:
         import duckdb
         assert duckdb.sql("select count(*) from frames").fetchall()[0][0] == 5 * FRAMES
+
+
+def test_hand_shape_round_trips_and_rebuilds_the_hand(catalog):
+    """``sessions.hand_shape`` (format 7, bone lengths in metres) reads back as written, in
+    dataset items and the session view; the hand rebuilt from the row has those bones."""
+    from graspcap.catalog.session_view import SessionView
+    from graspcap.tasks.hand.model import SKELETON, HandModel, HandSide
+    from graspcap.tasks.hand.shape import bone_scale_from_lengths
+
+    cat, build = catalog
+    sid = "p02-bowl-use-00"
+    want = next(r["hand_shape"] for r in build.sessions if r["session_id"] == sid)
+    assert cat.table("sessions").schema.field("hand_shape").metadata[b"unit"] == b"m"
+    item = next(i for i in gc.GraspDataset(cat, unit="sessions") if i["session_id"] == sid)
+    np.testing.assert_array_equal(item["hand_shape"], want)
+    view = SessionView(cat, sid)
+    np.testing.assert_array_equal(view.hand_shape, want)
+    row = next(r for r in build.sessions if r["session_id"] == sid)
+    T_w_p = np.asarray(row["T_w_p"]).reshape(4, 4)
+    bone_scale = bone_scale_from_lengths(np.asarray(want), row["hand_scale"])
+    model = HandModel(HandSide.RIGHT)
+    kp = model.keypoints(row["joint_angles_rad"], T_w_p, row["hand_scale"], bone_scale)
+    lengths = [np.linalg.norm(kp[k] - kp[p]) for p, k in SKELETON]
+    np.testing.assert_allclose(lengths, want, rtol=1e-12)
+    assert SessionView(cat, "p03-mug-use-00").hand_shape is None  # failed: no hand

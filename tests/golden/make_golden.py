@@ -1,6 +1,6 @@
 """Regenerate the golden catalogs under tests/golden/ (checked in with this script).
 
-    .venv/bin/python tests/golden/make_golden.py [--formats 1 2 3 4 5]
+    .venv/bin/python tests/golden/make_golden.py [--formats 1 2 3 4 5 6]
 
 - ``catalog_v0/``: the stamp of a catalog of format 0 (never released, no migration leads from
   it), for the "rebuild it" error. A few hundred bytes.
@@ -14,7 +14,8 @@
   ``catalog_v4.tar.gz`` by the code of format 4 (Zarr groups without format 5's manifests and
   all-fill chunks, which this script now writes: only the columns are compared),
   ``catalog_v5.tar.gz`` by this script when format 6 came (before the per-frame validity
-  columns);
+  columns), ``catalog_v6.tar.gz`` by this script when format 7 came (before
+  ``sessions.hand_shape``);
   ``test_golden_script_still_writes_...`` checks that this script still writes the same
   columns. Unpacked one is ~86 KB in 33 files
   (Delta logs, and Parquet footers repeating the schema's docs), packed ~15-20 KB. Tests unpack
@@ -57,11 +58,12 @@ COLUMNS_ADDED: dict[int, dict[str, tuple[str, ...]]] = {
     4: {"frames": ("camera_solved",), "sessions": ("qa_flags", "qa_notes")},
     6: {"frames": ("camera_reason", "hand_used", "hand_reason", "object_supported",
                    "object_reason", "object_depth_agreement")},
+    7: {"sessions": ("hand_shape",)},
 }
 """``{format: {table: columns that format added}}`` (docs/data_changelog.md): a catalog of an
 older format lacks them."""
 FORMAT_2_COLUMNS = COLUMNS_ADDED[2]
-GOLDEN_FORMATS = (1, 2, 3, 4, 5)
+GOLDEN_FORMATS = (1, 2, 3, 4, 5, 6)
 """Older formats with a golden catalog (every one ``graspcap catalog migrate`` leads from)."""
 
 
@@ -102,6 +104,7 @@ def build() -> gc.BuildCommit:
         "keypoint_backend": "openpose_json", "keypoint_frames_detected": 2,
         "T_w_o_stage1": e["T"], "T_adj": e["T"], "T_w_p": e["T"], "T_turntable_o_scan": e["T"],
         "hand_scale": 1.0, "joint_angles_rad": np.zeros(20), "joints_w": e["joints"],
+        "hand_shape": np.linspace(0.016, 0.045, 20),
         "joints_fit_w": e["joints"], "input_digest": "0" * 64, "code_version": "golden",
         "build_id": "golden-1", "config_digest": "1" * 64,
         **dict.fromkeys(["qa_reproj_rmse_px", "qa_inlier_ratio", "qa_crosscheck_mm",

@@ -15,7 +15,7 @@ from graspcap.tasks.core.geometry import from_rotvec, make_T, transform_points
 from graspcap.tasks.hand.fit_hand import HandFit
 from graspcap.tasks.hand.model import HandModel, HandSide
 from graspcap.tasks.hand.refine_grasp import PRESETS, refine_grasp
-from graspcap.tasks.hand.surface import HandSurface
+from graspcap.tasks.hand.surface import HandSurface, palm_grid
 
 T_W_O = from_rotvec(np.array([0.3, -0.2, 0.5]), np.array([0.05, 0.02, 0.6]))
 MODEL = HandModel(HandSide.RIGHT)
@@ -161,3 +161,28 @@ def test_model_distance_matches_the_hand_mesh(side):
     err_mm = 1e3 * np.abs(d - exact)[~inside]
     assert (~inside).sum() > 200
     assert np.percentile(err_mm, 95) < 0.5 and err_mm.max() < 1.0
+
+
+def test_refinement_keeps_and_uses_the_fitted_shape(grasp):
+    """A fit with a per-bone shape: the refined hand keeps it (bone lengths exact), its mesh is
+    the shaped model's and its surface distances are to the shaped hand."""
+    import dataclasses
+
+    from graspcap.tasks.hand.model import SKELETON, TEMPLATE_BONE_LENGTHS_M
+
+    obj, g, contact = grasp
+    b = np.exp(np.random.default_rng(8).normal(0.0, 0.06, 20))
+    fit = dataclasses.replace(_fit(g.T_o_p, g.angles_rad, g.scale), bone_scale=b)
+    r = refine_grasp(fit, HandSide.RIGHT, T_W_O, obj.vertices, obj.faces, contact,
+                     np.ones(len(contact), bool), PRESETS["fast"])
+    np.testing.assert_array_equal(r.bone_scale, b)
+    lengths = [np.linalg.norm(r.joints_o[k] - r.joints_o[p]) for p, k in SKELETON]
+    np.testing.assert_allclose(lengths, g.scale * b * TEMPLATE_BONE_LENGTHS_M, rtol=1e-10)
+    np.testing.assert_allclose(
+        r.hand_vertices_o, MODEL.mesh(r.angles_rad, r.T_o_p, g.scale, b).vertices, atol=1e-12)
+    # the distances are to the shaped hand: its palm vertices lie on the shaped palm's surface
+    mesh = MODEL.mesh(MODEL.rest_angles(), bone_scale=b)
+    palm_p = mesh.vertices[mesh.part == 0]
+    assert np.abs(palm_grid(HandSide.RIGHT, b)(palm_p)).max() < 2.5e-3  # concave: within 2.5 mm
+    surface = HandSurface(HandSide.RIGHT, g.scale, 5, b)
+    np.testing.assert_allclose(surface.palm_samples_p, palm_p * g.scale)
