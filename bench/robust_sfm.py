@@ -42,8 +42,10 @@ def _dir(root: Path, profile: str, frames: int, seed: int, i: int) -> Path | Non
 def session_row(d: Path, true_onset: bool, legacy: bool = False) -> dict:
     configs = configs_for()
     if legacy:  # reconstruct_hand/12: fixed-pixel gates, no whole-frame rejection
-        configs["reconstruct_hand"] = configs["reconstruct_hand"].model_copy(
-            update={"frame_rejection": False})
+        rh = configs["reconstruct_hand"]
+        configs["reconstruct_hand"] = rh.model_copy(update={
+            "frame_rejection": False,
+            "depth_links": rh.depth_links.model_copy(update={"consecutive_from_rest": False})})
     up: dict = {}
     for name in ("load_session", "detect_keypoints"):
         up[name] = run_stage(STAGES[name], d, configs[name], up)
@@ -103,8 +105,10 @@ def main() -> None:
               + (f"FAILED {r['failed']}" if "failed" in r else
                  f"joints {r['joints_mm']:6.1f} mm  cams {r['cam_deg']:5.2f} deg "
                  f"{r['cam_mm']:6.1f} mm  inliers {r['inlier_ratio']:.2f} "
-                 f"rmse {r['rmse_px']:.1f} px  rejected {r['rejected']}  sigma {r['sigma_px']:.1f} "
-                 f"hand {r['hand_px']:.0f} px{'  restarted' if r['restarted'] else ''}"), flush=True)
+                 f"rmse {r['rmse_px']:.1f} px  rejected {r['rejected']}  "
+                 f"sigma {r['sigma_px']:.1f} hand {r['hand_px']:.0f} px"
+                 f"{'  restarted' if r['restarted'] else ''}"),
+              flush=True)
     built = [r for r in rows if "failed" not in r]
     med = {k: np.median([r[k] for r in built]) if built else np.nan
            for k in ("joints_mm", "cam_deg", "cam_mm")}

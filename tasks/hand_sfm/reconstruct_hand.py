@@ -18,6 +18,7 @@ the registered surface pins it to a few tenths (rig sessions: 1.6-2.2 deg -> 0.2
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from functools import partial
 
 import numpy as np
@@ -34,6 +35,7 @@ from graspcap.tasks.hand_sfm.metric_scale import (
     depth_lookup_from_frames,
     estimate_scale,
 )
+from graspcap.tasks.hand_sfm.odometry_init import odometry_initialisation
 from graspcap.tasks.hand_sfm.restart import solve_with_restarts
 from graspcap.tasks.hand_sfm.result import HandReconstruction, SfmDiagnostics, assemble
 from graspcap.tasks.hand_sfm.sanity import check_frames_in_depth, check_result
@@ -93,7 +95,7 @@ class ReconstructConfig(StageConfig):
     jumps 60 % of the hand's size, its fastest motion a few per cent per frame)."""
     jump_size_ratio: float = 1.5
     """...or whose hand's image size differs from its neighbours' by more than this factor."""
-    jump_half_window: int = 4
+    jump_half_window: int = 6
     """Frames either side that a frame's detection is compared with (a median: runs of up to
     3 wrong frames)."""
     frame_min_inlier_share: float = 0.5
@@ -106,6 +108,11 @@ class ReconstructConfig(StageConfig):
     swap_gain: float = 1.5
     """Two neighbouring fingers' detections count as label-swapped when exchanging their
     labels lowers their (gate-capped) residual sum by more than this factor."""
+    odometry_noise_share: float = 0.025
+    """With ``frame_rejection`` and the depth links: when the two-view solve measures a
+    detection noise (sigma per coordinate) above this share of the hand's image size, the
+    solve from the cameras chained by the depth surfaces (``hand_sfm.odometry_init``) is
+    returned instead when it succeeds (rig: realistic 0.9-1.5 %, real-detector 3-5 %)."""
     max_rejected_share: float = 0.6
     """The stage raises when it rejects more than this share of the frames with enough
     detections (ContactPose's own optimiser kept 223 of 507 frames, 56 % rejected)."""
@@ -326,10 +333,47 @@ def reconstruct_hand(
         ok_init = ok.copy()
         ok_init[list(prescreen)] = False
 
+        def odometry():
+            """The solve from the cameras chained by the depth surfaces, or None."""
+            odo = odometry_initialisation(
+                [sweep.get(i).surface if ok_init[i].sum() >= cfg.min_points_per_frame
+                 else None for i in range(len(kp))],
+                kp[..., :2], ok_init, K, link_cfg, ransac_px=ransac_px,
+                min_points=cfg.min_points_per_frame, min_frames=cfg.min_frames,
+            )  # fmt: skip
+            return None if odo is None else partial(solve, initialisation=odo,
+                                                    rgbd_from_start=True)
+
+        def first_solve():
+            """The two-view solve; when its detections are noisy (measured sigma above
+            ``odometry_noise_share`` of the hand's size) the odometry solve instead, if it
+            succeeds: cameras posed from such keypoints are off by degrees, the chained
+            depth surfaces by tenths."""
+            rec = solve()
+            share = rec.diagnostics.noise_sigma_px / hand_px
+            if not (cfg.frame_rejection and use_links and share > cfg.odometry_noise_share):
+                return rec
+            attempt = odometry()
+            if attempt is None:
+                return rec
+            try:
+                again = attempt()
+            except StageError:
+                return rec
+            why = (f"detections noisy ({share:.1%} of the hand's size): cameras from the "
+                   "depth surfaces")
+            return replace(again, diagnostics=replace(again.diagnostics, restarted_after=why))
+
         def restarts():
             """Solves from the depth initialisation: through the reprojection-only solve
             like the first, then straight into the RGB-D solve (pixels alone may prefer a
-            wrong hand even from a right start)."""
+            wrong hand even from a right start). With ``frame_rejection`` first from the
+            cameras chained by the depth surfaces (``hand_sfm.odometry_init``), straight into
+            the RGB-D solve."""
+            if cfg.frame_rejection and use_links:
+                attempt = odometry()
+                if attempt is not None:
+                    yield attempt
             init = depth_initialisation(
                 kp[..., :2], ok_init, K, sweep.readings(range(len(kp))),
                 np.broadcast_to(np.asarray(surface_offset_m, dtype=float), (21,)),
@@ -340,7 +384,7 @@ def reconstruct_hand(
                 yield partial(solve, initialisation=init, rgbd_from_start=True)
 
         return solve_with_restarts(
-            solve, restarts, enabled=cfg.depth_restart, min_share=cfg.restart_depth_share,
+            first_solve, restarts, enabled=cfg.depth_restart, min_share=cfg.restart_depth_share,
             margin=cfg.restart_share_margin,
         )
 
