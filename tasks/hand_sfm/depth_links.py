@@ -74,7 +74,7 @@ class DepthLinkConfig(StageConfig):
     """Largest rotation an accepted registration may apply to the keypoint solve."""
     max_correction_m: float = 0.03
     """Largest translation an accepted registration may apply to the keypoint solve."""
-    consecutive_from_rest: bool = True
+    consecutive_from_rest: bool = False
     """Register each frame onto its predecessor from no motion (identity) instead of from
     the keypoint solve's relative pose, and accept it by the motion it finds (at most
     ``max_step_*``) instead of by its correction: neighbouring frames move a few degrees, so
