@@ -54,6 +54,7 @@ def session_row(d: Path, true_onset: bool, legacy: bool = False) -> dict:
     try:
         sel = run_stage(STAGES["select_steady"], d, configs["select_steady"], up)
         row["onset_err"] = int(sel.steady_from - truth["steady_from"])
+        row["uncertain"] = bool(getattr(sel, "uncertain", ""))
     except StageError as e:
         row["onset_failed"] = e.reason[:100]
         sel = None
@@ -101,7 +102,8 @@ def main() -> None:
             continue
         r = session_row(d, a.true_onset, a.legacy)
         rows.append(r)
-        print(f"[{a.seed}, {i:2d}] onset {r.get('onset_err', r.get('onset_failed'))!s:>6} "
+        print(f"[{a.seed}, {i:2d}] onset {r.get('onset_err', r.get('onset_failed'))!s:>6}"
+              f"{'?' if r.get('uncertain') else ' '} "
               + (f"FAILED {r['failed']}" if "failed" in r else
                  f"joints {r['joints_mm']:6.1f} mm  cams {r['cam_deg']:5.2f} deg "
                  f"{r['cam_mm']:6.1f} mm  inliers {r['inlier_ratio']:.2f} "
@@ -119,6 +121,11 @@ def main() -> None:
           f"{med['cam_mm']:.1f} mm")
     print(f"onset within 3: {sum(abs(e) <= 3 for e in onset)}/{len(rows)}; errors "
           f"{sorted(onset)}; onset refused {len(rows) - len(onset)}")
+    said = [r for r in rows if r.get("uncertain")]
+    plain = [r["onset_err"] for r in rows if "onset_err" in r and not r.get("uncertain")]
+    print(f"onset marked uncertain (QA flag): {len(said)}/{len(rows)}; of the rest within 3: "
+          f"{sum(abs(e) <= 3 for e in plain)}/{len(plain)}; silently wrong (> 3 frames, not "
+          f"marked): {sum(abs(e) > 3 for e in plain)}")
     for why, k in Counter(r["failed"][:60] for r in rows if "failed" in r).most_common():
         print(f"  {k} x {why}")
 
