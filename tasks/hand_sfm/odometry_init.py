@@ -132,4 +132,5 @@ def odometry_initialisation(
     if b == a:
         return None
     parallax = float(np.median(ray_angles_deg(T[b], X[known])))
-    return Initialisation(T, X, TwoView(a, b, T[b].copy(), parallax, known))
+    return Initialisation(T, X, TwoView(a, b, T[b].copy(), parallax, known),
+                          links_from_start=True)

@@ -114,7 +114,8 @@ class ReconstructConfig(StageConfig):
     """With ``frame_rejection`` and the depth links: when the two-view solve measures a
     detection noise (sigma per coordinate) above this share of the hand's image size, the
     solve from the cameras chained by the depth surfaces (``hand_sfm.odometry_init``) is
-    returned instead when it succeeds (rig: realistic 0.9-1.5 %, real-detector 3-5 %)."""
+    returned instead; when that fails the stage raises (rig: realistic 0.9-1.5 %,
+    real-detector 3-5 %)."""
     max_rejected_share: float = 0.6
     """The stage raises when it rejects more than this share of the frames with enough
     detections (ContactPose's own optimiser kept 223 of 507 frames, 56 % rejected)."""
@@ -348,20 +349,26 @@ def reconstruct_hand(
 
         def first_solve():
             """The two-view solve; when its detections are noisy (measured sigma above
-            ``odometry_noise_share`` of the hand's size) the odometry solve instead, if it
-            succeeds: cameras posed from such keypoints are off by degrees, the chained
-            depth surfaces by tenths."""
+            ``odometry_noise_share`` of the hand's size) the odometry solve instead, and a
+            ``StageError`` naming both when that fails: cameras posed from such keypoints
+            are off by degrees (rig real-detector sessions: 5-35 deg, passing every check),
+            the chained depth surfaces by tenths."""
             rec = solve()
             share = rec.diagnostics.noise_sigma_px / hand_px
             if not (cfg.frame_rejection and use_links and share > cfg.odometry_noise_share):
                 return rec
+            noisy = (f"the detections are too noisy to pose the cameras from (measured "
+                     f"{rec.diagnostics.noise_sigma_px:.1f} px, {share:.1%} of the hand's "
+                     f"{hand_px:.0f} px > {cfg.odometry_noise_share:.1%})")
             attempt = odometry()
             if attempt is None:
-                return rec
+                raise StageError(STAGE, f"{noisy}, and the depth surfaces of fewer than "
+                                 f"{cfg.min_frames} frames chain into cameras")
             try:
                 again = attempt()
-            except StageError:
-                return rec
+            except StageError as e:
+                raise StageError(STAGE, f"{noisy}, and the solve from the cameras the depth "
+                                 f"surfaces chain failed: {e.reason}") from e
             why = (f"detections noisy ({share:.1%} of the hand's size): cameras from the "
                    "depth surfaces")
             return replace(again, diagnostics=replace(again.diagnostics, restarted_after=why))
@@ -522,9 +529,17 @@ def _reconstruct(
         if rgbd_from_start:  # metric: start from it, the pixels alone may prefer a
             T_start = np.where(np.isfinite(init.T_c_w), init.T_c_w, T_vis)  # wrong hand
             X_start = np.where(np.isfinite(init.points_w), init.points_w, X_vis)
+        first_link_round = 2
+        if use_links and rgbd_from_start and init.links_from_start:
+            T_links = init.T_c_w  # the chained depth cameras: the links hold them from round 1
+
+            def link_fn(T: np.ndarray) -> list[DepthLink]:
+                return depth_links(surfaces, T_links, K, link_cfg)
+
+            first_link_round = 1
         T_c_w, X, res, inlier, n, range_used, links, off = solve_rgbd(
             cfg, K, uv, ok, inlier, sigma, T_start, X_start, depth, offset, pair.a, link_fn,
-            screen=screen if cfg.frame_rejection else None,
+            screen=screen if cfg.frame_rejection else None, first_link_round=first_link_round,
         )
         rounds += n
         check_frames_in_depth(off, cfg.max_off_frame_share)

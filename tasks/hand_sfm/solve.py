@@ -287,7 +287,7 @@ def _frame_gate(residual_m, gate_m, frame_share, min_readings, max_shift_m):
 
 
 def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, link_fn=None,
-               screen: NoiseScreen | None = None):
+               screen: NoiseScreen | None = None, first_link_round: int = 2):
     """Reprojection + range factors, metric. Each round gates every reading afresh against
     the current solution: ``depth_gate_m`` against the scaled visual solve, then
     ``range_gate_sigmas`` sigmas against the previous RGB-D solve. With ``link_fn``
@@ -296,7 +296,8 @@ def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, l
     Also returns the frames (m,) bool whose readings still agree with each other but not
     with the final solve (``frames_off_in_depth``). With ``screen`` (``solve_visual``'s) the
     final inliers are gated by its ``gate_px``, without its rejected frames and swapped
-    fingers; else by ``outlier_px``."""
+    fingers; else by ``outlier_px``. ``first_link_round`` 1 adds the links from the first
+    round (a ``link_fn`` that registers from fixed cameras)."""
     m = len(uv)
     rays = np.concatenate(
         [normalise(K, uv.reshape(-1, 2)).reshape(m, 21, 2), np.ones((m, 21, 1))], 2
@@ -308,12 +309,13 @@ def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, l
     used = np.zeros((m, 21), bool)
     links: list = []
     link_rounds = cfg.depth_links.rounds if link_fn is not None else 0
-    for rounds in range(1, max(cfg.range_rounds, 1 + link_rounds) + 1):  # noqa: B007
+    last_link_round = first_link_round + link_rounds - 1
+    for rounds in range(1, max(cfg.range_rounds, last_link_round) + 1):  # noqa: B007
         keep = gate_readings(
             measured - ranges(T_c_w, X), gate, cfg.frame_gate_share, cfg.min_points_per_frame,
             cfg.frame_gate_max_m,
         )  # fmt: skip
-        link_round = 2 <= rounds <= 1 + link_rounds
+        link_round = first_link_round <= rounds <= last_link_round
         if rounds > 1 and np.array_equal(keep, used) and not link_round:
             break
         used = keep
