@@ -203,6 +203,7 @@ def _propagate_poses(session: Session, config, **up):
         prop.frame_indices, keypoints, sfm.frames, sfm.pose_valid, sfm.inlier, prop.T_c_o,
         lambda f: session.read_depth_m(session.grasp_path("depth", f)), session.color_K,
         session.read_mesh(), _final_hand(up).mesh_o, config.validity,
+        sfm.diagnostics.frame_rejected,
     )
     return replace(prop, validity=validity)
 

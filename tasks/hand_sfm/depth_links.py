@@ -74,6 +74,20 @@ class DepthLinkConfig(StageConfig):
     """Largest rotation an accepted registration may apply to the keypoint solve."""
     max_correction_m: float = 0.03
     """Largest translation an accepted registration may apply to the keypoint solve."""
+    consecutive_from_rest: bool = False
+    """Register each frame onto its predecessor from no motion (identity) instead of from
+    the keypoint solve's relative pose, and accept it by the motion it finds (at most
+    ``max_step_*``) instead of by its correction: neighbouring frames move a few degrees, so
+    the registration needs no keypoints, and a keypoint solve of a real detector's
+    detections (errors of 5-10 % of the hand's size) is off by more than
+    ``max_correction_deg`` (rig real-detector sessions: 6-35 deg); these links then chain
+    the cameras."""
+    max_step_deg: float = 25.0
+    """Largest rotation between neighbouring frames a registration from rest may find (the
+    rig's wild motion turns up to 7 deg per frame; with frames skipped, 20)."""
+    max_step_m: float = 0.3
+    """Largest translation between neighbouring frames a registration from rest may find (a
+    turn about the hand moves the camera: 20 deg at 0.8 m is 0.28 m)."""
     threads: int = 2
     """The pairs are registered in two fixed halves (each pair's ICP is independent of the
     others); with 2 the second half runs on a second thread while the first runs on this
@@ -257,7 +271,9 @@ def depth_links(
 
     A registration is kept when it overlaps by ``min_overlap``, fits within ``max_rmse_m``
     and moves the initial relative pose by at most ``max_correction_*`` (a larger change is
-    a wrong basin, not a refinement of a keypoint solve).
+    a wrong basin, not a refinement of a keypoint solve); with ``consecutive_from_rest`` a
+    frame registered onto its predecessor starts from no motion and may find up to
+    ``max_step_*``.
     """
     cfg = config
     m = len(T_c_w)
@@ -276,6 +292,10 @@ def depth_links(
     node = np.full(m, -1)
     node[have] = np.arange(len(have))
     T0 = np.einsum("nij,njk->nik", T_c_w[ab[:, 0]], np.stack([inv_T(T_c_w[b]) for b in ab[:, 1]]))
+    successor = {int(a): int(b) for a, b in zip(have[:-1], have[1:], strict=True)}
+    from_rest = np.array([cfg.consecutive_from_rest and successor.get(int(a)) == int(b)
+                          and a != reference for a, b in ab], dtype=bool)  # fmt: skip
+    T0[from_rest] = np.eye(4)
     clouds = [surfaces[i] for i in have]
 
     def register(idx: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -298,11 +318,13 @@ def depth_links(
     for n, (a, b) in enumerate(ab):
         dT = inv_T(T0[n]) @ T[n]
         angle = np.degrees(np.arccos(np.clip((np.trace(dT[:3, :3]) - 1) / 2, -1, 1)))
+        max_deg, max_m = ((cfg.max_step_deg, cfg.max_step_m) if from_rest[n]
+                          else (cfg.max_correction_deg, cfg.max_correction_m))  # fmt: skip
         if (
             overlap[n] >= cfg.min_overlap
             and rmse[n] <= cfg.max_rmse_m
-            and angle <= cfg.max_correction_deg
-            and np.linalg.norm(dT[:3, 3]) <= cfg.max_correction_m
+            and angle <= max_deg
+            and np.linalg.norm(dT[:3, 3]) <= max_m
         ):
             links.append(DepthLink(int(a), int(b), T[n], info[n], float(rmse[n]), overlap[n]))
     return links

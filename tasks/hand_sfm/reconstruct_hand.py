@@ -18,6 +18,7 @@ the registered surface pins it to a few tenths (rig sessions: 1.6-2.2 deg -> 0.2
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from functools import partial
 
 import numpy as np
@@ -28,11 +29,13 @@ from graspcap.tasks.core.threads import thread_budget
 from graspcap.tasks.hand_sfm.depth_init import depth_initialisation
 from graspcap.tasks.hand_sfm.depth_links import DepthLink, DepthLinkConfig, depth_links
 from graspcap.tasks.hand_sfm.depth_sweep import DepthSweep, FrameDepth, frame_depth
+from graspcap.tasks.hand_sfm.frame_screen import hand_size_px, screen_jumps
 from graspcap.tasks.hand_sfm.metric_scale import (
     DepthLookup,
     depth_lookup_from_frames,
     estimate_scale,
 )
+from graspcap.tasks.hand_sfm.odometry_init import odometry_initialisation
 from graspcap.tasks.hand_sfm.restart import solve_with_restarts
 from graspcap.tasks.hand_sfm.result import HandReconstruction, SfmDiagnostics, assemble
 from graspcap.tasks.hand_sfm.sanity import check_frames_in_depth, check_result
@@ -50,7 +53,7 @@ from graspcap.tasks.hand_sfm.two_view_init import Initialisation, check_frames, 
 __all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",
            "STAGE_VERSION", "reconstruct_hand"]  # the result types live in sfm_result
 
-STAGE_VERSION = "reconstruct_hand/12"
+STAGE_VERSION = "reconstruct_hand/13"
 
 
 class ReconstructConfig(StageConfig):
@@ -64,10 +67,59 @@ class ReconstructConfig(StageConfig):
     """Huber threshold in sigmas for the robust first solve."""
     outlier_px: float = 10.0
     """Observations whose residual exceeds this (pixels) are rejected before the re-solve."""
+    outlier_sigmas: float = 3.0
+    """With ``frame_rejection``: the inlier gate is the larger of ``outlier_px`` and this many
+    measured noise sigmas (``hand_sfm.frame_screen.robust_sigma`` of the accepted frames'
+    residuals after the robust solve): a real detector misses by 5-10 % of the hand's image
+    size, 6-15 px on a 120 px hand, as far as a fixed gate."""
     outlier_rounds: int = 3
     """At most this many reject-and-re-solve rounds (stops early when the inliers settle)."""
     ransac_px: float = 8.0
-    """RANSAC threshold (pixels) of the two-view and PnP initialisation."""
+    """RANSAC threshold (pixels) of the two-view and PnP initialisation (at least)."""
+    ransac_hand_share: float = 0.0
+    """With ``frame_rejection`` the RANSAC threshold is at least this share of the hand's
+    image size (median bounding-box diagonal of the detections). Off (0): at 0.1 a 180 px
+    hand with 2.5 px noise got an 18 px threshold and a two-view start wrong enough to end
+    in a 197 mm bone (``test_sfm_restart``'s seed 0); noisy detections are left to the
+    cameras chained by the depth (``odometry_noise_share``)."""
+    frame_rejection: bool = True
+    """Drop whole frames whose detections the static hand does not explain, each with its
+    reason (``hand_sfm.frame_screen``; ``diagnostics.frame_rejected``): detections that jump
+    away from their neighbours' (``jump_share``, ``jump_size_ratio``), frames with fewer than
+    ``frame_min_inlier_share`` of their detections within the gate; and the detections of two
+    fingers whose labels are exchanged (``swap_gain``). Gates scale with the measured noise
+    (``outlier_sigmas``, ``ransac_hand_share``, ``rmse_hand_share``). Off: the fixed-pixel
+    stage of reconstruct_hand/12."""
+    jump_share: float = 0.35
+    """A frame whose detected hand (median keypoint) lies further than this share of the
+    hand's size from the median of its neighbours' (``jump_half_window`` frames either side)
+    is rejected before the solve (the camera moves smoothly; the rig's worst wrong frame
+    jumps 60 % of the hand's size, its fastest motion a few per cent per frame)."""
+    jump_size_ratio: float = 1.5
+    """...or whose hand's image size differs from its neighbours' by more than this factor."""
+    jump_half_window: int = 6
+    """Frames either side that a frame's detection is compared with (a median: runs of up to
+    3 wrong frames)."""
+    frame_min_inlier_share: float = 0.5
+    """A posed frame with fewer of its detections within the gate is rejected whole (a
+    mirrored hand, another hand the solve half explains)."""
+    pose_jump_gates: float = 2.0
+    """A posed frame whose camera moves the hand's projection further than this many inlier
+    gates from where its neighbouring frames' cameras put it is rejected whole
+    (``hand_sfm.frame_screen.jumping_poses``)."""
+    swap_gain: float = 1.5
+    """Two neighbouring fingers' detections count as label-swapped when exchanging their
+    labels lowers their (gate-capped) residual sum by more than this factor."""
+    odometry_noise_share: float = 0.025
+    """With ``frame_rejection`` and the depth links: when the two-view solve measures a
+    detection noise (sigma per coordinate) above this share of the hand's image size, the
+    solve from the cameras chained by the depth surfaces (``hand_sfm.odometry_init``) is
+    returned instead; when that fails the stage raises (rig: realistic 0.9-1.5 %,
+    real-detector 3-5 %)."""
+    max_rejected_share: float = 0.6
+    """The stage raises when it rejects more than this share of the frames with enough
+    detections (ContactPose's own optimiser kept 223 of 507 frames, 56 % rejected)."""
+    outlier_rounds: int = 3
     pair_candidates: int = 12
     """Evenly spaced frames among which the initial pair is chosen by parallax."""
     min_parallax_deg: float = 2.0
@@ -142,9 +194,13 @@ class ReconstructConfig(StageConfig):
     likely cause (measured on a rig session: a hand truly turned 8 deg was solved as turned
     16 deg with a 187 mm bone; sessions turned 23-53 deg solve to 0.1-0.4 deg per camera)."""
     max_reproj_rmse_px: float = 8.0
-    """The stage raises when the final inlier reprojection RMSE exceeds this."""
+    """The stage raises when the final inlier reprojection RMSE exceeds this (at least)."""
+    rmse_hand_share: float = 0.12
+    """With ``frame_rejection`` the RMSE limit is at least this share of the hand's image size
+    (a real detector's inliers miss by 5-10 % of it)."""
     min_inlier_ratio: float = 0.6
-    """The stage raises when fewer of the detections are inliers of the final solve."""
+    """The stage raises when fewer of the detections are inliers of the final solve (of the
+    accepted frames with ``frame_rejection``; ``max_rejected_share`` bounds the rest)."""
     depth_links: DepthLinkConfig = DepthLinkConfig()
     """Dense depth links between frames (RGB-D only, see ``hand_sfm.depth_links``)."""
     prefetch_depth: bool = True
@@ -232,6 +288,18 @@ def reconstruct_hand(
     shortage = _too_few(ok, steady_from, cfg)
     if shortage:
         raise StageError(STAGE, shortage + (f"; {why_missing}" if why_missing else ""))
+    prescreen: dict[int, str] = {}
+    hand_px = float("nan")
+    if cfg.frame_rejection:  # before any solve: detections that jump away from their neighbours
+        prescreen = screen_jumps(
+            kp[..., :2], ok, jump_share=cfg.jump_share, size_ratio=cfg.jump_size_ratio,
+            half_window=cfg.jump_half_window, min_points=cfg.min_points_per_frame,
+            first_frame=steady_from,
+        )  # fmt: skip
+        sizes = hand_size_px(kp[..., :2], ok, cfg.min_points_per_frame)
+        sizes[list(prescreen)] = np.nan
+        hand_px = float(np.nanmedian(sizes)) if np.isfinite(sizes).any() else float("nan")
+    ransac_px = _ransac_px(cfg, hand_px)
     confident = ok & (kp[..., 2] >= cfg.depth_min_confidence)
     link_cfg = cfg.depth_links
     use_links = (  # without the turntable the static scene would be registered too
@@ -263,26 +331,79 @@ def reconstruct_hand(
     with DepthSweep(compute, order, background=background) as sweep:
         solve = partial(
             _reconstruct, keypoints, K, steady_from, sweep.get, surface_offset_m, cfg,
-            use_links=use_links,
+            use_links=use_links, prescreen=prescreen, hand_px=hand_px,
         )  # fmt: skip
+        ok_init = ok.copy()
+        ok_init[list(prescreen)] = False
+
+        def odometry():
+            """The solve from the cameras chained by the depth surfaces, or None."""
+            odo = odometry_initialisation(
+                [sweep.get(i).surface if ok_init[i].sum() >= cfg.min_points_per_frame
+                 else None for i in range(len(kp))],
+                kp[..., :2], ok_init, K, link_cfg, ransac_px=ransac_px,
+                min_points=cfg.min_points_per_frame, min_frames=cfg.min_frames,
+            )  # fmt: skip
+            return None if odo is None else partial(solve, initialisation=odo,
+                                                    rgbd_from_start=True)
+
+        def first_solve():
+            """The two-view solve; when its detections are noisy (measured sigma above
+            ``odometry_noise_share`` of the hand's size) the odometry solve instead, and a
+            ``StageError`` naming both when that fails: cameras posed from such keypoints
+            are off by degrees (rig real-detector sessions: 5-35 deg, passing every check),
+            the chained depth surfaces by tenths."""
+            rec = solve()
+            share = rec.diagnostics.noise_sigma_px / hand_px
+            if not (cfg.frame_rejection and use_links and share > cfg.odometry_noise_share):
+                return rec
+            noisy = (f"the detections are too noisy to pose the cameras from (measured "
+                     f"{rec.diagnostics.noise_sigma_px:.1f} px, {share:.1%} of the hand's "
+                     f"{hand_px:.0f} px > {cfg.odometry_noise_share:.1%})")
+            attempt = odometry()
+            if attempt is None:
+                raise StageError(STAGE, f"{noisy}, and the depth surfaces of fewer than "
+                                 f"{cfg.min_frames} frames chain into cameras")
+            try:
+                again = attempt()
+            except StageError as e:
+                raise StageError(STAGE, f"{noisy}, and the solve from the cameras the depth "
+                                 f"surfaces chain failed: {e.reason}") from e
+            why = (f"detections noisy ({share:.1%} of the hand's size): cameras from the "
+                   "depth surfaces")
+            return replace(again, diagnostics=replace(again.diagnostics, restarted_after=why))
 
         def restarts():
             """Solves from the depth initialisation: through the reprojection-only solve
             like the first, then straight into the RGB-D solve (pixels alone may prefer a
-            wrong hand even from a right start)."""
+            wrong hand even from a right start). With ``frame_rejection`` first from the
+            cameras chained by the depth surfaces (``hand_sfm.odometry_init``), straight into
+            the RGB-D solve."""
+            if cfg.frame_rejection and use_links:
+                attempt = odometry()
+                if attempt is not None:
+                    yield attempt
             init = depth_initialisation(
-                kp[..., :2], ok, K, sweep.readings(range(len(kp))),
+                kp[..., :2], ok_init, K, sweep.readings(range(len(kp))),
                 np.broadcast_to(np.asarray(surface_offset_m, dtype=float), (21,)),
-                steady_from, ransac_px=cfg.ransac_px, min_points=cfg.min_points_per_frame,
+                steady_from, ransac_px=ransac_px, min_points=cfg.min_points_per_frame,
             )  # fmt: skip
             if init is not None:
                 yield partial(solve, initialisation=init)
                 yield partial(solve, initialisation=init, rgbd_from_start=True)
 
         return solve_with_restarts(
-            solve, restarts, enabled=cfg.depth_restart, min_share=cfg.restart_depth_share,
+            first_solve, restarts, enabled=cfg.depth_restart, min_share=cfg.restart_depth_share,
             margin=cfg.restart_share_margin,
         )
+
+
+def _ransac_px(cfg: ReconstructConfig, hand_px: float) -> float:
+    """The initialisation's RANSAC threshold: ``ransac_px``, with ``frame_rejection`` at least
+    ``ransac_hand_share`` of the hand's image size ``hand_px``."""
+    if cfg.frame_rejection and np.isfinite(hand_px):
+        return max(cfg.ransac_px, cfg.ransac_hand_share * hand_px)
+    return cfg.ransac_px
 
 
 def _too_few(ok: np.ndarray, steady_from: int, cfg: ReconstructConfig) -> str | None:
@@ -310,10 +431,13 @@ def _reconstruct(
     use_links: bool,
     initialisation: Initialisation | None = None,
     rgbd_from_start: bool = False,
+    prescreen: dict[int, str] | None = None,
+    hand_px: float = float("nan"),
 ) -> HandReconstruction:
     """One solve of :func:`reconstruct_hand`, from the two-view start or from a metric
     ``initialisation`` (``hand_sfm.depth_init``); with ``rgbd_from_start`` that also starts the
-    RGB-D solve (instead of the scaled reprojection-only solve)."""
+    RGB-D solve (instead of the scaled reprojection-only solve). ``prescreen`` (solve row ->
+    reason) are frames rejected before the solve, ``hand_px`` the hand's image size."""
     cfg = config
     K = np.asarray(K, dtype=float)
     offset = np.broadcast_to(np.asarray(surface_offset_m, dtype=float), (21,))
@@ -324,17 +448,21 @@ def _reconstruct(
     shortage = _too_few(ok, steady_from, cfg)
     if shortage:
         raise StageError(STAGE, shortage)
+    prescreen = dict(prescreen or {})
+    ok_init = ok.copy()
+    ok_init[list(prescreen)] = False
+    ransac_px = _ransac_px(cfg, hand_px)
     init, best_parallax = (initialisation, 0.0) if initialisation is not None else initialise(
         uv,
-        ok,
+        ok_init,
         K,
         n_candidates=cfg.pair_candidates,
-        ransac_px=cfg.ransac_px,
+        ransac_px=ransac_px,
         min_points=cfg.min_points_per_frame,
         min_parallax_deg=cfg.min_parallax_deg,
         threads=thread_budget(cfg.pnp_threads),
         depth_score=(
-            depth_scorer(cfg, conf, ok, frame_at, offset)
+            depth_scorer(cfg, conf, ok_init, frame_at, offset)
             if cfg.depth_init_score
             else None
         ),
@@ -350,14 +478,20 @@ def _reconstruct(
     pair = init.pair
 
     sigma = cfg.sigma_px / np.maximum(conf, cfg.min_sigma_confidence)
-    ba, res, inlier, rounds = solve_visual(cfg, uv, ok, sigma, K, init.T_c_w, init.points_w, pair)
+    ba, res, inlier, rounds, screen = solve_visual(
+        cfg, uv, ok, sigma, K, init.T_c_w, init.points_w, pair, rejected=prescreen,
+        first_frame=steady_from,
+    )  # fmt: skip
+    sigma = sigma * screen.noise_factor
     T_c_w, X = ba.T_c_w, ba.points_w
     posed_frames = int(np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1).sum())
     if posed_frames < cfg.min_frames:
+        rejected = f" ({len(screen.rejected)} rejected whole)" if screen.rejected else ""
         raise StageError(
             STAGE,
             f"too few usable frames: only {posed_frames} frames could be posed "
-            f"with >= {cfg.min_points_per_frame // 2 + 1} inlier joints, need {cfg.min_frames}",
+            f"with >= {cfg.min_points_per_frame // 2 + 1} inlier joints{rejected}, need "
+            f"{cfg.min_frames}",
         )
 
     link_cfg = cfg.depth_links
@@ -395,17 +529,31 @@ def _reconstruct(
         if rgbd_from_start:  # metric: start from it, the pixels alone may prefer a
             T_start = np.where(np.isfinite(init.T_c_w), init.T_c_w, T_vis)  # wrong hand
             X_start = np.where(np.isfinite(init.points_w), init.points_w, X_vis)
+        first_link_round = 2
+        if use_links and rgbd_from_start and init.links_from_start:
+            T_links = init.T_c_w  # the chained depth cameras: the links hold them from round 1
+
+            def link_fn(T: np.ndarray) -> list[DepthLink]:
+                return depth_links(surfaces, T_links, K, link_cfg)
+
+            first_link_round = 1
         T_c_w, X, res, inlier, n, range_used, links, off = solve_rgbd(
-            cfg, K, uv, ok, inlier, sigma, T_start, X_start, depth, offset, pair.a, link_fn
+            cfg, K, uv, ok, inlier, sigma, T_start, X_start, depth, offset, pair.a, link_fn,
+            screen=screen if cfg.frame_rejection else None, first_link_round=first_link_round,
         )
         rounds += n
         check_frames_in_depth(off, cfg.max_off_frame_share)
     else:
         T_c_w, X = T_vis, X_vis
 
-    check_result(cfg, X, T_c_w, res, inlier, ok, steady_from)
+    accepted = screen.accepted(m) if cfg.frame_rejection else None
+    rmse_limit = cfg.max_reproj_rmse_px
+    if cfg.frame_rejection and np.isfinite(hand_px):
+        rmse_limit = max(rmse_limit, cfg.rmse_hand_share * hand_px)
+    check_result(cfg, X, T_c_w, res, inlier, ok, steady_from, accepted=accepted,
+                 rmse_limit_px=rmse_limit, rejected=screen.rejected)  # fmt: skip
     return assemble(
         steady_from, T_c_w, X, res, ok, inlier, init=init, s=s, T_vis=T_vis, X_vis=X_vis,
         inlier_vis=inlier_vis, rounds=rounds, ba=ba, scale=scale, depth_inlier=depth_inlier,
-        range_used=range_used, links=links,
+        range_used=range_used, links=links, screen=screen, hand_px=hand_px,
     )

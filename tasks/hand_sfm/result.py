@@ -17,7 +17,7 @@ from graspcap.tasks.core.geometry import inv_T
 from graspcap.tasks.hand_sfm.depth_links import DepthLink
 from graspcap.tasks.hand_sfm.graph import BundleResult
 from graspcap.tasks.hand_sfm.metric_scale import ScaleEstimate
-from graspcap.tasks.hand_sfm.solve import fill_poses
+from graspcap.tasks.hand_sfm.solve import NoiseScreen, fill_poses
 from graspcap.tasks.hand_sfm.two_view_init import Initialisation
 
 
@@ -58,6 +58,17 @@ class SfmDiagnostics:
     restarted_after: str = ""
     """The reason the solve from the two-view start failed when the result comes from the
     depth restart, else empty."""
+    frame_rejected: tuple[str, ...] = ()
+    """Per solve frame, why it was rejected whole (``hand_sfm.frame_screen``), "" where
+    accepted; empty without ``frame_rejection``."""
+    swapped: np.ndarray | None = None
+    """(m, 21) bool, detections of two fingers whose labels were found exchanged (not used)."""
+    noise_sigma_px: float = float("nan")
+    """Per-coordinate pixel noise measured on the accepted frames after the robust solve."""
+    gate_px: float = float("nan")
+    """The inlier gate of the final solve (pixels)."""
+    hand_size_px: float = float("nan")
+    """Median diagonal of the detections' bounding box (the scale of the gates)."""
 
 
 @dataclass(frozen=True)
@@ -104,13 +115,17 @@ def assemble(
     depth_inlier: np.ndarray,
     range_used: np.ndarray,
     links: Sequence[DepthLink],
+    screen: NoiseScreen | None = None,
+    hand_px: float = float("nan"),
 ) -> HandReconstruction:
     """The stage's result from a finished, checked solve.
 
     T_c_w : (m, 4, 4) metric poses (NaN rows unposed, interpolated here); X : (21, 3) metric
     joints; res : (m, 21) pixel residuals; ok, inlier : (m, 21) usable and inlier
     observations; init : the start (scaled by ``s`` here); T_vis, X_vis, inlier_vis : the
-    scaled reprojection-only solve; ba : the last reprojection-only solve's statistics.
+    scaled reprojection-only solve; ba : the last reprojection-only solve's statistics;
+    screen : what the reprojection-only solve measured and rejected (the inlier ratio is then
+    of the accepted frames' detections); hand_px : the hand's image size.
     """
     m = len(T_c_w)
     pair = init.pair
@@ -135,6 +150,8 @@ def assemble(
     residuals[~pose_valid] = np.nan
     inlier &= pose_valid[:, None]
     n_inl = int(inlier.sum())
+    judged = ok if screen is None else ok & screen.accepted(m)[:, None]
+    rejected = () if screen is None else tuple(screen.rejected.get(i, "") for i in range(m))
     return HandReconstruction(
         steady_from=int(steady_from),
         frames=np.arange(steady_from, steady_from + m),
@@ -145,7 +162,7 @@ def assemble(
         residuals_px=residuals,
         inlier=inlier,
         reproj_rmse_px=float(np.sqrt(np.mean(res[inlier] ** 2))) if n_inl else float("nan"),
-        inlier_ratio=n_inl / int(ok.sum()),
+        inlier_ratio=n_inl / max(int(judged.sum()), 1),
         scale_m_per_unit=s,
         diagnostics=SfmDiagnostics(
             pair_frames=(steady_from + pair.a, steady_from + pair.b),
@@ -165,5 +182,10 @@ def assemble(
             depth_inlier=depth_inlier,
             range_factor=range_used,
             depth_links=np.array([(k.a, k.b) for k in links], dtype=int).reshape(-1, 2),
+            frame_rejected=rejected,
+            swapped=None if screen is None else screen.swapped,
+            noise_sigma_px=float("nan") if screen is None else screen.sigma_px,
+            gate_px=float("nan") if screen is None else screen.gate_px,
+            hand_size_px=float(hand_px),
         ),
     )

@@ -67,7 +67,7 @@ def implausibility(
         )
     if not reproj_rmse_px <= max_reproj_rmse_px:
         return (
-            f"reprojection RMSE {reproj_rmse_px:.1f} px > {max_reproj_rmse_px} px: the cameras "
+            f"reprojection RMSE {reproj_rmse_px:.1f} px > {max_reproj_rmse_px:.1f} px: the cameras "
             "and joints do not explain the keypoints"
         )
     if not inlier_ratio >= min_inlier_ratio:
@@ -80,15 +80,32 @@ def implausibility(
 
 def check_result(
     cfg, X: np.ndarray, T_c_w: np.ndarray, res: np.ndarray, inlier: np.ndarray, ok: np.ndarray,
-    steady_from: int, stage: str = "reconstruct_hand",
+    steady_from: int, stage: str = "reconstruct_hand", *, accepted: np.ndarray | None = None,
+    rmse_limit_px: float | None = None, rejected: dict[int, str] | None = None,
 ) -> None:
     """Raise a ``StageError`` naming the reason when a solve of ``reconstruct_hand`` (its
     ``ReconstructConfig`` as ``cfg``) turned too little or is implausible (``implausibility``).
 
     X : (21, 3) joints; T_c_w : (m, 4, 4) poses (NaN rows unposed); res : (m, 21) pixel
-    residuals; inlier, ok : (m, 21) inlier and usable observations.
+    residuals; inlier, ok : (m, 21) inlier and usable observations. With ``accepted`` (m,)
+    bool (frames not rejected whole; ``rejected`` row -> reason) the inlier share is of the
+    accepted frames' detections and the rejected share of the frames with
+    ``min_points_per_frame`` detections is bounded by ``max_rejected_share``;
+    ``rmse_limit_px`` replaces ``max_reproj_rmse_px``.
     """
     m = len(T_c_w)
+    if accepted is not None:
+        usable = ok.sum(1) >= cfg.min_points_per_frame
+        share = float((usable & ~accepted).sum()) / max(int(usable.sum()), 1)
+        if share > cfg.max_rejected_share:
+            first = next(iter((rejected or {}).values()), "")
+            raise StageError(
+                stage,
+                f"{int((usable & ~accepted).sum())} of {int(usable.sum())} frames rejected whole "
+                f"({share:.0%} > {cfg.max_rejected_share:.0%}): one static hand does not explain "
+                f"the detections" + (f" (first: {first})" if first else ""),
+            )
+        ok = ok & accepted[:, None]
     turn_deg = rotation_span_deg(T_c_w)
     little = (
         f"the hand turned only {turn_deg:.1f} deg relative to the camera from frame "
@@ -105,7 +122,7 @@ def check_result(
         n_inl / int(ok.sum()),
         bone_range_m=cfg.bone_range_m,
         distance_range_m=cfg.distance_range_m,
-        max_reproj_rmse_px=cfg.max_reproj_rmse_px,
+        max_reproj_rmse_px=cfg.max_reproj_rmse_px if rmse_limit_px is None else rmse_limit_px,
         min_inlier_ratio=cfg.min_inlier_ratio,
     )
     if reason:

@@ -42,7 +42,7 @@ from graspcap.tasks.hand_sfm.steady_stats import cusum, matched_filter, standard
 from graspcap.tasks.hand_sfm.two_view_init import initialise
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/5"
+STAGE_VERSION = "select_steady/6"
 
 
 class SteadyMethod(StrEnum):
@@ -101,6 +101,13 @@ class SelectSteadyConfig(StageConfig):
     scores)."""
     ba_iterations: int = 60
     """Levenberg-Marquardt iterations of the hand model's bundle adjustment."""
+    max_noise_share: float = 0.025
+    """The detected onset is marked uncertain (``SteadySelection.uncertain``, a QA flag) when
+    the steady frames' residual score (median ``scores_px``) exceeds this share of the hand's
+    image size (median bounding-box diagonal of the detections): the last frames of a
+    settling grasp move the fingers by a few per cent of the hand, which such noise hides
+    (rig: realistic scores 1-2 % of the hand, onsets within 3 frames; real-detector 2.5-4 %,
+    every onset 10-15 frames early)."""
 
 
 PRESETS: dict[str, SelectSteadyConfig] = {
@@ -129,6 +136,9 @@ class SteadySelection:
         ``t`` (-inf before ``start``, the start of the pattern window); the onset is its
         argmax (empty from the manifest).
     model_frames : (k,) int, video frames the final hand model was reconstructed from.
+    uncertain : why the detected onset may be wrong by more than a few frames ("" when it is
+        not, and from the manifest): no frame stood out as moving, or the keypoint noise is
+        too large a share of the hand to see the last motion. QA flags such a session.
     """
 
     steady_from: int
@@ -140,6 +150,7 @@ class SteadySelection:
     z: np.ndarray
     cusum: np.ndarray
     model_frames: np.ndarray
+    uncertain: str = ""
 
 
 def _bundle(uv, ok, K, cfg, frames, T_c_w, X, anchor, scale_ref):
@@ -340,6 +351,26 @@ def _detect(uv, ok, K, cfg):
     return onset, scores, threshold, matched, model
 
 
+def _uncertainty(uv, ok, scores, onset, detected, cfg) -> str:
+    """Why the detected ``onset`` may be wrong by more than a few frames, "" if not."""
+    steady = scores[onset:][np.isfinite(scores[onset:])]
+    noise = float(np.median(steady)) if len(steady) else float("nan")
+    sizes = [float(np.linalg.norm(p.max(0) - p.min(0)))
+             for p in (uv[i, ok[i]] for i in detected)]  # fmt: skip
+    hand = float(np.median(sizes)) if sizes else float("nan")
+    share = noise / hand if hand > 0 else float("nan")
+    if onset <= detected[0]:
+        return (f"no frame before {onset} stands out as moving above the keypoint noise "
+                f"({noise:.1f} px, {share:.1%} of the hand's {hand:.0f} px): the adjustment "
+                "phase is not seen; set grasp.steady_from in session.json if there is one")
+    if share > cfg.max_noise_share:
+        return (f"the keypoint noise ({noise:.1f} px, {share:.1%} of the hand's {hand:.0f} px "
+                f"> {cfg.max_noise_share:.1%}) hides the last motion of the grasp: the onset "
+                f"(frame {onset}) may be several frames early; set grasp.steady_from in "
+                "session.json")
+    return ""
+
+
 def select_steady(
     keypoints: np.ndarray,
     K: np.ndarray,
@@ -396,6 +427,7 @@ def select_steady(
         )
     return SteadySelection(
         steady_from=onset,
+        uncertain=_uncertainty(uv, ok, scores, onset, detected, cfg),
         method=SteadyMethod.DETECTED,
         scores_px=scores,
         threshold_px=threshold,

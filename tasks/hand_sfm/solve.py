@@ -7,6 +7,7 @@ them together.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
@@ -14,6 +15,12 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T
+from graspcap.tasks.hand_sfm.frame_screen import (
+    jumping_poses,
+    robust_sigma,
+    swapped_fingers,
+    unexplained_frames,
+)
 from graspcap.tasks.hand_sfm.graph import bundle_adjust, reprojection_residuals
 from graspcap.tasks.hand_sfm.metric_scale import ratio_mode
 from graspcap.tasks.hand_sfm.two_view_init import normalise
@@ -91,14 +98,83 @@ def depth_scorer(cfg, conf, ok, frame_at, offset):
     return score
 
 
-def solve_visual(cfg, uv, ok, sigma, K, T_c_w, X, pair):
-    """Robust reprojection-only solve, then reject-and-re-solve rounds -> (ba, res, inlier, n)."""
-    use, huber = ok.copy(), cfg.huber_k
+@dataclass(frozen=True)
+class NoiseScreen:
+    """What the reprojection-only solve measured and rejected (``hand_sfm.frame_screen``).
+
+    sigma_px : per-coordinate pixel noise of the accepted frames' detections (robust, from
+        the residuals' median; NaN when not measured); gate_px : the inlier gate, at least
+        ``outlier_px``, else ``outlier_sigmas * sigma_px``; noise_factor : the confidence-
+        scaled sigmas were multiplied by this (>= 1) for the solves after the robust one;
+    rejected : solve row -> reason, frames dropped whole; swapped : (m, 21) bool, detections
+        of two neighbouring fingers whose labels are exchanged (not used).
+    """
+
+    sigma_px: float
+    gate_px: float
+    noise_factor: float
+    rejected: dict[int, str]
+    swapped: np.ndarray
+
+    def accepted(self, m: int) -> np.ndarray:
+        """(m,) bool: rows not rejected."""
+        keep = np.ones(m, bool)
+        keep[list(self.rejected)] = False
+        return keep
+
+
+def _measure(cfg, uv, ok, sigma, K, T_c_w, X, res, rejected, first_frame):
+    """Rejected frames (row -> reason, ``rejected`` extended), the gate and the noise after a
+    solve: iterated until the frames the static hand does not explain settle."""
+    rejected = dict(rejected)
+    for _ in range(4):
+        keep = ok.copy()
+        keep[list(rejected)] = False
+        sigma_px = robust_sigma(np.where(keep, res, np.nan))
+        gate = max(cfg.outlier_px, cfg.outlier_sigmas * sigma_px) if np.isfinite(sigma_px) \
+            else cfg.outlier_px
+        found = unexplained_frames(
+            np.where(keep, res, np.nan), keep, gate, min_share=cfg.frame_min_inlier_share,
+            first_frame=first_frame,
+        )  # fmt: skip
+        accepted = ok.any(1)
+        accepted[list(rejected | found)] = False
+        found |= jumping_poses(T_c_w, X, K, accepted, cfg.pose_jump_gates * gate,
+                               first_frame=first_frame)  # fmt: skip
+        if not found:
+            break
+        rejected |= found
+    keep = ok.copy()
+    keep[list(rejected)] = False
+    Xc = np.einsum("mab,jb->mja", T_c_w[:, :3, :3], X) + T_c_w[:, None, :3, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        proj = (Xc[..., :2] / Xc[..., 2:]) * np.diag(K)[:2] + K[:2, 2]
+    swapped = swapped_fingers(uv, keep, proj, gate, gain=cfg.swap_gain)
+    inl = keep & ~swapped & (res < gate)
+    w = np.where(inl, res / sigma, np.nan)
+    factor = max(1.0, robust_sigma(w)) if inl.any() else 1.0
+    return NoiseScreen(float(sigma_px), float(gate), float(factor), rejected, swapped)
+
+
+def solve_visual(cfg, uv, ok, sigma, K, T_c_w, X, pair, *, rejected=None, first_frame=0):
+    """Robust reprojection-only solve, then reject-and-re-solve rounds ->
+    (ba, res, inlier, n, screen).
+
+    With ``cfg.frame_rejection`` the robust solve's residuals give the noise scale, the gate,
+    the frames the static hand does not explain and the swapped fingers (``NoiseScreen``;
+    ``rejected`` : row -> reason, frames already rejected before the solve, kept so); each
+    round re-measures them over the accepted frames (a frame once rejected stays so). Without
+    it the gate is ``outlier_px`` and nothing is rejected whole.
+    """
+    m = len(uv)
+    screen = NoiseScreen(float("nan"), cfg.outlier_px, 1.0, dict(rejected or {}),
+                         np.zeros(ok.shape, bool))
+    use, huber = ok & screen.accepted(m)[:, None], cfg.huber_k
     for rounds in range(1, cfg.outlier_rounds + 2):  # noqa: B007 (returned)
         ba = bundle_adjust(
             uv,
             use,
-            sigma,
+            sigma * screen.noise_factor,
             K,
             T_c_w,
             X,
@@ -122,17 +198,20 @@ def solve_visual(cfg, uv, ok, sigma, K, T_c_w, X, pair):
         )
         T_c_w, X = ba.T_c_w, ba.points_w
         res = reprojection_residuals(K, T_c_w, X, uv)
-        inlier = ok & (res < cfg.outlier_px)
+        if cfg.frame_rejection:
+            screen = _measure(cfg, uv, ok, sigma, K, T_c_w, X, res, screen.rejected,
+                              first_frame)
+        inlier = ok & screen.accepted(m)[:, None] & ~screen.swapped & (res < screen.gate_px)
         if not inlier.any():
             raise StageError(
                 STAGE,
-                f"every detection is an outlier (residual >= {cfg.outlier_px} px "
+                f"every detection is an outlier (residual >= {screen.gate_px:.1f} px "
                 "after the robust solve): the keypoints are not those of one static hand",
             )
         if np.array_equal(inlier, use) and huber is None:
             break
         use, huber = inlier, None
-    return ba, res, inlier, rounds
+    return ba, res, inlier, rounds, screen
 
 
 def rotation_span_deg(T_c_w: np.ndarray) -> float:
@@ -207,14 +286,18 @@ def _frame_gate(residual_m, gate_m, frame_share, min_readings, max_shift_m):
     return keep, lost[ok], shifted[ok]
 
 
-def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, link_fn=None):
+def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, link_fn=None,
+               screen: NoiseScreen | None = None, first_link_round: int = 2):
     """Reprojection + range factors, metric. Each round gates every reading afresh against
     the current solution: ``depth_gate_m`` against the scaled visual solve, then
     ``range_gate_sigmas`` sigmas against the previous RGB-D solve. With ``link_fn``
     (``(T_c_w) -> links``) rounds 2 .. 1 + ``depth_links.rounds`` also get dense depth
     links measured from the previous round's solution (later rounds keep the last).
     Also returns the frames (m,) bool whose readings still agree with each other but not
-    with the final solve (``frames_off_in_depth``)."""
+    with the final solve (``frames_off_in_depth``). With ``screen`` (``solve_visual``'s) the
+    final inliers are gated by its ``gate_px``, without its rejected frames and swapped
+    fingers; else by ``outlier_px``. ``first_link_round`` 1 adds the links from the first
+    round (a ``link_fn`` that registers from fixed cameras)."""
     m = len(uv)
     rays = np.concatenate(
         [normalise(K, uv.reshape(-1, 2)).reshape(m, 21, 2), np.ones((m, 21, 1))], 2
@@ -226,12 +309,13 @@ def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, l
     used = np.zeros((m, 21), bool)
     links: list = []
     link_rounds = cfg.depth_links.rounds if link_fn is not None else 0
-    for rounds in range(1, max(cfg.range_rounds, 1 + link_rounds) + 1):  # noqa: B007
+    last_link_round = first_link_round + link_rounds - 1
+    for rounds in range(1, max(cfg.range_rounds, last_link_round) + 1):  # noqa: B007
         keep = gate_readings(
             measured - ranges(T_c_w, X), gate, cfg.frame_gate_share, cfg.min_points_per_frame,
             cfg.frame_gate_max_m,
         )  # fmt: skip
-        link_round = 2 <= rounds <= 1 + link_rounds
+        link_round = first_link_round <= rounds <= last_link_round
         if rounds > 1 and np.array_equal(keep, used) and not link_round:
             break
         used = keep
@@ -260,4 +344,7 @@ def solve_rgbd(cfg, K, uv, ok, inlier, sigma, T_c_w, X, depth, offset, anchor, l
         measured - ranges(T_c_w, X), gate, cfg.frame_gate_share or 0.5,
         cfg.min_points_per_frame, cfg.frame_gate_max_m,
     )  # fmt: skip
-    return T_c_w, X, res, ok & (res < cfg.outlier_px), rounds, used, links, off
+    if screen is None:
+        return T_c_w, X, res, ok & (res < cfg.outlier_px), rounds, used, links, off
+    inl = ok & screen.accepted(m)[:, None] & ~screen.swapped & (res < screen.gate_px)
+    return T_c_w, X, res, inl, rounds, used, links, off

@@ -42,11 +42,15 @@ class Initialisation:
     T_c_w : (m, 4, 4) float, NaN for frames PnP could not pose.
     points_w : (21, 3) float, NaN for joints that could not be triangulated.
     pair : the :class:`TwoView` it started from.
+    links_from_start : see the field.
     """
 
     T_c_w: np.ndarray
     points_w: np.ndarray
     pair: TwoView
+    links_from_start: bool = False
+    """The cameras came from the depth surfaces (``hand_sfm.odometry_init``): the depth links
+    are registered from them, in every RGB-D round, instead of from the current solve."""
 
 
 def normalise(K: np.ndarray, uv: np.ndarray) -> np.ndarray:

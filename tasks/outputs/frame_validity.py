@@ -252,6 +252,7 @@ def frame_validity(
     object_mesh: tuple[np.ndarray, np.ndarray],
     hand_mesh_o: tuple[np.ndarray, np.ndarray] | None,
     config: FrameValidityConfig = DEFAULT,
+    rejected: tuple[str, ...] = (),
 ) -> FrameValidity:
     """The validity of every frame.
 
@@ -264,6 +265,8 @@ def frame_validity(
     T_c_o : (m, 4, 4) the object in each frame's camera.
     read_depth : video frame index -> its depth (h, w) metres.
     object_mesh, hand_mesh_o : (vertices, faces), both in the object frame (the final hand).
+    rejected : per ``reconstruct_hand`` frame, why it was rejected whole ("" where accepted;
+        ``SfmDiagnostics.frame_rejected``): such a frame's hand is not used, with that reason.
     """
     scene = SupportScene(object_mesh, hand_mesh_o)
     row = {int(f): i for i, f in enumerate(np.asarray(sfm_frames))}
@@ -271,6 +274,8 @@ def frame_validity(
     for j, f in enumerate(np.asarray(frames, dtype=int)):
         i = row.get(int(f))
         used, why = hand_used(keypoints[j], None if i is None else inlier[i], config)
+        if i is not None and i < len(rejected) and rejected[i]:
+            used, why = False, f"rejected whole: {rejected[i]}"
         solved, cwhy = camera_solved(keypoints[j], None if i is None else bool(pose_valid[i]),
                                      config)
         if i is None:

@@ -331,6 +331,9 @@ def stage_warnings(results: Mapping[str, Any]) -> list[str]:
         reasons.append("register_scan: symmetric object, scan registration ambiguous")
     if _attr(results, "build_contactmap", "all_ambient"):
         reasons.append("build_contactmap: no contact anywhere (the thermal scan is all ambient)")
+    uncertain = _attr(results, "select_steady", "uncertain")
+    if uncertain:
+        reasons.append(f"select_steady: steady onset uncertain: {uncertain}")
     valid = _attr(results, "reconstruct_hand", "pose_valid")
     if valid is not None and len(valid) and not valid[0]:
         reasons.append("reconstruct_hand: the first steady frame, whose camera is the world "

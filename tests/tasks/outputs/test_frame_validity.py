@@ -181,3 +181,18 @@ def test_frame_validity_per_frame():
     assert out.object_reason[3] == f"no camera: {OUTSIDE_WINDOW}"
     assert out.object_depth_agreement[0] == pytest.approx(1.0)
     assert out.object_depth_agreement[2] < 0.1 and out.object_depth_agreement[3] is None
+
+
+def test_frame_rejected_whole_carries_its_reason():
+    """A frame reconstruct_hand rejected whole (its detection another hand) is not used, with
+    the stage's reason, even where some of its keypoints happen to lie near the hand."""
+    frames = np.array([10, 11])
+    kp = np.stack([_keypoints(21), _keypoints(21)])
+    inlier = np.ones((2, 21), bool)
+    why = "frame 11: the detected hand is 150 px (80% of its size) from where ..."
+    depth = {10: _depth([OBJECT], [T_C_O]), 11: _depth([OBJECT], [T_C_O])}
+    out = frame_validity(frames, kp, np.array([10, 11]), np.array([True, False]), inlier,
+                         np.stack([T_C_O] * 2), depth.__getitem__, K, OBJECT, None,
+                         rejected=("", why))  # fmt: skip
+    assert out.hand_used == (True, False)
+    assert out.hand_reason == (None, f"rejected whole: {why}")
