@@ -26,7 +26,7 @@ LOCAL_SCHEMES = ("", "file", "local")
 """URL schemes that name a local folder: ``/data/cat``, ``file:///data/cat``."""
 DELTA_SCHEMES = ("s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl")
 """Object stores deltalake reads itself (its storage_options take the credentials)."""
-MIGRATIONS_FROM = (1, 2, 3, 4, 5)
+MIGRATIONS_FROM = (1, 2, 3, 4, 5, 6)
 """Older formats ``graspcap catalog migrate`` upgrades (``graspcap.catalog.migrate``)."""
 PLAIN_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,127}")
 """Session ids used as folder names as they are: the contract's character set, 1-128

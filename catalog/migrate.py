@@ -147,6 +147,7 @@ def _upgrade(layout: CatalogLayout, found: int) -> int | None:
         create_tables(layout)
         return None
     changed = False
+    create_tables(layout)  # tables a newer format adds (format 7: publications)
     for name in TABLE_SCHEMAS:
         dt = DeltaTable(str(layout.table(name)))
         config = dt.metadata().configuration
