@@ -197,9 +197,10 @@ def _against_published(layout: CatalogLayout, published: tuple[int, Mapping[str,
     measured["published_frames"] = old_frames
     drop = gates.max_frames_drop_share
     if drop is not None and frames_rows < old_frames * (1 - drop) - 1e-9:
+        fell = _share(old_frames - frames_rows, old_frames)
         reasons.append(f"row count: frames has {frames_rows} rows, published version {number} "
-                       f"had {old_frames} (a drop of {_share(old_frames - frames_rows, old_frames):.1%}"
-                       f" > max_frames_drop_share {drop:.1%})")
+                       f"had {old_frames} (a drop of {fell:.1%} > max_frames_drop_share "
+                       f"{drop:.1%})")
 
 
 def _few(items: Sequence[str], n: int = 5) -> str:

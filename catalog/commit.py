@@ -49,6 +49,7 @@ from graspcap.catalog.arrays import (
     remove_temp_groups,
     write_group,
 )
+from graspcap.catalog.audit import AuditGates, audit_version
 from graspcap.catalog.delta import (
     INITIAL_TABLE_VERSIONS,
     delta_table,
@@ -62,7 +63,6 @@ from graspcap.catalog.delta import (
     read_table,
     table_versions_of,
 )
-from graspcap.catalog.audit import AuditGates, audit_version
 from graspcap.catalog.diff import diff_sessions
 from graspcap.catalog.errors import (
     CatalogDamaged,

@@ -1,9 +1,10 @@
 """Free space: delete Parquet files and array groups that no kept catalog version needs.
 
 Kept versions are the newest ``keep`` ones plus every tagged one and the published one
-(readers' default, which may be older than the newest when those are staged). A file survives when any kept
-version's pinned Delta version lists it, or the newest Delta version of its table does (so the
-tables stay writable); an array group survives when a kept version's sessions reference it.
+(readers' default, which may be older than the newest when those are staged). A file survives
+when any kept version's pinned Delta version lists it, or the newest Delta version of its table
+does (so the tables stay writable); an array group survives when a kept version's sessions
+reference it.
 Everything else under the tables' folders (files of older versions, of crashed or rolled-back
 commits) and under ``arrays/`` (groups of dropped versions, half-written temp groups) goes.
 Runs under the writer lock. Delta logs are kept: the versions stay listed. A version not kept
