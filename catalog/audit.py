@@ -205,3 +205,24 @@ def _against_published(layout: CatalogLayout, published: tuple[int, Mapping[str,
 
 def _few(items: Sequence[str], n: int = 5) -> str:
     return ", ".join(items[:n]) + (f" (+{len(items) - n} more)" if len(items) > n else "")
+
+
+def parse_gates(items: Sequence[str], base: Mapping[str, Any] | None = None) -> AuditGates:
+    """``AuditGates`` from ``NAME=VALUE`` texts (``graspcap build --gate``) over ``base``:
+    a number, ``true``/``false``, or ``off``/``none`` (the gate is off); ``ValueError`` naming
+    the gate and the valid names otherwise."""
+    values: dict[str, Any] = dict(base or {})
+    for item in items:
+        name, sep, text = item.partition("=")
+        name, text = name.strip(), text.strip()
+        if not sep or name not in AuditGates.model_fields:
+            raise ValueError(f"--gate {item!r}: give NAME=VALUE with NAME one of "
+                             f"{', '.join(AuditGates.model_fields)}")
+        low = text.lower()
+        values[name] = (None if low in ("off", "none") else True if low == "true"
+                        else False if low == "false" else text)
+    try:
+        return AuditGates(**values)
+    except ValueError as exc:  # pydantic's ValidationError: name the gate, not the model
+        first = str(exc).splitlines()
+        raise ValueError(f"--gate: {'; '.join(first[1:3]) or first[0]}") from None
