@@ -101,12 +101,12 @@ class BuildReport:
         head = (f"build {self.build_id}: " + (
             f"catalog version {self.catalog_version}" if self.catalog_version is not None
             else f"nothing changed, no new catalog version (still {self.previous_version})"))
-        lines = [head, *self.publication_lines(),
+        lines = [head,
                  f"  {len(self.added)} added, {len(self.changed)} changed, "
                  f"{len(self.unchanged)} unchanged, {len(self.failed)} failed; "
                  f"{self.executed} stage run(s), "
                  f"{sum(len(s.cached) for s in self.sessions)} cache hit(s); "
-                 f"{self._time()}"]
+                 f"{self._time()}", *self.publication_lines()]
         for s in self.sessions:
             if s.outcome == Outcome.FAILED:
                 kept = " (previous rows kept)" if s.kept_previous else ""
