@@ -139,6 +139,7 @@ def _count(dt: DeltaTable, predicate: str) -> int:
 def _upgrade(layout: CatalogLayout, found: int) -> int | None:
     """Format ``found`` -> current under the writer lock (module docstring); the appended
     version or None."""
+    create_tables(layout)  # tables a newer format adds (format 7: publications)
     recover(layout)
     row = last_version_row(layout)
     if row is None:
@@ -147,7 +148,6 @@ def _upgrade(layout: CatalogLayout, found: int) -> int | None:
         create_tables(layout)
         return None
     changed = False
-    create_tables(layout)  # tables a newer format adds (format 7: publications)
     for name in TABLE_SCHEMAS:
         dt = DeltaTable(str(layout.table(name)))
         config = dt.metadata().configuration

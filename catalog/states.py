@@ -12,15 +12,19 @@ import pyarrow as pa
 
 from graspcap.catalog.delta import read_latest
 from graspcap.catalog.layout import CatalogLayout
-from graspcap.schemas.tables import VersionState
+from graspcap.schemas.tables import TABLE_SCHEMAS, VersionState
 
 
 def version_states(layout: CatalogLayout, versions: pa.Table | None = None
                    ) -> dict[int, VersionState]:
     """``{version: state}`` of every version (``versions``: the versions table, if read)."""
     versions = read_latest(layout, "versions") if versions is None else versions
+    states = (versions["state"].to_pylist() if "state" in versions.column_names
+              else [None] * versions.num_rows)  # a golden catalog of an older format
     out = {int(v): VersionState(s or VersionState.PUBLISHED) for v, s in zip(
-        versions["version"].to_pylist(), versions["state"].to_pylist(), strict=True)}
+        versions["version"].to_pylist(), states, strict=True)}
+    if "publications" not in TABLE_SCHEMAS:
+        return out
     changes = read_latest(layout, "publications").sort_by("time_utc").to_pylist()
     for row in changes:  # the newest row of a version wins
         if row["version"] in out:

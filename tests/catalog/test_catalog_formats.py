@@ -1,4 +1,4 @@
-"""Catalog formats: the golden catalogs of formats 1 to 5 fail to open naming `migrate`, and
+"""Catalog formats: the golden catalogs of formats 1 to 6 fail to open naming `migrate`, and
 migrate (old rows read the newer columns as null, format 6's reasons say "not recorded before
 format 6", new commits fill them; array groups get their format-5 manifests)."""
 
@@ -31,6 +31,7 @@ from tests.golden.make_golden import (
     SESSION,
     added_after,
     archive,
+    build,
     expected,
     unpack,
     write_golden,
@@ -46,7 +47,9 @@ REASONS = ("camera_reason", "hand_reason", "object_reason")
 def _migrated(col: str, fmt: int) -> list:
     """The golden's two frames' ``col`` (a format-6 column) after the migration: flags null,
     reasons "not recorded before format 6", the camera's only where camera_solved is not True
-    (the golden's is [True, False] from format 4 on)."""
+    (the golden's is [True, False] from format 4 on); a format-6 golden keeps its own."""
+    if fmt >= 6:
+        return list(build().frames[col])
     if col not in REASONS:
         return [None, None]
     if col == "camera_reason" and fmt >= 4:
@@ -55,8 +58,8 @@ def _migrated(col: str, fmt: int) -> list:
 
 
 def _properties(root) -> dict[str, dict[str, str]]:
-    return {name: DeltaTable(str(root / "tables" / name)).metadata().configuration
-            for name in TABLE_SCHEMAS}
+    return {p.name: DeltaTable(str(p)).metadata().configuration
+            for p in sorted((root / "tables").iterdir())}  # a golden lacks newer tables
 
 
 def _listing(root) -> list:
@@ -82,7 +85,7 @@ def _check_golden_content(cat: gc.Catalog, version) -> None:
 def test_current_format_tables_keep_their_delta_logs(tmp_path):
     gc.open(tmp_path / "cat", create=True)
     stamp = json.loads((tmp_path / "cat" / "catalog.json").read_text())
-    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 6
+    assert stamp["format_version"] == CATALOG_FORMAT_VERSION == 7
     for name, config in _properties(tmp_path / "cat").items():
         assert config == DELTA_TABLE_PROPERTIES, name
 
@@ -97,15 +100,15 @@ def test_golden_v1_fails_naming_migrate_then_migrated_copy_reads(tmp_path):
     before = _listing(src)
 
     report = migrate_catalog(src, tmp_path / "v2")
-    assert (report.from_format, report.to_format, report.new_version) == (1, 6, 2)
+    assert (report.from_format, report.to_format, report.new_version) == (1, 7, 2)
     assert _listing(src) == before  # source untouched (the copy is taken under its lock)
     with pytest.raises(gc.CatalogFormatError, match="migrate"):
         gc.open(src)
 
     cat = gc.open(tmp_path / "v2")
     assert cat.versions()["version"].to_pylist() == [1, 2]
-    assert cat.versions()["format_version"].to_pylist() == [1, 6]
-    assert cat.versions()["build_id"].to_pylist() == ["golden-1", "migrate-1-to-6"]
+    assert cat.versions()["format_version"].to_pylist() == [1, 7]
+    assert cat.versions()["build_id"].to_pylist() == ["golden-1", "migrate-1-to-7"]
     assert cat.resolve("golden") == 1
     for version in ("golden", 2, None):
         _check_golden_content(cat, version)
@@ -124,7 +127,7 @@ def test_migrate_in_place_is_idempotent_and_refuses_what_it_cannot(tmp_path):
     src = unpack(ARCHIVE, tmp_path / "v1")
     assert migrate_catalog(src).new_version == 2
     again = migrate_catalog(src)
-    assert (again.from_format, again.new_version) == (6, None)
+    assert (again.from_format, again.new_version) == (7, None)
     frames = DeltaTable(str(src / "tables" / "frames"))  # a rerun after a crash: no commit
     assert mark_not_recorded(frames) is False
     assert DeltaTable(str(src / "tables" / "frames")).version() == frames.version()
@@ -167,15 +170,18 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
     with pytest.raises(gc.CatalogFormatError, match=rf"format {fmt}.*graspcap catalog migrate"):
         gc.open(src)
     report = migrate_catalog(src)
-    assert (report.from_format, report.to_format, report.new_version) == (fmt, 6, 2)
+    assert (report.from_format, report.to_format, report.new_version) == (fmt, 7, 2)
     upgraded = 3 if fmt < 5 else 0  # given their format-5 manifests
     assert (report.arrays_upgraded, report.damaged_arrays) == (upgraded, {})
     for name, cols in added.items():
         assert _delta_columns(src, name)[-len(cols):] == list(cols), name
-    for name in TABLE_SCHEMAS:
+    for name in TABLE_SCHEMAS:  # format 7's publications table is created
         assert sorted(_delta_columns(src, name)) == sorted(TABLE_SCHEMAS[name].names), name
     cat = gc.open(src)
-    assert cat.versions()["build_id"].to_pylist() == ["golden-1", f"migrate-{fmt}-to-6"]
+    assert cat.states() == {1: "published", 2: "published"}  # versions before format 7
+    assert cat.audit(1) is None and cat.audit(2) is None
+    added = {n: c for n, c in added.items() if n in ("sessions", "frames")}  # per session
+    assert cat.versions()["build_id"].to_pylist() == ["golden-1", f"migrate-{fmt}-to-7"]
     for version in (1, "golden", 2):  # pinned before, and made by, the migration
         for name, cols in added.items():
             old = cat.table(name, version)
@@ -244,7 +250,9 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
 def test_golden_script_still_writes_that_formats_columns(tmp_path, fmt):
     golden = unpack(archive(fmt), tmp_path / "golden")
     write_golden(tmp_path / "fresh", fmt)
-    for name in TABLE_SCHEMAS:
+    tables = sorted(p.name for p in (golden / "tables").iterdir())
+    assert sorted(p.name for p in (tmp_path / "fresh" / "tables").iterdir()) == tables
+    for name in tables:
         assert _delta_columns(tmp_path / "fresh", name) == _delta_columns(golden, name), name
     assert _properties(tmp_path / "fresh") == _properties(golden)
     for name, cols in added_after(fmt).items():
