@@ -130,8 +130,9 @@ def status_text(catalog: Path, limit: int = 5) -> str:
     records, torn = _build_records(log)
     committed = {}
     removed: list[str] = []
-    if cat.latest_version() is not None:
-        for row in cat.table("builds").sort_by("catalog_version").to_pylist():
+    if cat.latest_version() is not None:  # the newest version, published or not
+        for row in cat.table("builds", cat.latest_version()).sort_by(
+                "catalog_version").to_pylist():
             committed[row["build_id"]] = row
             params = json.loads(row["parameters_json"])
             rec = params.get("report")
@@ -176,6 +177,12 @@ def status_text(catalog: Path, limit: int = 5) -> str:
                    f"{rec['seconds'].get('total', 0):.1f} s")
         if rec.get("error"):
             out.append(f"    ERROR: {rec['error']}")
+        if version is not None and rec["build_id"] not in committed and version in states:
+            try:  # a version the newest was not written on top of (rejected), if readable
+                for row in cat.table("builds", version).to_pylist():
+                    committed.setdefault(row["build_id"], row)
+            except gc.CatalogError:
+                pass
         out += _audit_lines(committed.get(rec["build_id"]), version, states)
         for x in rec["sessions"]:
             line = f"    {x['session_id']:<32} {x['outcome']:<9}"
