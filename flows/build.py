@@ -279,9 +279,12 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                overrides: dict[str, Any] | None = None, retry_failed: bool = False,
                work_root: str | None = None, build_id: str | None = None,
                gates: dict[str, Any] | None = None,
-               optimize_every: int | None = OPTIMIZE_EVERY) -> BuildReport:
+               optimize_every: int | None = OPTIMIZE_EVERY,
+               retention: dict[str, Any] | None = None) -> BuildReport:
     """The whole build as one flow run (module docstring). ``gates``: the audit's
-    (``catalog.audit.AuditGates`` fields); ``optimize_every``: see :data:`OPTIMIZE_EVERY`."""
+    (``catalog.audit.AuditGates`` fields); ``optimize_every``: see :data:`OPTIMIZE_EVERY`;
+    ``retention``: Prefect's finished flow runs kept (``flows.retention.RunRetention``
+    fields), pruned at the end of the build (a scheduled ``graspcap serve`` build too)."""
     from graspcap.tasks.pipeline import STAGES
 
     t0 = time.perf_counter()
@@ -463,6 +466,9 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     publication = _publication(cat, new_version)
     if new_version is not None and optimize_every and new_version % optimize_every == 0:
         publication["optimized"] = _optimize(cat)
+    t_prune = time.perf_counter()
+    if prune_flow_runs(RunRetention(**(retention or {}))) is not None:
+        seconds["prune_runs"] = time.perf_counter() - t_prune
     seconds["total"] = time.perf_counter() - t0
     report = BuildReport(build_id, new_version, previous, tuple(reports), seconds, params,
                          publication=publication)
@@ -601,19 +607,15 @@ def build_dataset(roots: Sequence[Path | str], catalog: Path | str, preset: str 
     write-audit-publish audit (``catalog.audit.AuditGates``, default gates when None): the
     version is published when it passes, else staged. ``optimize_every``: compact the tables
     when the new version's number is a multiple of it. ``retention``: how many of Prefect's
-    flow runs to keep (``flows/retention.py``; default ``RunRetention()``), applied after the
-    build.
+    flow runs to keep (``flows/retention.py``; default ``RunRetention()``), pruned at the
+    end of the build.
     """
     if isinstance(gates, gc.AuditGates):
         gates = gates.model_dump()
     gates = gc.AuditGates(**dict(gates or {})).model_dump()  # a bad gate fails before Prefect
     runner = task_runner_ or task_runner(dask, workers)
     with reporting_to(progress), worker_api(dask) as api_url, build_settings(api_url):
-        report = build_flow.with_options(task_runner=runner)(
+        return build_flow.with_options(task_runner=runner)(
             [str(r) for r in roots], str(catalog), preset, dict(overrides or {}),
             retry_failed, None if work is None else str(work), build_id, gates,
-            optimize_every)
-        pruned = prune_flow_runs(retention or RunRetention())
-    if pruned is not None:
-        report.seconds["prune_runs"] = pruned.seconds
-    return report
+            optimize_every, (retention or RunRetention()).model_dump())
