@@ -22,7 +22,7 @@ import json
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 
-from deltalake import write_deltalake
+from deltalake import WriterProperties, write_deltalake
 
 from graspcap.catalog.commit import (
     _marked,
@@ -39,6 +39,9 @@ from graspcap.catalog.store import Catalog
 from graspcap.catalog.validate import to_table
 from graspcap.schemas.tables import CATALOG_FORMAT_VERSION, DATA_TABLES, TABLE_SCHEMAS
 
+WRITER = WriterProperties(compression="SNAPPY")
+"""The codec ``write_deltalake`` gives the build's files (optimize's default is ZSTD, measured
+1.5-2x slower to read here on the ``frames`` of 20 sessions)."""
 MIN_FILES = 2
 """A table of fewer files than this is not compacted."""
 
@@ -94,7 +97,8 @@ def optimize_catalog(catalog: Catalog, *, min_files: int = MIN_FILES) -> Optimiz
             after = before
             if before >= min_files:
                 with _table_write(layout, name):
-                    dt.optimize.compact(commit_properties=_marked(version, build_id))
+                    dt.optimize.compact(commit_properties=_marked(version, build_id),
+                                        writer_properties=WRITER)
                 dt = delta_table(layout, name)
                 after = len(dt.file_uris())
             by_table[name] = [before, after]
