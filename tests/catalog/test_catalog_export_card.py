@@ -107,7 +107,7 @@ def test_card_qa_summary_licence_conventions_units_citation(catalog, plain, caps
     assert "- 1 x register_object: no platter plane in stage1/depth.png" in qa
     assert "- **Licence**: CC-BY-4.0" in card
     assert "p_a = T_a_b @ p_b" in card and "OpenCV convention" in card
-    assert "Metres and radians" in card and "catalog format `graspcap-catalog` 6" in card
+    assert "Metres and radians" in card and "catalog format `graspcap-catalog` 7" in card
     # every column of both tables with its unit and shape
     for schema in (SESSIONS_SCHEMA, FRAMES_SCHEMA):
         for f in schema:
