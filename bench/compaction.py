@@ -4,7 +4,7 @@
 
 Commits ``--builds`` versions of a few sessions each (``tests/catalog_factory.make_build``: fake
 rows, no pipeline), then times reading the newest version's ``frames`` (a fresh ``Catalog``
-each time, median of 5): after the builds, after ``optimize_catalog``, and the same rows
+each time, median of 9): after the builds, after ``optimize_catalog``, and the same rows
 committed at once into a new catalog (freshly written). Also the Delta files per table.
 """
 
@@ -24,7 +24,7 @@ from graspcap.catalog.optimize import optimize_catalog  # noqa: E402
 from tests.catalog_factory import make_build  # noqa: E402
 
 
-def _read_s(root: Path, repeat: int = 5) -> tuple[float, float]:
+def _read_s(root: Path, repeat: int = 9) -> tuple[float, float]:
     """Median seconds of (a fresh ``Catalog``'s ``table("frames")``: resolving the published
     version, listing its files, reading them; reading them again with the files listed)."""
     full, read = [], []
@@ -73,7 +73,7 @@ def main() -> None:
         print(f"frames files: {files} after the builds, {report.by_table['frames'][1]} after "
               f"optimize ({optimize_s:.2f} s: {report.text()})")
         for i, what in enumerate(("open + resolve + list + read", "read (files listed)")):
-            print(f"frames, {what} (median of 5): {before[i] * 1e3:.1f} ms after the builds, "
+            print(f"frames, {what} (median of 9): {before[i] * 1e3:.1f} ms after the builds, "
                   f"{after[i] * 1e3:.1f} ms after optimize, {written[i] * 1e3:.1f} ms freshly "
                   f"written (ratios {before[i] / written[i]:.2f} and "
                   f"{after[i] / written[i]:.2f})")

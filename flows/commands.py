@@ -258,7 +258,7 @@ def _build_records(log: Path) -> tuple[list[dict], list[int]]:
 
 def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
           cron: str | None = None, interval_s: float | None = None,
-          name: str = "graspcap-build") -> int:
+          name: str = "graspcap-build", gates: Sequence[str] = ()) -> int:
     """``graspcap serve``: run the build on a schedule with Prefect's ``serve``; an invalid
     ``cron`` or ``interval_s`` is :data:`EXIT_USAGE`, one line, before anything starts.
 
@@ -272,7 +272,13 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
 
     work = Path(catalog).expanduser().resolve() / "work"
     env = configure(work, create=False)
+    from graspcap.catalog.audit import parse_gates
+
     problem = schedule_problem(cron, interval_s)
+    try:
+        audit = parse_gates(gates).model_dump()
+    except ValueError as exc:
+        problem = problem or str(exc)
     if problem is not None:  # before anything is made or started
         print(f"graspcap serve: {problem}", file=sys.stderr)
         return EXIT_USAGE
@@ -289,7 +295,7 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
         from graspcap.flows.build import build_flow
 
         params = {"roots": [str(Path(r).resolve()) for r in roots],
-                  "catalog": str(Path(catalog).resolve()), "preset": preset}
+                  "catalog": str(Path(catalog).resolve()), "preset": preset, "gates": audit}
         # one build of a catalog at a time: a scheduled run that comes due while the last
         # one is still going waits instead of redoing the same cold work beside it
         deployment = build_flow.to_deployment(

@@ -204,7 +204,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     if missing_roots(args.roots, "serve"):
         return EXIT_USAGE
-    return serve(args.roots, args.catalog, args.preset, cron=args.cron, interval_s=args.interval)
+    return serve(args.roots, args.catalog, args.preset, cron=args.cron, interval_s=args.interval,
+                 gates=args.gates)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -297,6 +298,8 @@ def build_parser() -> argparse.ArgumentParser:
     when = p.add_mutually_exclusive_group(required=True)
     when.add_argument("--cron", help='cron schedule, e.g. "0 2 * * *"')
     when.add_argument("--interval", type=float, help="run every this many seconds")
+    p.add_argument("--gate", dest="gates", action="append", default=[], metavar="NAME=VALUE",
+                   help="an audit gate of every scheduled build (as for build)")
     p.set_defaults(func=_cmd_serve)
 
     add_catalog_parser(sub, _vacuum_work)

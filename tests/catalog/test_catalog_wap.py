@@ -194,3 +194,13 @@ def test_the_report_page_shows_the_audit(staged):
     assert "graspcap catalog publish 2" in page
     page = write_report(gc.open(staged), 1).read_text()
     assert '<div class="audit ok" id="audit"><b>published</b>: audit passed;' in page
+
+
+def test_a_wrong_gate_is_refused_before_anything_is_made(tmp_path, capsys):
+    roots = tmp_path / "captures"
+    roots.mkdir()
+    code = main(["serve", str(roots), "--cron", "0 2 * * *", "--gate", "max_lost=1",
+                 "--catalog", str(tmp_path / "cat")])
+    assert code == 2 and not (tmp_path / "cat").exists()
+    assert "--gate 'max_lost=1': give NAME=VALUE with NAME one of max_failed_share" \
+        in capsys.readouterr().err
