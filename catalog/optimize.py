@@ -5,7 +5,9 @@ table per build), so after many incremental builds a table is read from hundreds
 files. ``optimize_catalog`` (``graspcap catalog optimize``, and a build every
 ``OPTIMIZE_EVERY`` versions) runs deltalake's ``DeltaTable.optimize.compact()`` on each data
 table, writes a Delta checkpoint of every table (``create_checkpoint``: a reader replays the
-log from it instead of from the first entry) and appends one catalog version (build id
+log from it instead of from the first entry), compacts the bookkeeping tables (``versions``,
+``tags``, ``publications``: one small file per row, read whole by every reader that resolves a
+version) and appends one catalog version (build id
 ``optimize-<time>``, the same rows and state as the version it compacts) pinning the compacted
 Delta versions. Nothing older changes: compaction only adds files and a Delta version (the
 replaced files are marked removed in the new Delta version, never deleted), every older
@@ -43,6 +45,10 @@ WRITER = WriterProperties(compression="SNAPPY")
 """The codec ``write_deltalake`` gives the build's files (optimize's default is ZSTD, measured
 1.5-2x slower to read here on the ``frames`` of 20 sessions)."""
 MIN_FILES = 2
+BOOKKEEPING = ("versions", "tags", "publications")
+"""Append-only tables no version pins, with one file per row: compacted with the data tables
+(every reader reads them whole at their newest Delta version; a lost log entry's rows are
+still in the old files, which ``catalog repair`` reads)."""
 """A table of fewer files than this is not compacted."""
 
 
@@ -113,6 +119,12 @@ def optimize_catalog(catalog: Catalog, *, min_files: int = MIN_FILES) -> Optimiz
                 write_deltalake(str(layout.table("versions")), to_table("versions", [row]),
                                 mode="append", commit_properties=_marked(version, build_id))
             write_published(layout, row)
+        for name in BOOKKEEPING if compacted else ():  # one small file per row each
+            dt = delta_table(layout, name)
+            if len(dt.file_uris()) >= min_files:
+                with _table_write(layout, name):
+                    dt.optimize.compact(commit_properties=_marked(version, build_id),
+                                        writer_properties=WRITER)
         checkpoints = {}
         for name in TABLE_SCHEMAS:
             dt = delta_table(layout, name)

@@ -139,8 +139,14 @@ class Catalog:
         return None if versions.num_rows == 0 else int(pc.max(versions["version"]).as_py())
 
     def states(self) -> dict[int, VersionState]:
-        """``{version: published | staged | rejected}`` (write-audit-publish)."""
-        return version_states(self.layout)
+        """``{version: published | staged | rejected}`` (write-audit-publish). Reads the
+        versions table once and keeps every version's pins (immutable) for the reads after."""
+        versions = self._versions_raw()
+        for row in versions.to_pylist():
+            if row["version"] not in self._pins:
+                self._counts[row["version"]] = {n: row[f"rows_{n}"] for n in DATA_TABLES}
+                self._pins[row["version"]] = table_versions_of(row)
+        return version_states(self.layout, versions)
 
     def published_version(self) -> int | None:
         """The newest published version: what ``table()``, ``GraspDataset`` and every reader

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pyarrow.compute as pc
 
 import graspcap.catalog as gc
-from graspcap.catalog.delta import log_entries
+from graspcap.catalog.delta import delta_version, log_entries, table_files
 from graspcap.catalog.optimize import optimize_catalog
 from graspcap.cli import main
 from tests.catalog_factory import make_build, snapshot
@@ -27,6 +27,7 @@ def test_optimize_compacts_the_newest_version_and_keeps_time_travel(tmp_path, ca
         assert cat.commit(make_build([sid], seed=i, build_id=f"b{i}")) == i + 1
     cat.tag(5, "paper")
     before = {v: snapshot(cat, v) for v in range(1, N + 1)}
+    versions = cat.versions()
     files = {v: {n: cat.files(n, v) for n in ("sessions", "frames", "builds")}
              for v in range(1, N + 1)}
     assert len(files[N]["frames"]) == N
@@ -42,6 +43,9 @@ def test_optimize_compacts_the_newest_version_and_keeps_time_travel(tmp_path, ca
         assert len(cat.files(name)) == 1, name
         assert _sorted(cat.table(name)).equals(_sorted(before[N][name])), name
     assert cat.diff(N, N + 1) == {"added": [], "removed": [], "changed": {}}
+    # the versions table (one file per row) is compacted too, its rows unchanged
+    assert len(table_files(cat.layout, "versions", delta_version(cat.layout, "versions"))) == 1
+    assert cat.versions().slice(0, N).equals(versions)
     # every older version and the tag read the same rows from their own files
     fresh = gc.open(root)
     for v in range(1, N + 1):
