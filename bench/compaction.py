@@ -4,13 +4,15 @@
 
 Commits ``--builds`` versions of a few sessions each (``tests/catalog_factory.make_build``: fake
 rows, no pipeline), then times reading the newest version's ``frames`` (a fresh ``Catalog``
-each time, median of 9): after the builds, after ``optimize_catalog``, and the same rows
-committed at once into a new catalog (freshly written). Also the Delta files per table.
+each time, median of 15, the catalogs taking turns): after the builds, after
+``optimize_catalog``, and the same rows committed at once into a new catalog (freshly
+written). Also the Delta files per table.
 """
 
 from __future__ import annotations
 
 import argparse
+import shutil
 import statistics
 import sys
 import tempfile
@@ -24,20 +26,25 @@ from graspcap.catalog.optimize import optimize_catalog  # noqa: E402
 from tests.catalog_factory import make_build  # noqa: E402
 
 
-def _read_s(root: Path, repeat: int = 9) -> tuple[float, float]:
-    """Median seconds of (a fresh ``Catalog``'s ``table("frames")``: resolving the published
-    version, listing its files, reading them; reading them again with the files listed)."""
-    full, read = [], []
+def _read_s(roots: list[Path], repeat: int = 15) -> list[tuple[float, float]]:
+    """Per catalog of ``roots``, median seconds of (a fresh ``Catalog``'s ``table("frames")``:
+    resolving the published version, listing its files, reading them; reading them again
+    with the files listed). The catalogs take turns in each repetition, so a load that drifts
+    (a shared machine) weighs on each alike."""
+    full: list[list[float]] = [[] for _ in roots]
+    read: list[list[float]] = [[] for _ in roots]
     for _ in range(repeat):
-        cat = gc.open(root)
-        t0 = time.perf_counter()
-        cat.table("frames")
-        full.append(time.perf_counter() - t0)
-        v = cat.published_version()
-        t1 = time.perf_counter()
-        cat.table("frames", v)  # pins and file list cached
-        read.append(time.perf_counter() - t1)
-    return statistics.median(full), statistics.median(read)
+        for i, root in enumerate(roots):
+            cat = gc.open(root)
+            t0 = time.perf_counter()
+            cat.table("frames")
+            full[i].append(time.perf_counter() - t0)
+            v = cat.published_version()
+            t1 = time.perf_counter()
+            cat.table("frames", v)  # pins and file list cached
+            read[i].append(time.perf_counter() - t1)
+    return [(statistics.median(f), statistics.median(r)) for f, r in zip(full, read,
+                                                                           strict=True)]
 
 
 def main() -> None:
@@ -59,21 +66,22 @@ def main() -> None:
         gc.open(root).table("frames")  # warm up pyarrow's and deltalake's first calls
         files = len(gc.open(root).files("frames"))
         rows = gc.open(root).table("frames").num_rows
-        before = _read_s(root)
+        unoptimized = Path(tmp) / "unoptimized"
+        shutil.copytree(root, unoptimized, ignore=shutil.ignore_patterns(".lock"))
         t0 = time.perf_counter()
         report = optimize_catalog(gc.open(root))
         optimize_s = time.perf_counter() - t0
-        after = _read_s(root)
         every = [sid for some in ids for sid in some]
         one = gc.open(fresh, create=True)
         one.commit(make_build(every, seed=0, build_id="fresh", frames=args.frames))
-        written = _read_s(fresh)
+        before, after, written = _read_s([unoptimized, root, fresh])
         print(f"{args.builds} builds of {args.sessions_per_build} sessions x {args.frames} "
               f"frames: {rows} frames rows; commits {commit_s:.1f} s")
         print(f"frames files: {files} after the builds, {report.by_table['frames'][1]} after "
               f"optimize ({optimize_s:.2f} s: {report.text()})")
         for i, what in enumerate(("open + resolve + list + read", "read (files listed)")):
-            print(f"frames, {what} (median of 9): {before[i] * 1e3:.1f} ms after the builds, "
+            print(f"frames, {what} (median of 15, interleaved): {before[i] * 1e3:.1f} ms "
+                  "after the builds, "
                   f"{after[i] * 1e3:.1f} ms after optimize, {written[i] * 1e3:.1f} ms freshly "
                   f"written (ratios {before[i] / written[i]:.2f} and "
                   f"{after[i] / written[i]:.2f})")

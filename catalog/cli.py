@@ -408,7 +408,8 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction,
     p.set_defaults(func=_guard(_cmd_versions))
     p = sub.add_parser("show", parents=[common, as_json],
                        help="a version's summary, or one session's row")
-    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
+    p.add_argument("version", nargs="?",
+                   help="version number or tag (default: the newest published)")
     p.add_argument("--session", help="print this session's row instead")
     p.set_defaults(func=_guard(_cmd_show))
     p = sub.add_parser("diff", parents=[common, as_json],
@@ -447,7 +448,8 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction,
                        help="a version as plain Parquet (or CSV) files with its arrays, a "
                        "dataset card (README.md) and normalisation statistics (stats.json); "
                        "or as a LeRobot v3.0-style dataset (--format lerobot)")
-    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
+    p.add_argument("version", nargs="?",
+                   help="version number or tag (default: the newest published)")
     p.add_argument("--out", required=True, help="new folder to write")
     p.add_argument("--format", choices=["parquet", "csv", "lerobot"], default="parquet",
                    help="parquet or csv: the catalog's tables and arrays; lerobot: "
@@ -472,7 +474,8 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction,
     p = sub.add_parser("verify", parents=[common, as_json],
                        help="check that every file a version needs exists and every array "
                        "matches its digest; exit 1 naming what is damaged")
-    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
+    p.add_argument("version", nargs="?",
+                   help="version number or tag (default: the newest published)")
     p.set_defaults(func=_guard(_cmd_verify))
     p = sub.add_parser("repair", parents=[common],
                        help="mend a damaged versions log (garbled entries moved aside, holes "

@@ -1,7 +1,7 @@
 """A build's report page: one static HTML file a person opens from disk (no server, no
 script, no external URL; the plots are inline SVG).
 
-    path = write_report(gc.open("catalog/"))          # the latest version's build
+    path = write_report(gc.open("catalog/"))          # the newest published version's build
     path = write_report(cat, 3)                       # version 3's, again
 
 ``<catalog>/reports/<build_id>/index.html`` (``CatalogLayout.report_file``) shows:
@@ -183,9 +183,9 @@ def _medians(cat: Catalog, versions: list[int]) -> tuple[dict[str, dict[int, flo
 
 def gather(cat: Catalog, version: int | str | None = None, record: dict | None = None
            ) -> ReportData:
-    """Everything the page of ``version`` shows (default: the latest). ``record``: the build
-    record to show (a build passes its own; a build that made no version shows the version
-    it left); by default the record of the build that made the version."""
+    """Everything the page of ``version`` shows (default: the newest published). ``record``:
+    the build record to show (a build passes its own; a build that made no version shows the
+    version it left); by default the record of the build that made the version."""
     v = cat.resolve(version)
     versions = cat.versions().to_pylist()
     vrow = next(r for r in versions if r["version"] == v)
@@ -599,7 +599,7 @@ def _write_atomic(path: Path, text: str) -> None:
 
 def write_report(cat: Catalog, version: int | str | None = None,
                  record: dict | None = None) -> Path:
-    """Write the report page of ``version`` (default: the latest) to
+    """Write the report page of ``version`` (default: the newest published) to
     ``reports/<build_id>/index.html`` of the catalog and return its path; ``record`` (a
     build's own record) names the build, else the build that made the version."""
     cat.layout.require_local("writing a report page")

@@ -286,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="write a version's report page (HTML: sessions, "
                                       "reasons, pictures, QA plots) and print its path")
     p.add_argument("version", nargs="?", default=None,
-                   help="version number or tag (default: the latest)")
+                   help="version number or tag (default: the newest published)")
     p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
     p.set_defaults(func=_cmd_report)
 
