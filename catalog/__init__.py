@@ -9,6 +9,7 @@ Contract (columns, encodings, Zarr layout, format version): ``graspcap.schemas.t
 """
 
 from graspcap.catalog.arrays import DamagedArrayError
+from graspcap.catalog.audit import AuditGates
 from graspcap.catalog.collate import collate_fn
 from graspcap.catalog.commit import BuildCommit, BuildInfo, ObjectMesh, SessionArrays
 from graspcap.catalog.dataset import GraspDataset
@@ -23,7 +24,7 @@ from graspcap.catalog.store import Catalog, open  # noqa: A004
 from graspcap.catalog.vacuum import VacuumReport
 
 __all__ = [
-    "BuildCommit", "BuildInfo", "Catalog", "CatalogError", "CatalogFormatError",
+    "AuditGates", "BuildCommit", "BuildInfo", "Catalog", "CatalogError", "CatalogFormatError",
     "CatalogLockTimeout", "CatalogSchemaError", "DamagedArrayError", "GraspDataset",
     "ObjectMesh", "SessionArrays", "VacuumReport", "VersionNotFound", "collate_fn", "open",
 ]

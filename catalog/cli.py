@@ -1,5 +1,5 @@
-"""`graspcap catalog versions|show|diff|tag|remove|export|vacuum|verify|migrate` on the command
-line.
+"""`graspcap catalog versions|show|diff|tag|publish|reject|optimize|remove|export|vacuum|verify|
+migrate` on the command line.
 
 ``add_catalog_parser(subparsers, vacuum_work)`` adds the ``catalog`` command to graspcap's
 parser. Every subcommand takes ``--catalog`` (default ``DEFAULT_CATALOG``; a path or URL;
@@ -104,6 +104,8 @@ def summary(cat, version: int | str | None = None) -> dict:
     return {
         "version": v, "time_utc": info["time_utc"].isoformat(), "build_id": info["build_id"],
         "tags": info["tags"], "format_version": info["format_version"],
+        "state": info["state"], "published_version": cat.published_version(),
+        "audit": cat.audit(v),
         "rows": {name: info[f"rows_{name}"] for name in DATA_TABLES},
         "status": {r["status"]: r["count_all"] for r in status},
         "qa_median": qa,
@@ -138,6 +140,7 @@ def _listed_versions(args: argparse.Namespace, cat) -> int:
     gone = vacuumed_versions(cat.layout) if cat.layout.is_local else {}
     rows = [{"version": r["version"], "time_utc": r["time_utc"].isoformat(timespec="seconds"),
              "build_id": r["build_id"], "tags": r["tags"], "format": r["format_version"],
+             "state": r["state"],
              "readable": r["version"] not in gone, "vacuumed_utc": gone.get(r["version"]),
              **{f"rows_{n}": r[f"rows_{n}"] for n in DATA_TABLES}} for r in table.to_pylist()]
     if args.json:
@@ -146,13 +149,16 @@ def _listed_versions(args: argparse.Namespace, cat) -> int:
     if not rows:
         print(f"catalog {args.catalog}: no versions yet")
         return 0
-    print(f"{'version':>7}  {'committed (UTC)':<25}  {'build':<24} {'sessions':>8} "
+    published = cat.published_version()
+    print(f"{'version':>7}  {'committed (UTC)':<25}  {'build':<24} {'state':<10} {'sessions':>8} "
           f"{'frames':>9}  tags")
     for r in rows:
         gone = ("" if r["readable"] else
                 f"  [vacuumed {r['vacuumed_utc']}: can no longer be read]")
-        print(f"{r['version']:>7}  {r['time_utc']:<25}  {r['build_id']:<24} "
-              f"{r['rows_sessions']:>8} {r['rows_frames']:>9}  {', '.join(r['tags'])}{gone}")
+        mark = "  <- readers' default" if r["version"] == published else ""
+        print(f"{r['version']:>7}  {r['time_utc']:<25}  {r['build_id']:<24} {r['state']:<10} "
+              f"{r['rows_sessions']:>8} {r['rows_frames']:>9}  {', '.join(r['tags'])}{gone}"
+              f"{mark}")
     return 0
 
 
@@ -167,6 +173,13 @@ def _cmd_show(args: argparse.Namespace) -> int:
         print(f"version {out['version']}  build {out['build_id']}  committed "
               f"{out['time_utc']}  format {out['format_version']}  tags "
               f"{', '.join(out['tags']) or '-'}")
+        print(f"state:  {out['state']}" + (" (readers' default)"
+                                            if out["published_version"] == out["version"]
+                                            else f" (readers' default: version "
+                                            f"{out['published_version']})"))
+        print("audit:  " + audit_line(out["audit"]))
+        for reason in (out["audit"] or {}).get("reasons", []):
+            print(f"        {reason}")
         print("rows:   " + ", ".join(f"{k} {v}" for k, v in out["rows"].items()))
         print("status: " + ", ".join(f"{k} {v}" for k, v in sorted(out["status"].items())))
         if out["build"]:
@@ -231,6 +244,45 @@ def _cmd_tag(args: argparse.Namespace) -> int:
         print(f"tag {args.name} -> version {v} (moved from version {before})")
     else:
         print(f"tag {args.name} -> version {v}")
+    return 0
+
+
+def audit_line(audit: dict | None) -> str:
+    """One line on a version's audit (``Catalog.audit``)."""
+    if audit is None:
+        return "none (committed without an audit)"
+    against = (f" against published version {audit['compared_to']}"
+               if audit["compared_to"] is not None else " (no published version before)")
+    if audit["passed"]:
+        return "passed" + against
+    return f"FAILED{against}: {len(audit['reasons'])} gate(s)"
+
+
+def _cmd_publish(args: argparse.Namespace) -> int:
+    cat = _open(args)
+    v = cat.resolve(_version_arg(args.version))
+    changed = cat.publish(v, args.reason or "")
+    print(f"version {v} {'published' if changed else 'was already published'}; readers' "
+          f"default is version {cat.published_version()}")
+    return 0
+
+
+def _cmd_reject(args: argparse.Namespace) -> int:
+    cat = _open(args)
+    v = cat.resolve(_version_arg(args.version))
+    changed = cat.reject(v, args.reason or "")
+    readers = cat.published_version()
+    base = cat.base_version()
+    print(f"version {v} {'rejected' if changed else 'was already rejected'}; readers' default "
+          f"is {'version ' + str(readers) if readers is not None else 'no version'}; the next "
+          f"build is written on top of {'version ' + str(base) if base else 'an empty catalog'}")
+    return 0
+
+
+def _cmd_optimize(args: argparse.Namespace) -> int:
+    from graspcap.catalog.optimize import optimize_catalog
+
+    print(optimize_catalog(_open(args)).text())
     return 0
 
 
@@ -356,7 +408,8 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction,
     p.set_defaults(func=_guard(_cmd_versions))
     p = sub.add_parser("show", parents=[common, as_json],
                        help="a version's summary, or one session's row")
-    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
+    p.add_argument("version", nargs="?",
+                   help="version number or tag (default: the newest published)")
     p.add_argument("--session", help="print this session's row instead")
     p.set_defaults(func=_guard(_cmd_show))
     p = sub.add_parser("diff", parents=[common, as_json],
@@ -370,6 +423,22 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction,
     p.add_argument("--force", action="store_true",
                    help="move the tag when it already points at another version")
     p.set_defaults(func=_guard(_cmd_tag))
+    p = sub.add_parser("publish", parents=[common],
+                       help="publish a version by hand: readers read the newest published "
+                       "version by default")
+    p.add_argument("version", help="version number (or tag)")
+    p.add_argument("--reason", help="why (recorded in the publications table)")
+    p.set_defaults(func=_guard(_cmd_publish))
+    p = sub.add_parser("reject", parents=[common],
+                       help="reject a version: no reader's default, and the next build is "
+                       "written on top of the newest version not rejected")
+    p.add_argument("version", help="version number (or tag)")
+    p.add_argument("--reason", help="why (recorded in the publications table)")
+    p.set_defaults(func=_guard(_cmd_reject))
+    p = sub.add_parser("optimize", parents=[common],
+                       help="compact the newest version's table files into a new version "
+                       "(same rows) and checkpoint the Delta logs; older versions unchanged")
+    p.set_defaults(func=_guard(_cmd_optimize))
     p = sub.add_parser("remove", parents=[common],
                        help="a new version without these sessions (older versions keep them)")
     p.add_argument("sessions", nargs="+", metavar="SESSION", help="session ids to remove")
@@ -379,7 +448,8 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction,
                        help="a version as plain Parquet (or CSV) files with its arrays, a "
                        "dataset card (README.md) and normalisation statistics (stats.json); "
                        "or as a LeRobot v3.0-style dataset (--format lerobot)")
-    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
+    p.add_argument("version", nargs="?",
+                   help="version number or tag (default: the newest published)")
     p.add_argument("--out", required=True, help="new folder to write")
     p.add_argument("--format", choices=["parquet", "csv", "lerobot"], default="parquet",
                    help="parquet or csv: the catalog's tables and arrays; lerobot: "
@@ -404,7 +474,8 @@ def add_catalog_parser(subparsers: argparse._SubParsersAction,
     p = sub.add_parser("verify", parents=[common, as_json],
                        help="check that every file a version needs exists and every array "
                        "matches its digest; exit 1 naming what is damaged")
-    p.add_argument("version", nargs="?", help="version number or tag (default: latest)")
+    p.add_argument("version", nargs="?",
+                   help="version number or tag (default: the newest published)")
     p.set_defaults(func=_guard(_cmd_verify))
     p = sub.add_parser("repair", parents=[common],
                        help="mend a damaged versions log (garbled entries moved aside, holes "

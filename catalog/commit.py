@@ -49,6 +49,7 @@ from graspcap.catalog.arrays import (
     remove_temp_groups,
     write_group,
 )
+from graspcap.catalog.audit import AuditGates, audit_version
 from graspcap.catalog.delta import (
     INITIAL_TABLE_VERSIONS,
     delta_table,
@@ -72,6 +73,7 @@ from graspcap.catalog.errors import (
     writing,
 )
 from graspcap.catalog.layout import CatalogLayout
+from graspcap.catalog.states import base_of, published_of, version_states
 from graspcap.catalog.validate import Batch, rows_to_columns, to_table
 from graspcap.schemas.tables import (
     CATALOG_FORMAT_VERSION,
@@ -79,6 +81,7 @@ from graspcap.schemas.tables import (
     TABLE_SCHEMAS,
     ZARR_LAYOUT,
     Status,
+    VersionState,
 )
 
 log = logging.getLogger(__name__)
@@ -295,6 +298,12 @@ def check_versions(layout: CatalogLayout) -> tuple[dict | None, list[str]]:
         if version > last:
             problems.append(f"{layout.table('tags')}: tag {tag!r} points at version {version} "
                             f"but the versions table ends at version {last}")
+    changes = (read_latest(layout, "publications").select(["version", "state"]).to_pylist()
+               if "publications" in TABLE_SCHEMAS else [])  # else: an older format's golden
+    for version, state in ((c["version"], c["state"]) for c in changes):
+        if version > last:
+            problems.append(f"{layout.table('publications')}: version {version} was {state}, "
+                            f"but the versions table ends at version {last}")
     expected = table_versions_of(row) if row else INITIAL_TABLE_VERSIONS
     for name in DATA_TABLES if row is not None and not problems else ():
         have = delta_table(layout, name, expected[name]).count()  # from the log's stats
@@ -456,15 +465,35 @@ def _prepare(commit: BuildCommit) -> tuple[pa.Table, pa.Table, dict[str, tuple[s
     return sessions_t, frames_t, groups
 
 
+def _known(name: str, row: dict[str, Any]) -> dict[str, Any]:
+    """``row`` without the keys table ``name``'s schema lacks (only the golden catalogs of
+    older formats, ``tests/golden/make_golden.py``, write with fewer columns)."""
+    names = set(TABLE_SCHEMAS[name].names)
+    return {k: v for k, v in row.items() if k in names}
+
+
 def _predicate(ids: list[str]) -> str:
     quoted = ", ".join("'" + s.replace("'", "''") + "'" for s in ids)
     return f"session_id IN ({quoted})"
 
 
+def rows_by_version(layout: CatalogLayout) -> dict[int, dict]:
+    """Every ``versions`` row by its version number."""
+    return {int(r["version"]): r for r in read_latest(layout, "versions").to_pylist()}
+
+
 def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: float,
-                 format_version: int = CATALOG_FORMAT_VERSION) -> int:
+                 format_version: int = CATALOG_FORMAT_VERSION,
+                 gates: AuditGates | None = None) -> int:
     """Run the commit protocol (module docstring); return the new catalog version.
 
+    The version is written on top of the newest version that is not rejected (its *base*:
+    when the newest is rejected, every data table is first restored to the base's pins, in
+    commits marked for the new version, so a killed writer's restore is rolled back like any
+    orphan). ``gates``: audit the version (``catalog.audit``) and record the outcome in its
+    builds row; it is published when the audit passes (and ``gates.auto_publish``), else
+    staged. Without gates it is published unless its base is not (then it is staged too: a
+    commit never publishes unaudited rows by the back door).
     ``format_version`` goes into the versions row; only the golden catalog of an older format
     passes another one.
     """
@@ -474,9 +503,19 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
         _pause("after_lock")
         recover(layout)
         remove_temp_groups(layout)  # what a killed writer left; no live writer holds the lock
-        row = last_version_row(layout)
+        last = last_version_row(layout)
+        version = (last["version"] if last else 0) + 1
+        by_version = rows_by_version(layout)
+        states = version_states(layout)
+        base = base_of(states)
+        row = by_version[base] if base is not None else None
         previous = table_versions_of(row) if row else INITIAL_TABLE_VERSIONS
-        version = (row["version"] if row else 0) + 1
+        for name in DATA_TABLES:  # the newest versions are rejected: start from the base
+            dt = delta_table(layout, name)
+            if dt.version() != previous[name]:
+                with _table_write(layout, name):
+                    dt.restore(previous[name], commit_properties=_marked(
+                        version, commit.build.build_id, **{"graspcap.base_version": base}))
         missing = set(sessions["contact_digest"].drop_null().to_pylist()
                       + sessions["hand_mesh_digest"].drop_null().to_pylist()
                       + sessions["object_mesh_digest"].drop_null().to_pylist()) - set(groups)
@@ -507,6 +546,19 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
                                 predicate=_predicate(touched), commit_properties=marked)
         _pause("after_frames")
 
+        published = published_of(states)
+        audit = None
+        if gates is not None:
+            audit = audit_version(
+                layout, {n: delta_version(layout, n) for n in ("sessions", "frames")}
+                | {"builds": previous["builds"]},
+                (published, table_versions_of(by_version[published]))
+                if published is not None else None, gates, commit.remove)
+            state = VersionState.PUBLISHED if audit.passed and gates.auto_publish \
+                else VersionState.STAGED
+        else:
+            state = VersionState.PUBLISHED if base is None or base == published \
+                else VersionState.STAGED
         now = datetime.now(UTC)
         status = sessions["status"].to_pylist()
         errors = sessions["error"].to_pylist()
@@ -523,7 +575,11 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
             "sessions_removed": sorted(set(commit.remove) & set(old["session_id"].to_pylist())),
             "sessions_failed": [{"session_id": s, "error": e} for s, st, e
                                 in zip(ids, status, errors, strict=True) if st == Status.FAILED],
+            "audit_passed": None if audit is None else audit.passed,
+            "audit_reasons": None if audit is None else audit.reasons,
+            "audit_json": None if audit is None else audit.to_json(),
         }
+        build_row = _known("builds", build_row)
         with _table_write(layout, "builds"):
             write_deltalake(str(layout.table("builds")), to_table("builds", [build_row]),
                             mode="append", commit_properties=marked)
@@ -536,11 +592,13 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
             "format_version": format_version,
             "table_versions": json.dumps(pinned, sort_keys=True),
             **{f"rows_{name}": counts[name] for name in DATA_TABLES},
+            "state": state.value,
         }
         try:
             with _table_write(layout, "versions"):
                 write_deltalake(str(layout.table("versions")),
-                                to_table("versions", [versions_row]), mode="append",
+                                to_table("versions", [_known("versions", versions_row)]),
+                                mode="append",
                                 commit_properties=marked)
         except CatalogError as exc:  # a failure after the row landed (a checkpoint) is no loss
             if not _landed(layout, version, commit.build.build_id):

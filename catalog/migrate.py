@@ -26,6 +26,10 @@ as above, then the reason columns of the rows the catalog already has are set to
 ``NOT_RECORDED`` ("not recorded before format 6"; one Delta update of ``frames``, rewriting its
 files: the versions pinned before keep reading the old files, where they are null) while the
 flags stay null, which ``GraspDataset`` keeps.
+Format 7 (write-audit-publish) added the nullable ``builds.audit_passed``, ``audit_reasons``,
+``audit_json`` and ``versions.state`` (added as above: null reads as published, not audited) and
+the ``publications`` table, which the upgrade creates first (``create_tables`` makes only the
+tables that are missing).
 An empty catalog's tables are simply created again. ``catalog.json`` is restamped last, under
 the writer lock: a migration that dies half way leaves a catalog of the old format that
 ``migrate`` finishes (each change is idempotent).
@@ -139,6 +143,7 @@ def _count(dt: DeltaTable, predicate: str) -> int:
 def _upgrade(layout: CatalogLayout, found: int) -> int | None:
     """Format ``found`` -> current under the writer lock (module docstring); the appended
     version or None."""
+    create_tables(layout)  # tables a newer format adds (format 7: publications)
     recover(layout)
     row = last_version_row(layout)
     if row is None:

@@ -1,7 +1,7 @@
 """A build's report page: one static HTML file a person opens from disk (no server, no
 script, no external URL; the plots are inline SVG).
 
-    path = write_report(gc.open("catalog/"))          # the latest version's build
+    path = write_report(gc.open("catalog/"))          # the newest published version's build
     path = write_report(cat, 3)                       # version 3's, again
 
 ``<catalog>/reports/<build_id>/index.html`` (``CatalogLayout.report_file``) shows:
@@ -101,6 +101,10 @@ class ReportData:
     medians: dict[str, dict[int, float]] = field(default_factory=dict)
     """Per metric name, its median over the sessions of each version (where readable)."""
     unreadable_versions: tuple[int, ...] = ()
+    audit: dict[str, Any] | None = None
+    """The audit of the build that made the version (``Catalog.audit``); None without one."""
+    published_version: int | None = None
+    """The version readers read by default (the newest published)."""
 
 
 def _work_record(params: Mapping[str, Any], root: Path, build_id: str) -> dict | None:
@@ -179,9 +183,9 @@ def _medians(cat: Catalog, versions: list[int]) -> tuple[dict[str, dict[int, flo
 
 def gather(cat: Catalog, version: int | str | None = None, record: dict | None = None
            ) -> ReportData:
-    """Everything the page of ``version`` shows (default: the latest). ``record``: the build
-    record to show (a build passes its own; a build that made no version shows the version
-    it left); by default the record of the build that made the version."""
+    """Everything the page of ``version`` shows (default: the newest published). ``record``:
+    the build record to show (a build passes its own; a build that made no version shows the
+    version it left); by default the record of the build that made the version."""
     v = cat.resolve(version)
     versions = cat.versions().to_pylist()
     vrow = next(r for r in versions if r["version"] == v)
@@ -228,7 +232,8 @@ def gather(cat: Catalog, version: int | str | None = None, record: dict | None =
     plotted = sorted(r["version"] for r in versions if r["version"] <= v)[-MAX_VERSIONS_PLOTTED:]
     medians, unreadable = _medians(cat, plotted)
     return ReportData(cat.layout.uri, v, vrow, record, params, tuple(entries), _limits(params),
-                      tuple(versions), medians, tuple(unreadable))
+                      tuple(versions), medians, tuple(unreadable), cat.audit(v),
+                      cat.published_version())
 
 
 # --- drawing ----------------------------------------------------------------------------------
@@ -382,6 +387,8 @@ def versions_svg(m: QaMetric, medians: Mapping[int, float], current: int,
 
 
 STYLE = """
+.audit{margin:12px 0;padding:8px;border:1px solid #ddd;background:#fff}
+.audit.bad{border-color:#c33;background:#fff3f3}.audit.ok{border-color:#3a3}
 body{font:14px/1.4 system-ui,sans-serif;margin:24px;color:#222;background:#fafafa}
 h1{font-size:22px;margin:0 0 4px}h2{font-size:18px;margin:28px 0 8px;border-bottom:1px solid #ccc}
 table{border-collapse:collapse;background:#fff}td,th{border:1px solid #ddd;padding:4px 6px;
@@ -440,6 +447,33 @@ def _session_row(e: SessionEntry, limits: Mapping[str, Mapping[str, float | None
             f'<td>{thumbs or "<span class=muted>no pictures</span>"}</td></tr>')
 
 
+def _publication_html(data: ReportData) -> str:
+    """The version's state and its audit (write-audit-publish): a box above the lineage."""
+    state = data.version_row.get("state") or "published"
+    audit = data.audit
+    readers = (f"readers read version {data.published_version} by default"
+               if data.published_version is not None else "no version is published")
+    if audit is None:
+        verdict = "committed without an audit"
+    else:
+        against = (f" against published version {audit['compared_to']}"
+                   if audit.get("compared_to") is not None else "")
+        verdict = ("audit passed" if audit["passed"] else "audit FAILED") + against
+    cls = "ok" if state == "published" else "bad"
+    out = [f'<div class="audit {cls}" id="audit"><b>{_e(state)}</b>: {_e(verdict)}; '
+           f"{_e(readers)}"]
+    if audit and audit.get("reasons"):
+        out.append("<ul>" + "".join(f"<li>{_e(r)}</li>" for r in audit["reasons"]) + "</ul>")
+    if state == "staged":
+        out.append(f"<div>publish it: <code>graspcap catalog publish {data.version}</code>; "
+                   f"reject it: <code>graspcap catalog reject {data.version}</code></div>")
+    if audit:
+        shown = {"measured": audit.get("measured"), "gates": audit.get("gates")}
+        out.append("<details><summary>measured and gates</summary><pre>"
+                   f"{_e(json.dumps(shown, indent=1, sort_keys=True))}</pre></details>")
+    return "".join(out) + "</div>"
+
+
 def _table(rows: list[tuple[str, Any]]) -> str:
     return "<table>" + "".join(f"<tr><th>{_e(k)}</th><td>{v}</td></tr>" for k, v in rows) + \
         "</table>"
@@ -470,7 +504,8 @@ def render(data: ReportData, href: Callable[[str], str],
            f'<div class=muted>catalog {_e(data.catalog)} · build {_e(rec.get("build_id"))} · '
            f'page written {datetime.now(UTC).isoformat(timespec="seconds")}</div>',
            '<div class="cards">' + "".join(f'<div class="card"><b>{_e(val)}</b>{_e(k)}</div>'
-                                           for k, val in cards) + "</div>"]
+                                           for k, val in cards) + "</div>",
+           _publication_html(data)]
     # lineage and parameters
     out.append("<h2>Build and lineage</h2>")
     configs = p.get("configs") or {}
@@ -480,6 +515,8 @@ def render(data: ReportData, href: Callable[[str], str],
         ("previous version", _e(rec.get("previous_version") or "none")),
         ("version committed", _e(data.version_row.get("time_utc"))),
         ("tags", _e(", ".join(data.version_row.get("tags") or ()) or "–")),
+        ("state", _e(data.version_row.get("state") or "–")),
+        ("readers' default", _e(data.published_version or "none (no version published)")),
         ("code version", _e(p.get("code_version") or "–")),
         ("config digest", f'<code>{_e(p.get("config_digest") or "–")}</code>'),
         ("preset", _e(p.get("preset", "–"))),
@@ -507,12 +544,13 @@ def render(data: ReportData, href: Callable[[str], str],
                        f"<tr><td>{_e(st)}</td>" + "".join(f"<td>{n}</td>" for n in c) + "</tr>"
                        for st, c in stages.items()) + "</table>")
     out.append("<h3>Versions</h3><table><tr><th>version</th><th>committed</th><th>build</th>"
-               "<th>tags</th><th>sessions</th><th>report</th></tr>")
+               "<th>state</th><th>tags</th><th>sessions</th><th>report</th></tr>")
     for row in sorted(data.versions, key=lambda r: -r["version"]):
         link = version_link(row)
         mark = " (this page)" if row["version"] == v else ""
         out.append(f'<tr class="version"><td>{row["version"]}{mark}</td>'
                    f'<td>{_e(row["time_utc"])}</td><td>{_e(row["build_id"])}</td>'
+                   f'<td>{_e(row.get("state") or "–")}</td>'
                    f'<td>{_e(", ".join(row.get("tags") or ()))}</td>'
                    f'<td>{_e(row.get("rows_sessions"))}</td><td>'
                    + (f'<a href="{_e(link)}">report</a>' if link else "–") + "</td></tr>")
@@ -561,7 +599,7 @@ def _write_atomic(path: Path, text: str) -> None:
 
 def write_report(cat: Catalog, version: int | str | None = None,
                  record: dict | None = None) -> Path:
-    """Write the report page of ``version`` (default: the latest) to
+    """Write the report page of ``version`` (default: the newest published) to
     ``reports/<build_id>/index.html`` of the catalog and return its path; ``record`` (a
     build's own record) names the build, else the build that made the version."""
     cat.layout.require_local("writing a report page")

@@ -8,6 +8,7 @@ workers and reopens lazily there.
 
 from __future__ import annotations
 
+import json
 import re
 import uuid
 from collections.abc import Sequence
@@ -21,6 +22,7 @@ import pyarrow.compute as pc
 from deltalake import write_deltalake
 
 from graspcap.catalog.arrays import read_group
+from graspcap.catalog.audit import AuditGates
 from graspcap.catalog.commit import (
     REPAIR_VERSIONS,
     BuildCommit,
@@ -42,9 +44,10 @@ from graspcap.catalog.delta import (
 from graspcap.catalog.diff import diff_sessions
 from graspcap.catalog.errors import CatalogDamaged, CatalogError, VersionNotFound, writing
 from graspcap.catalog.layout import CatalogLayout, check_format, write_format_file
+from graspcap.catalog.states import base_of, published_of, version_states
 from graspcap.catalog.vacuum import VacuumReport, vacuum_catalog, vacuumed_versions
 from graspcap.catalog.validate import to_table
-from graspcap.schemas.tables import DATA_TABLES
+from graspcap.schemas.tables import DATA_TABLES, VersionState
 
 _TAG = re.compile(r"[A-Za-z][A-Za-z0-9._-]*")
 
@@ -124,20 +127,51 @@ class Catalog:
             by_version.setdefault(v, []).append(tag)
         tags = pa.array([by_version.get(v, []) for v in table["version"].to_pylist()],
                         pa.list_(pa.string()))
-        return table.add_column(3, "tags", tags)
+        states = version_states(self.layout, table)
+        table = table.add_column(3, "tags", tags)
+        current = pa.array([states[v].value for v in table["version"].to_pylist()], pa.string())
+        return table.drop_columns(["state"]).append_column("state", current)
 
     def latest_version(self) -> int | None:
-        """The newest committed version, None for an empty catalog."""
+        """The newest committed version, published or not; None for an empty catalog
+        (readers' default is :meth:`published_version`)."""
         versions = read_latest(self.layout, "versions")
         return None if versions.num_rows == 0 else int(pc.max(versions["version"]).as_py())
 
+    def states(self) -> dict[int, VersionState]:
+        """``{version: published | staged | rejected}`` (write-audit-publish). Reads the
+        versions table once and keeps every version's pins (immutable) for the reads after."""
+        versions = self._versions_raw()
+        for row in versions.to_pylist():
+            if row["version"] not in self._pins:
+                self._counts[row["version"]] = {n: row[f"rows_{n}"] for n in DATA_TABLES}
+                self._pins[row["version"]] = table_versions_of(row)
+        return version_states(self.layout, versions)
+
+    def published_version(self) -> int | None:
+        """The newest published version: what ``table()``, ``GraspDataset`` and every reader
+        read when no version is named; None when no version is published."""
+        return published_of(self.states())
+
+    def base_version(self) -> int | None:
+        """The newest version that is not rejected: what the next build is written on top
+        of (and plans against); None for an empty catalog."""
+        return base_of(self.states())
+
     def resolve(self, version: int | str | None = None) -> int:
-        """The version number of ``version`` (None = latest, str = tag)."""
+        """The version number of ``version`` (None = the newest published, str = tag)."""
         if version is None:
-            latest = self.latest_version()
-            if latest is None:
-                raise VersionNotFound(f"catalog {self.layout.uri} has no version yet")
-            return latest
+            states = self.states()
+            published = published_of(states)
+            if published is None:
+                if not states:
+                    raise VersionNotFound(f"catalog {self.layout.uri} has no version yet")
+                staged = sorted(v for v, s in states.items() if s == VersionState.STAGED)
+                raise VersionNotFound(
+                    f"catalog {self.layout.uri} has no published version (staged: "
+                    f"{staged or '-'}; `graspcap catalog versions` says why): read one by "
+                    "number, or publish it with `graspcap catalog publish VERSION`")
+            return published
         if isinstance(version, str):
             tags = self.tags()
             if version not in tags:
@@ -179,6 +213,55 @@ class Catalog:
                 write_deltalake(str(self.layout.table("tags")), to_table("tags", [row]),
                                 mode="append")
         return True
+
+    def publish(self, version: int, reason: str = "") -> bool:
+        """Publish ``version`` by hand (whatever its audit said): readers' default becomes the
+        newest published version. False when it already is published (nothing written)."""
+        return self._set_state(int(version), VersionState.PUBLISHED, reason)
+
+    def reject(self, version: int, reason: str = "") -> bool:
+        """Reject ``version``: it is no reader's default and the next build is written on
+        top of the newest version that is not rejected. It stays readable by number. A
+        version with a newer version that is not rejected cannot be rejected (that one was
+        written on top of it: reject it first). False when already rejected."""
+        return self._set_state(int(version), VersionState.REJECTED, reason)
+
+    def _set_state(self, version: int, state: VersionState, reason: str) -> bool:
+        self._pinned(version)
+        with writer_lock(self.layout, self.lock_timeout_s):
+            _, problems = check_versions(self.layout)
+            if problems:
+                raise CatalogDamaged(self.layout.uri, problems, REPAIR_VERSIONS)
+            states = self.states()
+            if states[version] == state:
+                return False
+            if state == VersionState.REJECTED:
+                later = [v for v, s in states.items() if v > version
+                         and s != VersionState.REJECTED]
+                if later:
+                    raise CatalogError(
+                        f"version(s) {later} were written on top of version {version} and hold "
+                        f"its changes; reject them first (newest first), then version "
+                        f"{version}")
+            if state == VersionState.PUBLISHED and version in vacuumed_versions(self.layout):
+                raise CatalogError(f"version {version} was vacuumed (files it needs are gone) "
+                                   "and cannot be published")
+            row = {"version": version, "state": state.value, "time_utc": datetime.now(UTC),
+                   "reason": reason}
+            with writing(self.layout.table("publications")):
+                write_deltalake(str(self.layout.table("publications")),
+                                to_table("publications", [row]), mode="append")
+        return True
+
+    def audit(self, version: int | str | None = None) -> dict | None:
+        """The audit of the build that made ``version``: ``{"passed", "reasons",
+        "compared_to", "measured", "gates"}``, None when it was committed without one."""
+        v = self.resolve(version)
+        rows = self.table("builds", v).filter(pc.equal(pc.field("catalog_version"), v))
+        for row in rows.to_pylist():
+            if row["audit_json"]:
+                return json.loads(row["audit_json"])
+        return None
 
     def problems(self) -> list[str]:
         """What a writer would stop on, one line per problem naming the file (empty for a
@@ -347,9 +430,13 @@ class Catalog:
         return SessionView(self, session_id, version, session_root)
 
     # writing ----------------------------------------------------------------------------
-    def commit(self, build: BuildCommit) -> int:
-        """Commit ``build`` as the next version, atomically; return its number."""
-        return commit_build(self.layout, build, lock_timeout_s=self.lock_timeout_s)
+    def commit(self, build: BuildCommit, gates: AuditGates | None = None) -> int:
+        """Commit ``build`` as the next version, atomically; return its number. ``gates``:
+        audit it and publish it only when it passes (``catalog.audit``); without, it is
+        published at once unless it is written on top of a version that is not (see
+        ``commit.commit_build``)."""
+        return commit_build(self.layout, build, lock_timeout_s=self.lock_timeout_s,
+                            gates=gates)
 
     def remove(self, session_ids: Sequence[str], reason: str = "", *,
                build_id: str | None = None) -> int:
@@ -361,7 +448,9 @@ class Catalog:
         ids = sorted(set(session_ids))
         if not ids:
             raise ValueError("name at least one session to remove")
-        latest = self.resolve(None)
+        latest = self.base_version()
+        if latest is None:
+            raise ValueError(f"catalog {self.layout.uri} has no version to remove from")
         known = set(self.table("sessions", latest)["session_id"].to_pylist())
         unknown = [s for s in ids if s not in known]
         if unknown:

@@ -1,8 +1,10 @@
 """Free space: delete Parquet files and array groups that no kept catalog version needs.
 
-Kept versions are the newest ``keep`` ones plus every tagged one. A file survives when any kept
-version's pinned Delta version lists it, or the newest Delta version of its table does (so the
-tables stay writable); an array group survives when a kept version's sessions reference it.
+Kept versions are the newest ``keep`` ones plus every tagged one and the published one
+(readers' default, which may be older than the newest when those are staged). A file survives
+when any kept version's pinned Delta version lists it, or the newest Delta version of its table
+does (so the tables stay writable); an array group survives when a kept version's sessions
+reference it.
 Everything else under the tables' folders (files of older versions, of crashed or rolled-back
 commits) and under ``arrays/`` (groups of dropped versions, half-written temp groups) goes.
 Runs under the writer lock. Delta logs are kept: the versions stay listed. A version not kept
@@ -55,8 +57,8 @@ class VacuumReport:
         def versions(vs: list[int]) -> str:
             return ", ".join(map(str, vs))
 
-        out = [f"kept version(s) {versions(self.kept_versions)} (the newest {keep} and every "
-               "tagged one)"]
+        out = [f"kept version(s) {versions(self.kept_versions)} (the newest {keep}, every "
+               "tagged one and the published one)"]
         if self.dropped_versions:
             out.append(f"version(s) {versions(self.dropped_versions)} can no longer be read "
                        "(files they need were removed; they stay listed)")
@@ -87,7 +89,9 @@ def vacuum_catalog(catalog: Catalog, keep: int) -> VacuumReport:
     with writer_lock(layout, catalog.lock_timeout_s):
         recover(layout)
         all_versions = catalog.versions()["version"].to_pylist()
-        kept = sorted(set(all_versions[-keep:]) | set(catalog.tags().values()))
+        published = catalog.published_version()  # readers' default is always kept
+        kept = sorted(set(all_versions[-keep:]) | set(catalog.tags().values())
+                      | ({published} if published is not None else set()))
         needed: set[str] = set()
         for name in DATA_TABLES:
             needed.update(table_files(layout, name, delta_version(layout, name)))

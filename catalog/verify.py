@@ -89,7 +89,7 @@ def _check_file(cat: Catalog, path: str) -> str | None:
 
 
 def verify_version(cat: Catalog, version: int | str | None = None) -> VerifyReport:
-    """Check every file ``version`` (default: the latest) needs (module docstring)."""
+    """Check every file ``version`` (default: the newest published) needs (module docstring)."""
     v = cat.resolve(version)
     pins = cat._pinned(v)
     damaged: list[Damage] = []

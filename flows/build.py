@@ -55,6 +55,7 @@ from graspcap.catalog.validate import check_commit
 from graspcap.flows.cached import reads_digest, session_files, session_id_of
 from graspcap.flows.progress import ProgressFn, Tracker, reporting_to
 from graspcap.flows.report import BuildFailed, BuildReport, Outcome, SessionReport
+from graspcap.flows.retention import RunRetention, prune_flow_runs
 from graspcap.flows.rows import (
     NEWEST_COLUMNS,
     failed_row,
@@ -70,6 +71,9 @@ from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.session.discover import discover
 
 BUILDS_LOG = "builds.jsonl"
+OPTIMIZE_EVERY = 20
+"""A build whose version number is a multiple of this compacts the catalog's tables
+(``catalog.optimize``: one more version, same rows, fewer files); None or 0: never."""
 __all__ = ["BuildFailed", "ProgressFn", "build_dataset", "build_flow"]
 
 
@@ -129,11 +133,13 @@ def last_build_failures(cat: gc.Catalog, work: WorkArea) -> set[str]:
 
 
 def _last_build_row(cat: gc.Catalog) -> dict | None:
-    """The latest version's newest builds row made by a build (a ``catalog remove`` version's
-    row records no build's failures: the one before it does), None without one."""
-    if cat.latest_version() is None:
+    """The base version's (the newest not rejected: what a build writes on top of) newest
+    builds row made by a build (a ``catalog remove`` version's row records no build's
+    failures: the one before it does), None without one."""
+    base = cat.base_version()
+    if base is None:
         return None
-    for row in cat.table("builds").sort_by("catalog_version").to_pylist()[::-1]:
+    for row in cat.table("builds", base).sort_by("catalog_version").to_pylist()[::-1]:
         if json.loads(row["parameters_json"]).get("command") != "catalog remove":
             return row
     return None
@@ -281,11 +287,18 @@ def _stage_outcomes(futures: Mapping[str, Any]):
 @flow(name="graspcap-build", persist_result=False, log_prints=False)
 def build_flow(roots: list[str], catalog: str, preset: str = "default",
                overrides: dict[str, Any] | None = None, retry_failed: bool = False,
-               work_root: str | None = None, build_id: str | None = None) -> BuildReport:
-    """The whole build as one flow run (module docstring)."""
+               work_root: str | None = None, build_id: str | None = None,
+               gates: dict[str, Any] | None = None,
+               optimize_every: int | None = OPTIMIZE_EVERY,
+               retention: dict[str, Any] | None = None) -> BuildReport:
+    """The whole build as one flow run (module docstring). ``gates``: the audit's
+    (``catalog.audit.AuditGates`` fields); ``optimize_every``: see :data:`OPTIMIZE_EVERY`;
+    ``retention``: Prefect's finished flow runs kept (``flows.retention.RunRetention``
+    fields), pruned at the end of the build (a scheduled ``graspcap serve`` build too)."""
     from graspcap.tasks.pipeline import STAGES
 
     t0 = time.perf_counter()
+    gates = gc.AuditGates(**(gates or {}))
     build_id = build_id or time.strftime("%Y%m%dT%H%M%S") + "-" + uuid.uuid4().hex[:8]
     cat = gc.open(catalog, create=True)
     work = WorkArea(work_root or cat.layout.root / "work")
@@ -324,8 +337,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
             for d, sid in zip(dirs, ids, strict=True) if str(d) in outcomes}
     t_run = time.perf_counter()
 
-    previous = cat.latest_version()
-    prev_rows = ({r["session_id"]: r for r in cat.table("sessions").select(
+    previous = cat.base_version()  # planned against what the commit writes on top of
+    prev_rows = ({r["session_id"]: r for r in cat.table("sessions", previous).select(
         ["session_id", "status", "input_digest", "config_digest", "steady_from", "object_id",
          "object_mesh_digest", *NEWEST_COLUMNS]).to_pylist()}
         if previous is not None else {})
@@ -437,6 +450,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
 
     params = {"roots": [str(r) for r in roots], "catalog": str(cat.layout.root),
               "preset": preset, "retry_failed": retry_failed, "work": str(work.root),
+              "gates": gates.model_dump(mode="json"),
               "configs": {n: json.loads(c.canonical_json()) for n, c in configs.items()},
               "not_sessions": [str(p) for p in found.not_sessions]}
     run = FlowRunContext.get()
@@ -451,7 +465,8 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                 build=gc.BuildInfo(build_id, version, cdigest,
                                    parameters={**params, "report": draft.record()},
                                    sessions_unchanged=tuple(draft.unchanged)),
-                sessions=rows, frames=frames, session_arrays=arrays, object_meshes=meshes))
+                sessions=rows, frames=frames, session_arrays=arrays, object_meshes=meshes),
+                gates)
         except Exception as exc:
             seconds["total"] = time.perf_counter() - t0
             kept = sum(len(s.ran) + len(s.cached) for s in reports)
@@ -462,8 +477,15 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
             _log_build(work, {**draft.record(), "error": str(failed), "keys": used})
             raise failed from exc
     seconds["commit"] = time.perf_counter() - t_rows
+    publication = _publication(cat, new_version)
+    if new_version is not None and optimize_every and new_version % optimize_every == 0:
+        publication["optimized"] = _optimize(cat)
+    t_prune = time.perf_counter()
+    if prune_flow_runs(RunRetention(**(retention or {}))) is not None:
+        seconds["prune_runs"] = time.perf_counter() - t_prune
     seconds["total"] = time.perf_counter() - t0
-    report = BuildReport(build_id, new_version, previous, tuple(reports), seconds, params)
+    report = BuildReport(build_id, new_version, previous, tuple(reports), seconds, params,
+                         publication=publication)
     report = dataclasses.replace(report, report_page=_report_page(cat, report))
     _log_build(work, {**report.record(), "keys": used})
     _qa_artifact(cat, report)
@@ -474,6 +496,29 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                             f" in {s.failed_stage}" if s.failed_stage else "", s.error)
         log.info("%s", report.summary())
     return report
+
+
+def _publication(cat: gc.Catalog, version: int | None) -> dict[str, Any]:
+    """The version's audit and state, and the version readers now get by default."""
+    states = cat.states()
+    out: dict[str, Any] = {"published_version": cat.published_version()}
+    if version is not None:
+        out["state"] = states[version].value
+        out["audit"] = cat.audit(version)
+    return out
+
+
+def _optimize(cat: gc.Catalog) -> dict[str, Any] | None:
+    """Compact the catalog's tables (``catalog.optimize``); its report as a dict, None (with
+    a warning) when it failed: compaction is housekeeping and never fails the build."""
+    from graspcap.catalog.optimize import optimize_catalog
+
+    try:
+        return dataclasses.asdict(optimize_catalog(cat))
+    except Exception as exc:  # noqa: BLE001 - the build's version is committed
+        logging.getLogger(__name__).warning("catalog optimize after the build failed: %s: %s",
+                                            type(exc).__name__, exc)
+        return None
 
 
 def _run_log() -> logging.Logger | logging.LoggerAdapter | None:
@@ -549,7 +594,7 @@ def _report_page(cat: gc.Catalog, report: BuildReport) -> str | None:
 
     try:
         version = report.catalog_version if report.catalog_version is not None \
-            else cat.latest_version()
+            else cat.base_version()
         if version is None:
             return None
         return str(write_report(cat, version, report.record()))
@@ -611,16 +656,28 @@ def build_dataset(roots: Sequence[Path | str], catalog: Path | str, preset: str 
                   overrides: Mapping[str, Any] | None = None, retry_failed: bool = False,
                   task_runner_=None, dask: str | None = None, workers: int = 2,
                   work: Path | str | None = None, build_id: str | None = None,
-                  progress: ProgressFn | None = None) -> BuildReport:
+                  progress: ProgressFn | None = None,
+                  gates: gc.AuditGates | Mapping[str, Any] | None = None,
+                  optimize_every: int | None = OPTIMIZE_EVERY,
+                  retention: RunRetention | None = None) -> BuildReport:
     """Build (or update) the catalog at ``catalog`` from the sessions under ``roots``.
 
     ``dask``: None (threads in this process, ``workers`` of them), ``"local:N"`` (a Dask
     LocalCluster of N single-threaded processes) or a scheduler address; ``task_runner_``
     overrides both. ``work``: the work area every worker can reach (default
-    ``<catalog>/work``). ``overrides``: per stage a config or a dict of fields.
+    ``<catalog>/work``). ``overrides``: per stage a config or a dict of fields. ``gates``: the
+    write-audit-publish audit (``catalog.audit.AuditGates``, default gates when None): the
+    version is published when it passes, else staged. ``optimize_every``: compact the tables
+    when the new version's number is a multiple of it. ``retention``: how many of Prefect's
+    flow runs to keep (``flows/retention.py``; default ``RunRetention()``), pruned at the
+    end of the build.
     """
+    if isinstance(gates, gc.AuditGates):
+        gates = gates.model_dump()
+    gates = gc.AuditGates(**dict(gates or {})).model_dump()  # a bad gate fails before Prefect
     runner = task_runner_ or task_runner(dask, workers)
     with reporting_to(progress), worker_api(dask) as api_url, build_settings(api_url):
         return build_flow.with_options(task_runner=runner)(
             [str(r) for r in roots], str(catalog), preset, dict(overrides or {}),
-            retry_failed, None if work is None else str(work), build_id)
+            retry_failed, None if work is None else str(work), build_id, gates,
+            optimize_every, (retention or RunRetention()).model_dump())

@@ -27,6 +27,9 @@ EXIT_USAGE = 2
 EXIT_BUILD_FAILED = 3
 """The build failed as a whole and committed nothing (the catalog's lock, the disk, the
 commit); completed stage results stay in the work area for the next build."""
+EXIT_STAGED = 4
+"""The new version is committed but staged, not published: its audit failed (or ``--stage``);
+readers stay on the published version (``graspcap catalog publish|reject VERSION``)."""
 
 
 class _NoTraceback(logging.Filter):
@@ -58,18 +61,24 @@ def process_seconds(fallback_start: float | None = None) -> float:
 
 def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
               dask: str | None = None, retry_failed: bool = False,
-              settings: Sequence[str] = (), started: float | None = None) -> int:
+              settings: Sequence[str] = (), started: float | None = None,
+              gates: Sequence[str] = (), stage: bool = False,
+              keep_runs: int | None = None) -> int:
     """``graspcap build``: :data:`EXIT_OK`, :data:`EXIT_SESSIONS_FAILED`, :data:`EXIT_USAGE`
     or :data:`EXIT_BUILD_FAILED` (its reason on stderr, a traceback only for a bug); a wrong
     ``--set`` is :data:`EXIT_USAGE` (the message names it). The summary's wall time counts from
     the process's start (``started``: a ``perf_counter`` of it where that cannot be read)."""
+    from graspcap.catalog.audit import parse_gates
     from graspcap.catalog.errors import CatalogError
     from graspcap.flows.report import BuildFailed
+    from graspcap.flows.retention import RunRetention
     from graspcap.tasks.pipeline import settings_overrides
     from graspcap.tasks.session.discover import discover_sessions
 
     try:
         overrides = settings_overrides(list(settings), preset)
+        audit = parse_gates(gates, {"auto_publish": False} if stage else None)
+        retention = RunRetention() if keep_runs is None else RunRetention(max_runs=keep_runs)
     except ValueError as exc:
         print(f"graspcap build: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -91,7 +100,8 @@ def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
         with ConsoleProgress(sys.stdout) as progress:
             report = build_dataset(roots, catalog, preset, dask=dask,
                                    retry_failed=retry_failed, progress=progress,
-                                   overrides=overrides or None)
+                                   overrides=overrides or None, gates=audit,
+                                   retention=retention)
     except KeyboardInterrupt:
         raise
     except Exception as exc:  # noqa: BLE001 - any error here means nothing was committed
@@ -106,6 +116,8 @@ def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
     # after the summary that asks nothing of the user
     logging.getLogger("EventsWorker").setLevel(logging.ERROR)
     print(report.summary())
+    if report.publication.get("state") == "staged":
+        return EXIT_STAGED
     return EXIT_SESSIONS_FAILED if report.failed else EXIT_OK
 
 
@@ -119,8 +131,9 @@ def status_text(catalog: Path, limit: int = 5) -> str:
     records, torn = _build_records(log)
     committed = {}
     removed: list[str] = []
-    if cat.latest_version() is not None:
-        for row in cat.table("builds").sort_by("catalog_version").to_pylist():
+    if cat.latest_version() is not None:  # the newest version, published or not
+        for row in cat.table("builds", cat.latest_version()).sort_by(
+                "catalog_version").to_pylist():
             committed[row["build_id"]] = row
             params = json.loads(row["parameters_json"])
             rec = params.get("report")
@@ -137,7 +150,15 @@ def status_text(catalog: Path, limit: int = 5) -> str:
                    "writing one?); skipped")
     if not records:
         return "\n".join([f"catalog {cat.layout.root}: no builds yet", *out])
-    out.insert(0, f"catalog {cat.layout.root}: latest version {cat.latest_version()}")
+    states = cat.states()
+    latest, published = cat.latest_version(), cat.published_version()
+    head = f"catalog {cat.layout.root}: latest version {latest}"
+    if latest is not None:
+        head += f" ({states[latest]})"
+    head += ("; no version is published" if published is None else
+             f"; published version {published} (readers' default)" if published != latest
+             else "; readers read it by default")
+    out.insert(0, head)
     from graspcap.flows.workarea import WorkArea
 
     work = WorkArea.reader(cat.layout.root / "work")
@@ -147,6 +168,8 @@ def status_text(catalog: Path, limit: int = 5) -> str:
         version = rec.get("catalog_version")
         where = (f"version {version}" if version is not None
                  else "FAILED, nothing committed" if rec.get("error") else "no new version")
+        if version is not None and version in states:
+            where += f", {states[version]}"
         ran = sum(len(x["ran"]) for x in rec["sessions"])
         hit = sum(len(x["cached"]) for x in rec["sessions"])
         out.append(f"build {rec['build_id']} ({where}): {len(s['added'])} added, "
@@ -155,6 +178,13 @@ def status_text(catalog: Path, limit: int = 5) -> str:
                    f"{rec['seconds'].get('total', 0):.1f} s")
         if rec.get("error"):
             out.append(f"    ERROR: {rec['error']}")
+        if version is not None and rec["build_id"] not in committed and version in states:
+            try:  # a version the newest was not written on top of (rejected), if readable
+                for row in cat.table("builds", version).to_pylist():
+                    committed.setdefault(row["build_id"], row)
+            except gc.CatalogError:
+                pass
+        out += _audit_lines(committed.get(rec["build_id"]), version, states)
         for x in rec["sessions"]:
             line = f"    {x['session_id']:<32} {x['outcome']:<9}"
             if x["ran"]:
@@ -172,6 +202,22 @@ def status_text(catalog: Path, limit: int = 5) -> str:
                 line += f"\n{' ' * 46}{x['status']}; pictures and reasons: {page}"
             out.append(line)
     return "\n".join(out)
+
+
+def _audit_lines(row: dict | None, version: int | None, states: dict) -> list[str]:
+    """A build's audit (its builds row) for ``status``: passed, or each failed gate."""
+    if row is None or row.get("audit_passed") is None:
+        return []
+    audit = json.loads(row["audit_json"] or "{}")
+    against = (f" against published version {audit['compared_to']}"
+               if audit.get("compared_to") is not None else "")
+    if row["audit_passed"]:
+        return [f"    audit passed{against}"]
+    out = [f"    AUDIT FAILED{against}:"] + [f"      {r}" for r in row["audit_reasons"]]
+    if version is not None and str(states.get(version)) == "staged":
+        out.append(f"      staged: publish it with `graspcap catalog publish {version}` or "
+                   f"reject it with `graspcap catalog reject {version}`")
+    return out
 
 
 def _run_reasons(work, build_id: str) -> dict[str, dict[str, list[str]]]:
@@ -213,7 +259,7 @@ def _build_records(log: Path) -> tuple[list[dict], list[int]]:
 
 def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
           cron: str | None = None, interval_s: float | None = None,
-          name: str = "graspcap-build") -> int:
+          name: str = "graspcap-build", gates: Sequence[str] = ()) -> int:
     """``graspcap serve``: run the build on a schedule with Prefect's ``serve``; an invalid
     ``cron`` or ``interval_s`` is :data:`EXIT_USAGE`, one line, before anything starts.
 
@@ -233,7 +279,13 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
     work = Path(catalog).expanduser().resolve() / "work"
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "INFO")  # the runs' logs, in the UI
     env = configure(work, create=False)
+    from graspcap.catalog.audit import parse_gates
+
     problem = schedule_problem(cron, interval_s)
+    try:
+        audit = parse_gates(gates).model_dump()
+    except ValueError as exc:
+        problem = problem or str(exc)
     if problem is not None:  # before anything is made or started
         print(f"graspcap serve: {problem}", file=sys.stderr)
         return EXIT_USAGE
@@ -253,7 +305,7 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
         from graspcap.flows.build import build_flow
 
         params = {"roots": [str(Path(r).resolve()) for r in roots],
-                  "catalog": str(Path(catalog).resolve()), "preset": preset}
+                  "catalog": str(Path(catalog).resolve()), "preset": preset, "gates": audit}
         # one build of a catalog at a time: a scheduled run that comes due while the last
         # one is still going waits instead of redoing the same cold work beside it
         deployment = build_flow.to_deployment(

@@ -67,6 +67,11 @@ class BuildReport:
     report_page: str | None = None
     """The build's report page (``<catalog>/reports/<build_id>/index.html``); None when it
     could not be written (a warning says why) or the catalog has no version."""
+    publication: dict = field(default_factory=dict)
+    """Write-audit-publish: ``state`` of the new version (published or staged), its ``audit``
+    (``{"passed", "reasons", "compared_to", "measured", "gates"}``), the
+    ``published_version`` readers now get by default, and ``optimized`` (a compaction's
+    report) when the build compacted the tables."""
 
     def _ids(self, outcome: Outcome) -> list[str]:
         return [s.session_id for s in self.sessions if s.outcome == outcome]
@@ -96,11 +101,12 @@ class BuildReport:
         head = (f"build {self.build_id}: " + (
             f"catalog version {self.catalog_version}" if self.catalog_version is not None
             else f"nothing changed, no new catalog version (still {self.previous_version})"))
-        lines = [head, f"  {len(self.added)} added, {len(self.changed)} changed, "
-                       f"{len(self.unchanged)} unchanged, {len(self.failed)} failed; "
-                       f"{self.executed} stage run(s), "
-                       f"{sum(len(s.cached) for s in self.sessions)} cache hit(s); "
-                       f"{self._time()}"]
+        lines = [head,
+                 f"  {len(self.added)} added, {len(self.changed)} changed, "
+                 f"{len(self.unchanged)} unchanged, {len(self.failed)} failed; "
+                 f"{self.executed} stage run(s), "
+                 f"{sum(len(s.cached) for s in self.sessions)} cache hit(s); "
+                 f"{self._time()}", *self.publication_lines()]
         for s in self.sessions:
             if s.outcome == Outcome.FAILED:
                 kept = " (previous rows kept)" if s.kept_previous else ""
@@ -111,6 +117,33 @@ class BuildReport:
         if self.report_page:
             lines.append(f"  report: {self.report_page}")
         return "\n".join(lines)
+
+    def publication_lines(self) -> list[str]:
+        """The audit's outcome and where readers are, for the summary (empty without)."""
+        pub = self.publication
+        if not pub or self.catalog_version is None:
+            return []
+        audit = pub.get("audit")
+        readers = pub.get("published_version")
+        where = (f"readers read version {readers}" if readers is not None
+                 else "no version is published")
+        if audit is None:
+            verdict = "no audit"
+        elif audit["passed"]:
+            verdict = f"audit passed (compared with version {audit['compared_to']})" \
+                if audit["compared_to"] is not None else "audit passed"
+        else:
+            verdict = "AUDIT FAILED"
+        lines = [f"  {pub.get('state', '?')}: {verdict}; {where}"]
+        lines += [f"    audit: {r}" for r in (audit or {}).get("reasons", [])]
+        if pub.get("state") == "staged":
+            lines.append(f"    publish it anyway: graspcap catalog publish {self.catalog_version}"
+                         f"; drop it: graspcap catalog reject {self.catalog_version}")
+        opt = pub.get("optimized")
+        if opt:
+            lines.append(f"  compacted the tables: version {opt['version']}, "
+                         f"{opt['files_before']} -> {opt['files_after']} file(s)")
+        return lines
 
     def _time(self) -> str:
         """The build's time: its wall time (``seconds["wall"]``: from the start of the

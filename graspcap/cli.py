@@ -114,7 +114,9 @@ BUILD_EXIT_CODES = """exit status:
   2  usage error: bad arguments, or no session.json under the roots
   3  the build failed as a whole (catalog lock, disk, commit) and committed
      nothing; completed stage results stay in the work area and the next build
-     commits them without running those stages again"""
+     commits them without running those stages again
+  4  the new version is committed but staged: its audit failed (or --stage);
+     readers stay on the published version (graspcap catalog publish|reject)"""
 
 
 def _dask_arg(text: str) -> str:
@@ -149,7 +151,8 @@ def _cmd_build(args: argparse.Namespace) -> int:
 
     return run_build(args.roots, args.catalog, args.preset, dask=args.dask,
                      retry_failed=args.retry_failed, settings=args.settings,
-                     started=STARTED)
+                     started=STARTED, gates=args.gates, stage=args.stage,
+                     keep_runs=args.keep_runs)
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
@@ -201,7 +204,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     if missing_roots(args.roots, "serve"):
         return EXIT_USAGE
-    return serve(args.roots, args.catalog, args.preset, cron=args.cron, interval_s=args.interval)
+    return serve(args.roots, args.catalog, args.preset, cron=args.cron, interval_s=args.interval,
+                 gates=args.gates)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -261,6 +265,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write nothing: re-run N randomly chosen cached stages and compare "
                         "their results with the stored ones (finds a key that misses "
                         "something); exit 1 on a mismatch")
+    p.add_argument("--gate", dest="gates", action="append", default=[], metavar="NAME=VALUE",
+                   help="an audit gate (repeatable; off: NAME=off), e.g. max_lost_sessions=0, "
+                        "max_failed_share_rise=0.1, max_regressed_share=0.05 (docs/catalog.md, "
+                        "Write-audit-publish); the new version is published only when every "
+                        "gate passes, else staged")
+    p.add_argument("--stage", action="store_true",
+                   help="stage the new version even when its audit passes (publish it with "
+                        "`graspcap catalog publish VERSION`)")
+    p.add_argument("--keep-runs", type=int, default=None, metavar="N",
+                   help="keep the newest N finished flow runs in Prefect's database (default "
+                        "100; older ones are deleted after the build)")
     p.set_defaults(func=_cmd_build)
 
     p = sub.add_parser("status", help="recent builds, failures with reasons, stage runs")
@@ -271,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="write a version's report page (HTML: sessions, "
                                       "reasons, pictures, QA plots) and print its path")
     p.add_argument("version", nargs="?", default=None,
-                   help="version number or tag (default: the latest)")
+                   help="version number or tag (default: the newest published)")
     p.add_argument("--catalog", type=Path, default=DEFAULT_CATALOG, help="catalog folder")
     p.set_defaults(func=_cmd_report)
 
@@ -283,6 +298,8 @@ def build_parser() -> argparse.ArgumentParser:
     when = p.add_mutually_exclusive_group(required=True)
     when.add_argument("--cron", help='cron schedule, e.g. "0 2 * * *"')
     when.add_argument("--interval", type=float, help="run every this many seconds")
+    p.add_argument("--gate", dest="gates", action="append", default=[], metavar="NAME=VALUE",
+                   help="an audit gate of every scheduled build (as for build)")
     p.set_defaults(func=_cmd_serve)
 
     add_catalog_parser(sub, _vacuum_work)

@@ -49,6 +49,19 @@ class Status(StrEnum):
     FAILED = "failed"
 
 
+class VersionState(StrEnum):
+    """A catalog version's publication state (write-audit-publish, format 7)."""
+
+    PUBLISHED = "published"
+    """Readers' default: ``open()`` and ``GraspDataset`` read the newest published version."""
+    STAGED = "staged"
+    """Committed but not published (its audit failed, or auto-publish was off): readable by
+    number, never a reader's default."""
+    REJECTED = "rejected"
+    """Rejected by hand: readable by number; the next build writes on top of the newest
+    version that is not rejected."""
+
+
 def _f(name: str, type_: pa.DataType, doc: str, *, nullable: bool = False, unit: str = "",
        shape: str = "", required: str = "") -> pa.Field:
     meta = {"doc": doc}
@@ -209,6 +222,12 @@ BUILDS_SCHEMA = pa.schema([
     _f("sessions_unchanged", pa.list_(_STR), "Sessions the build found up to date."),
     _f("sessions_removed", pa.list_(_STR), "Sessions removed from the catalog."),
     _f("sessions_failed", pa.list_(_FAILED), "Failed sessions with their errors."),
+    _f("audit_passed", pa.bool_(), "Whether the version passed the write-audit-publish audit "
+       "(null: committed without an audit, or before format 7).", nullable=True),
+    _f("audit_reasons", pa.list_(_STR), "Why the audit failed, one gate a line (empty when it "
+       "passed).", nullable=True),
+    _f("audit_json", _STR, "The audit as canonical JSON: gates, measured values, the "
+       "published version it compared against.", nullable=True),
 ], metadata={"table": "builds", "key": "build_id"})
 
 VERSIONS_SCHEMA = pa.schema([
@@ -220,6 +239,9 @@ VERSIONS_SCHEMA = pa.schema([
     _f("rows_sessions", pa.int64(), "Rows of the sessions table at this version."),
     _f("rows_frames", pa.int64(), "Rows of the frames table at this version."),
     _f("rows_builds", pa.int64(), "Rows of the builds table at this version."),
+    _f("state", _STR, "State at commit: published (readers' default once committed) or staged "
+       "(its audit failed, or auto-publish is off); null before format 7 (published). Later "
+       "changes are rows of the publications table.", nullable=True),
 ], metadata={"table": "versions", "key": "version"})
 
 TAGS_SCHEMA = pa.schema([
@@ -228,12 +250,20 @@ TAGS_SCHEMA = pa.schema([
     _f("time_utc", _TIME, "When the tag was set."),
 ], metadata={"table": "tags", "key": "tag"})
 
+PUBLICATIONS_SCHEMA = pa.schema([
+    _f("version", pa.int64(), "Catalog version whose state changes."),
+    _f("state", _STR, "published or rejected (`graspcap catalog publish|reject`)."),
+    _f("time_utc", _TIME, "When the state changed; a version's latest row wins."),
+    _f("reason", _STR, "Why (given by hand), may be empty."),
+], metadata={"table": "publications", "key": "version"})
+
 TABLE_SCHEMAS: dict[str, pa.Schema] = {
     "sessions": SESSIONS_SCHEMA,
     "frames": FRAMES_SCHEMA,
     "builds": BUILDS_SCHEMA,
     "versions": VERSIONS_SCHEMA,
     "tags": TAGS_SCHEMA,
+    "publications": PUBLICATIONS_SCHEMA,
 }
 """Every Delta table of a catalog, by its folder name under ``tables/``."""
 

@@ -47,7 +47,8 @@ def test_versions_and_show(catalog, capsys):
     assert code == 0 and [r["version"] for r in rows] == [1, 2]
     assert [r["build_id"] for r in rows] == ["b1", "b2"] and rows[1]["rows_sessions"] == 4
     code, out, _ = run(capsys, "versions", "--catalog", root)
-    assert code == 0 and re.search(r"^\s+2\s.*b2\s+4\s+9", out, re.M), out
+    assert code == 0 and re.search(r"^\s+2\s.*b2\s+published\s+4\s+9.*<- readers' default$",
+                                   out, re.M), out
 
     code, out, _ = run(capsys, "show", "1", "--catalog", root, "--json")
     s = json.loads(out)
@@ -159,8 +160,9 @@ def test_vacuum(tmp_path, capsys):
     cat.commit(make_build(["p01-mug-use-00"], seed=1, build_id="b1"))
     cat.commit(make_build(["p01-mug-use-00"], seed=2, build_id="b2"))
     code, out, _ = run(capsys, "vacuum", "--keep", "1", "--catalog", str(cat.layout.root))
-    assert code == 0 and out.startswith("kept version(s) 2 (the newest 1 and every tagged "
-                                        "one); version(s) 1 can no longer be read"), out
+    assert code == 0 and out.startswith("kept version(s) 2 (the newest 1, every tagged one "
+                                        "and the published one); version(s) 1 can no longer "
+                                        "be read"), out
     with pytest.raises(gc.CatalogError, match="vacuum"):
         gc.open(cat.layout.root).table("frames", 1)
     code, _, err = run(capsys, "vacuum", "--keep", "0", "--catalog", str(cat.layout.root))

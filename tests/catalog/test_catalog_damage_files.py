@@ -318,8 +318,8 @@ def test_status_skips_a_torn_build_record_naming_the_line(tmp_path):
     (root / "work" / "builds.jsonl").write_bytes(
         json.dumps(record).encode() + b"\n[1]\n" + b'{"build_id": "b4", "summ')
     assert status_text(root).splitlines() == [
-        f"catalog {root}: latest version 3",
+        f"catalog {root}: latest version 3 (published); readers read it by default",
         f"note: {root / 'work' / 'builds.jsonl'}: line(s) [2, 3] are not build records (a "
         "build killed while writing one?); skipped",
-        "build b3 (version 3): 0 added, 0 changed, 0 unchanged, 0 failed; 0 stage run(s), 0 "
-        "cache hit(s), 2.0 s"]
+        "build b3 (version 3, published): 0 added, 0 changed, 0 unchanged, 0 failed; 0 stage "
+        "run(s), 0 cache hit(s), 2.0 s"]

@@ -48,8 +48,8 @@ REASONS = ("camera_reason", "hand_reason", "object_reason")
 def _migrated(col: str, fmt: int) -> list:
     """The golden's two frames' ``col`` (a format-6 column) after the migration: flags null,
     reasons "not recorded before format 6", the camera's only where camera_solved is not True
-    (the golden's is [True, False] from format 4 on); the golden's own values from format 6 on."""
-    if fmt >= 6:  # the golden has them: the migration leaves them
+    (the golden's is [True, False] from format 4 on); a format-6 golden keeps its own."""
+    if fmt >= 6:
         return list(build().frames[col])
     if col not in REASONS:
         return [None, None]
@@ -59,8 +59,8 @@ def _migrated(col: str, fmt: int) -> list:
 
 
 def _properties(root) -> dict[str, dict[str, str]]:
-    return {name: DeltaTable(str(root / "tables" / name)).metadata().configuration
-            for name in TABLE_SCHEMAS}
+    return {p.name: DeltaTable(str(p)).metadata().configuration
+            for p in sorted((root / "tables").iterdir())}  # a golden lacks newer tables
 
 
 def _listing(root) -> list:
@@ -176,9 +176,12 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
     assert (report.arrays_upgraded, report.damaged_arrays) == (upgraded, {})
     for name, cols in added.items():
         assert _delta_columns(src, name)[-len(cols):] == list(cols), name
-    for name in TABLE_SCHEMAS:
+    for name in TABLE_SCHEMAS:  # format 7's publications table is created
         assert sorted(_delta_columns(src, name)) == sorted(TABLE_SCHEMAS[name].names), name
     cat = gc.open(src)
+    assert cat.states() == {1: "published", 2: "published"}  # versions before format 7
+    assert cat.audit(1) is None and cat.audit(2) is None
+    added = {n: c for n, c in added.items() if n in ("sessions", "frames")}  # per session
     assert cat.versions()["build_id"].to_pylist() == ["golden-1", f"migrate-{fmt}-to-7"]
     for version in (1, "golden", 2):  # pinned before, and made by, the migration
         for name, cols in added.items():
@@ -248,7 +251,9 @@ def test_migrate_adds_the_newer_columns_and_old_versions_read_them_as_null(tmp_p
 def test_golden_script_still_writes_that_formats_columns(tmp_path, fmt):
     golden = unpack(archive(fmt), tmp_path / "golden")
     write_golden(tmp_path / "fresh", fmt)
-    for name in TABLE_SCHEMAS:
+    tables = sorted(p.name for p in (golden / "tables").iterdir())
+    assert sorted(p.name for p in (tmp_path / "fresh" / "tables").iterdir()) == tables
+    for name in tables:
         assert _delta_columns(tmp_path / "fresh", name) == _delta_columns(golden, name), name
     assert _properties(tmp_path / "fresh") == _properties(golden)
     for name, cols in added_after(fmt).items():

@@ -98,7 +98,8 @@ def test_vacuum_says_exactly_what_it_removed_and_versions_marks_what_no_longer_r
     # version 1's rows and arrays were replaced in version 2; version 2's files are all
     # version 3's too: it still reads
     assert re.fullmatch(
-        r"kept version\(s\) 3 \(the newest 1 and every tagged one\); version\(s\) 1 can no "
+        r"kept version\(s\) 3 \(the newest 1, every tagged one and the published one\); "
+        r"version\(s\) 1 can no "
         r"longer be read \(files they need were removed; they stay listed\); version\(s\) 2 "
         r"not kept but still readable \(they share every file with kept ones\); removed 2 "
         r"table file\(s\) \(sessions 1, frames 1\), 2 array group\(s\): \d+\.\d\d MB freed\n",

@@ -319,7 +319,7 @@ def test_migration_adds_manifests_and_names_a_damaged_old_group(tmp_path, capsys
 
     assert main(["catalog", "migrate", str(copy)]) == 0
     out = capsys.readouterr().out
-    assert f"migrated {copy} from format 4 to 6; new version 2 pins the upgraded tables" in out
+    assert f"migrated {copy} from format 4 to 7; new version 2 pins the upgraded tables" in out
     assert (f"  array group {contact} left as it was: its content does not match its digest (an "
             "altered or missing chunk) (`graspcap catalog verify` names the sessions using it)"
             ) in out

@@ -15,7 +15,8 @@
   all-fill chunks, which this script now writes: only the columns are compared),
   ``catalog_v5.tar.gz`` by this script when format 6 came (before the per-frame validity
   columns), ``catalog_v6.tar.gz`` by this script when format 7 came (before
-  ``sessions.hand_shape``);
+  ``sessions.hand_shape``, the audit columns of ``builds``, ``versions.state`` and the
+  ``publications`` table);
   ``test_golden_script_still_writes_...`` checks that this script still writes the same
   columns. Unpacked one is ~86 KB in 33 files
   (Delta logs, and Parquet footers repeating the schema's docs), packed ~15-20 KB. Tests unpack
@@ -58,10 +59,13 @@ COLUMNS_ADDED: dict[int, dict[str, tuple[str, ...]]] = {
     4: {"frames": ("camera_solved",), "sessions": ("qa_flags", "qa_notes")},
     6: {"frames": ("camera_reason", "hand_used", "hand_reason", "object_supported",
                    "object_reason", "object_depth_agreement")},
-    7: {"sessions": ("hand_shape",)},
+    7: {"sessions": ("hand_shape",),
+        "builds": ("audit_passed", "audit_reasons", "audit_json"), "versions": ("state",)},
 }
 """``{format: {table: columns that format added}}`` (docs/data_changelog.md): a catalog of an
 older format lacks them."""
+TABLES_ADDED: dict[int, tuple[str, ...]] = {7: ("publications",)}
+"""``{format: tables that format added}``: a catalog of an older format has none of them."""
 FORMAT_2_COLUMNS = COLUMNS_ADDED[2]
 GOLDEN_FORMATS = (1, 2, 3, 4, 5, 6)
 """Older formats with a golden catalog (every one ``graspcap catalog migrate`` leads from)."""
@@ -145,6 +149,9 @@ def schemas_of(fmt: int) -> Iterator[None]:
     code reads it at call time), so today's create and commit code writes format ``fmt``'s
     columns."""
     saved = dict(TABLE_SCHEMAS)
+    for k, names in TABLES_ADDED.items():
+        for name in names if k > fmt else ():
+            del TABLE_SCHEMAS[name]
     for name, cols in added_after(fmt).items():
         schema = TABLE_SCHEMAS[name]
         TABLE_SCHEMAS[name] = pa.schema([f for f in schema if f.name not in cols],
