@@ -412,16 +412,24 @@ def settings_overrides(settings: list[str] | tuple[str, ...],
     return apply_settings(settings, configs_for(preset))
 
 
+OPTIONAL_UPSTREAM = frozenset({"joint_solve"})
+"""Upstream stages a bare :func:`run_stage` may lack (given None): a partial run without
+``joint_solve`` runs the staged hand path, as ``joint_solve.mode = off`` does. A build runs
+every stage, so their results are always in the keys."""
+
+
 def run_stage(
     stage: Stage, session_dir: Path | str, config: StageConfig, upstream: Mapping[str, Any]
 ) -> Any:
     """Run one stage given its upstream results (``load_session`` gets the directory); the
     session a stage gets reads only the manifest fields and file roles it declares
-    (``Stage.fields``, ``Stage.reads``)."""
+    (``Stage.fields``, ``Stage.reads``); an absent result of :data:`OPTIONAL_UPSTREAM` is
+    None."""
     if stage.name == SESSION_STAGE:
         return stage.run(session_dir, config)
     session = restricted(upstream[SESSION_STAGE], stage.fields, stage.name, stage.reads)
-    up = {k: session if k == SESSION_STAGE else upstream[k] for k in stage.upstream}
+    up = {k: session if k == SESSION_STAGE else
+          upstream.get(k) if k in OPTIONAL_UPSTREAM else upstream[k] for k in stage.upstream}
     return stage.run(session, config, **up)
 
 

@@ -157,11 +157,6 @@ PRESETS: dict[str, JointSolveConfig] = {
     "default": JointSolveConfig(),
     "joint": JointSolveConfig(mode=HandPath.ALWAYS),
     "joint_fallback": JointSolveConfig(mode=HandPath.FALLBACK),
-    "openpose": JointSolveConfig(staged=reconstruct_stage.PRESETS["openpose"], sigma_px=6.0),
-    "strict": JointSolveConfig(staged=reconstruct_stage.PRESETS["strict"]),
-    "paper": JointSolveConfig(staged=reconstruct_stage.PRESETS["paper"],
-                              fit=fit_hand_stage.PRESETS["paper"]),
-    "noisy": JointSolveConfig(fit=fit_hand_stage.PRESETS["noisy"]),
 }
 
 
