@@ -100,6 +100,8 @@ class JointSolveConfig(StageConfig):
     anatomical prior of ``tasks/hand/shape.py`` replaces it)."""
     scale_sigma: float = 0.5
     """Sigma of the log scale around its start (the range factors fix it)."""
+    start_references: int = 6
+    """Reference frames tried by the depth start (when the staged path fails)."""
     frame_reject_factor: float = 3.0
     """A frame whose median residual exceeds this many times the median of the frames'
     medians is dropped as a whole (no pose of the hand explains its detections)..."""
@@ -260,20 +262,42 @@ def _staged_start(rec: HandReconstruction, fit: HandFit) -> _Start:
 
 
 def _depth_start(uv, ok, K, readings, steady_from, side, cfg) -> _Start | str:
-    """The start from the depth, or why there is none."""
-    init = depth_initialisation(uv, ok, K, readings, np.asarray(SURFACE_OFFSET_M),
-                                steady_from, ransac_px=cfg.ransac_px,
-                                min_points=cfg.min_points_per_frame)
-    if init is None:
-        return "the depth initialisation posed fewer than two frames"
-    known = np.all(np.isfinite(init.points_w), axis=1)
-    try:
-        fit = fit_hand_stage.fit_hand(np.where(known[:, None], init.points_w, 0.0), side,
-                                      cfg.fit, weights=known.astype(float))
-    except StageError as exc:
-        return f"the hand fitted to the depth initialisation's joints: {exc.reason}"
-    T_c_p = np.einsum("mab,bc->mac", init.T_c_w, fit.T_w_p)
-    return _Start(T_c_p, fit.angles_rad, fit.scale, "depth")
+    """The start from the depth, or why there is none: ``hand_sfm.depth_init`` from each of
+    up to ``start_references`` reference frames (spread over those with the most readings),
+    the hand fitted to its joints; the start that the most frames agree with (the frame
+    tests: depth agreement and the smooth turn) wins. A reference on another hand, or
+    before the hand settled, poses few frames that agree."""
+    offset = np.asarray(SURFACE_OFFSET_M)
+    n = np.isfinite(readings).sum(1)
+    rich = np.flatnonzero(n >= cfg.min_points_per_frame)
+    if not len(rich):
+        return "no frame has depth readings at enough detected joints"
+    picks = rich[np.unique(np.linspace(0, len(rich) - 1, cfg.start_references).round()
+                           .astype(int))]
+    best: tuple[int, _Start] | None = None
+    why = "the depth initialisation posed fewer than two frames"
+    for ref in picks:
+        init = depth_initialisation(uv, ok, K, readings, offset, steady_from,
+                                    ransac_px=cfg.ransac_px, min_points=cfg.min_points_per_frame,
+                                    reference=int(ref))
+        if init is None:
+            continue
+        known = np.all(np.isfinite(init.points_w), axis=1)
+        try:
+            fit = fit_hand_stage.fit_hand(np.where(known[:, None], init.points_w, 0.0), side,
+                                          cfg.fit, weights=known.astype(float))
+        except StageError as exc:
+            why = f"the hand fitted to the depth initialisation's joints: {exc.reason}"
+            continue
+        T_c_p = np.einsum("mab,bc->mac", init.T_c_w, fit.T_w_p)
+        posed = np.all(np.isfinite(T_c_p.reshape(len(T_c_p), -1)), axis=1)
+        J = fit.joints_fit_w @ fit.T_w_p[:3, :3] - fit.T_w_p[:3, 3] @ fit.T_w_p[:3, :3]
+        agree = posed & ~_depth_disagrees(T_c_p, J, fit.scale * offset, readings, cfg)
+        agree &= ~_off_smooth_path(T_c_p, agree, cfg)
+        score = int(agree.sum())
+        if best is None or score > best[0]:
+            best = (score, _Start(T_c_p, fit.angles_rad, fit.scale, "depth"))
+    return why if best is None else best[1]
 
 
 def _readings(depth_at: DepthLookup, uv, ok, conf, steady_from, min_conf) -> np.ndarray:
