@@ -102,6 +102,10 @@ class JointSolveConfig(StageConfig):
     """Sigma of the log scale around its start (the range factors fix it)."""
     start_references: int = 6
     """Reference frames tried by the depth start (when the staged path fails)."""
+    start_min_share: float = 0.3
+    """Frames the start's own tests reject are left out of the first solve only when at
+    least this share of the posed frames pass them (else the start is too poor to judge by,
+    and the robust first solve sees every posed frame)."""
     frame_reject_factor: float = 3.0
     """A frame whose median residual exceeds this many times the median of the frames'
     medians is dropped as a whole (no pose of the hand explains its detections)..."""
@@ -413,7 +417,8 @@ def solve_from_start(
     offset = np.asarray(SURFACE_OFFSET_M)
     rejected = active & (_depth_disagrees(T_c_p, J, start.scale * offset, readings, cfg)
                          | _off_smooth_path(T_c_p, active, cfg))
-    active &= ~rejected
+    if (active & ~rejected).sum() >= max(cfg.min_frames, cfg.start_min_share * active.sum()):
+        active &= ~rejected  # else the start is too poor to judge frames by: solve them all
     sigma = cfg.sigma_px / np.maximum(conf, cfg.min_sigma_confidence)
     priors = HandPriors(cfg.limit_sigma_rad, cfg.rest_sigma_rad, cfg.bone_sigma,
                         cfg.scale_sigma)
