@@ -26,7 +26,7 @@ GTSAM's Python wheel has no TBB, so the solve is single-threaded and determinist
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import gtsam
@@ -209,6 +209,34 @@ def motion_factor(a: int, b: int, c: int, noise: gtsam.noiseModel.Base,
     return gtsam.CustomFactor(noise, [camera_key(a), camera_key(b), camera_key(c)], error)
 
 
+def link_factor(a: int, b: int, T_a_b: np.ndarray, noise: gtsam.noiseModel.Base,
+                step: float = 1e-6) -> gtsam.CustomFactor:
+    """A dense depth link (``hand_sfm.depth_links``): camera b in camera a measured as
+    ``T_a_b``; residual (6,) ``Log(T_a_b^-1 T_ca_p T_cb_p^-1)``, the error of GTSAM's
+    ``BetweenFactorPose3`` on camera poses, so the link's information applies as it is.
+    Jacobians by central differences along each camera's retraction."""
+    meas_inv = gtsam.Pose3(np.asarray(T_a_b, float)).inverse()
+
+    def residual(Ta: gtsam.Pose3, Tb: gtsam.Pose3) -> np.ndarray:
+        return gtsam.Pose3.Logmap(meas_inv.compose(Ta.compose(Tb.inverse())))
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        poses = [values.atPose3(k) for k in this.keys()]
+        if H is not None:
+            for n in range(2):
+                cols = []
+                for d in range(6):
+                    e = np.zeros(6)
+                    e[d] = step
+                    plus, minus = list(poses), list(poses)
+                    plus[n], minus[n] = poses[n].retract(e), poses[n].retract(-e)
+                    cols.append((residual(*plus) - residual(*minus)) / (2 * step))
+                H[n] = np.stack(cols, axis=1)
+        return residual(*poses)
+
+    return gtsam.CustomFactor(noise, [camera_key(a), camera_key(b)], error)
+
+
 @dataclass(frozen=True)
 class HandPriors:
     """Sigmas of the priors on the hand parameters."""
@@ -251,6 +279,8 @@ def solve_graph(
     depth_m: np.ndarray | None = None,
     depth_sigma_m: float = 0.003,
     motion_sigmas: tuple[float, float] | None = None,
+    links: Sequence = (),
+    link_huber_k: float = 3.0,
     max_iterations: int = 100,
     relative_tol: float = 1e-6,
 ) -> GraphSolve:
@@ -260,7 +290,8 @@ def solve_graph(
     T_c_p : (m, 4, 4) start cameras (frames with a use need a finite one); depth_m : (m, 21)
     readings that get a range factor (NaN: none); robust : the reprojections' m-estimator
     (None: plain least squares); motion_sigmas : (rad, m) per frame squared of the constant
-    velocity priors between consecutive solved frames (None: none).
+    velocity priors between consecutive solved frames (None: none); links : dense depth links
+    (``hand_sfm.depth_links.DepthLink``, frames of ``uv``) under a Huber loss.
     """
     m = len(uv)
     frames = np.flatnonzero(use.any(1))
@@ -283,6 +314,13 @@ def solve_graph(
         for i, j in zip(*np.nonzero(np.isfinite(depth_m) & use), strict=True):
             graph.add(range_factor(kin, int(i), int(j), float(depth_m[i, j]),
                                    float(SURFACE_OFFSET_M[j]), range_noise))
+    huber_link = gtsam.noiseModel.mEstimator.Huber.Create(link_huber_k)
+    framed = set(frames.tolist())
+    for link in links:
+        if link.a in framed and link.b in framed:
+            graph.add(link_factor(int(link.a), int(link.b), link.T_a_b, gtsam.noiseModel.Robust
+                                  .Create(huber_link,
+                                          gtsam.noiseModel.Gaussian.Information(link.information))))
     if motion_sigmas is not None and len(frames) >= 3:
         sig = np.repeat(np.asarray(motion_sigmas, float), 3)
         motion_noise = gtsam.noiseModel.Robust.Create(
@@ -322,6 +360,6 @@ def project_hand(K: np.ndarray, T_c_p: np.ndarray, J: np.ndarray) -> np.ndarray:
 
 __all__ = [
     "A_KEY", "B_KEY", "CHAIN", "N_HAND", "S_KEY", "GraphSolve", "HandKinematics", "HandPriors",
-    "camera_key", "limit_factor", "motion_factor", "project_hand", "range_factor",
+    "camera_key", "limit_factor", "link_factor", "motion_factor", "project_hand", "range_factor",
     "reprojection_factor", "solve_graph",
 ]  # fmt: skip

@@ -21,8 +21,10 @@ types as from the staged path.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -35,6 +37,7 @@ from graspcap.tasks.hand.fit_hand import FitHandConfig, HandFit
 from graspcap.tasks.hand.model import RIGID_PALM_POINTS, SURFACE_OFFSET_M, HandSide
 from graspcap.tasks.hand_sfm import reconstruct_hand as reconstruct_stage
 from graspcap.tasks.hand_sfm.depth_init import depth_initialisation
+from graspcap.tasks.hand_sfm.depth_links import DepthLinkConfig, depth_links
 from graspcap.tasks.hand_sfm.hand_graph import (
     GraphSolve,
     HandKinematics,
@@ -46,7 +49,7 @@ from graspcap.tasks.hand_sfm.metric_scale import DepthLookup, depth_lookup_from_
 from graspcap.tasks.hand_sfm.reconstruct_hand import ReconstructConfig
 from graspcap.tasks.hand_sfm.result import HandReconstruction, SfmDiagnostics
 from graspcap.tasks.hand_sfm.solve import fill_poses, rotation_span_deg
-from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame
+from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame, hand_centre, surface_cloud
 from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 
 STAGE = "joint_solve"
@@ -111,11 +114,14 @@ class JointSolveConfig(StageConfig):
     medians is dropped as a whole (no pose of the hand explains its detections)..."""
     frame_reject_min_px: float = 12.0
     """...and exceeds this many pixels."""
-    motion_sigma_rad: float = 0.03
+    depth_links: DepthLinkConfig = DepthLinkConfig()
+    """Dense depth links between the kept frames (as in ``reconstruct_hand``: keypoints alone
+    leave each camera's tilt a degree loose, the registered surface pins it); measured from
+    the last solve's cameras each round. Needs whole depth frames and the turntable pose."""
+    motion_sigma_rad: float = 0.0
     """Constant-velocity prior of the virtual cameras: sigma of the change of the per-frame
     rotation (radians) between consecutive kept frames (Cauchy loss; 0 = no motion prior).
-    A real detector's errors (5-10 % of the hand) leave one frame's camera several degrees
-    off; the hand turns smoothly."""
+    Off: at 0.03 it turned a realistic session's cameras 1.2 -> 1.9 deg off (seed 9400 #4)."""
     motion_sigma_m: float = 0.015
     """...and of the per-frame translation (metres)."""
     frame_depth_gate_m: float = 0.02
@@ -238,16 +244,31 @@ def joint_solve(
         except StageError as exc:
             return str(exc)
 
+    surface_at = None
+    link_cfg = cfg.depth_links
+    if link_cfg.enabled and depth_frame is not None and T_color_turntable is not None:
+
+        def surface_at(i: int, uv_i: np.ndarray, depth_i: np.ndarray):
+            centre = hand_centre(K, uv_i, depth_i, link_cfg.centre_below_skin_m)
+            if centre is None:
+                return None
+            return surface_cloud(
+                depth_frame(steady_from + i), K, centre, radius_m=link_cfg.radius_m,
+                stride_px=link_cfg.stride_px, T_color_turntable=T_color_turntable,
+                min_height_m=link_cfg.min_height_m,
+            )  # fmt: skip
+
     found = staged(cfg.staged)
     if isinstance(found, str):  # the joint solve starts from the depth
         return solve_from_start(keypoints, K, steady_from, depth_at, side, cfg,
-                                staged_error=found)
+                                staged_error=found, surface_at=surface_at)
     rec, fit = found
     if cfg.mode is HandPath.FALLBACK:
         m = len(rec.frames)
         return JointSolve(rec, fit, "staged", "", "", np.ones(20), np.zeros(m, bool),
                           np.full(m, np.nan), 0, 0)
-    return solve_from_start(keypoints, K, steady_from, depth_at, side, cfg, rec, fit)
+    return solve_from_start(keypoints, K, steady_from, depth_at, side, cfg, rec, fit,
+                            surface_at=surface_at)
 
 
 @dataclass(frozen=True)
@@ -378,9 +399,12 @@ def solve_from_start(
     rec: HandReconstruction | None = None,
     fit: HandFit | None = None,
     staged_error: str = "",
+    surface_at: Callable[[int, np.ndarray, np.ndarray], Any] | None = None,
 ) -> JointSolve:
     """The joint solve from the staged solution (``rec``, ``fit``) or, without it, from the
-    depth; whole-frame rejection rounds; the result in the staged path's types."""
+    depth; whole-frame rejection rounds; the result in the staged path's types.
+    ``surface_at(i, uv, depth) -> SurfaceCloud | None`` gives solve frame i's surface for the
+    dense depth links (None: no links)."""
     kp = np.asarray(keypoints, dtype=float)[steady_from:]
     m = len(kp)
     uv, conf = kp[..., :2], kp[..., 2]
@@ -424,6 +448,13 @@ def solve_from_start(
                         cfg.scale_sigma)
     gate = cfg.depth_gate_m
     frame_median = np.full(m, np.nan)
+    surfaces: list = [None] * m
+    if surface_at is not None:
+        confident = ok & (conf >= cfg.depth_min_confidence)
+        for i in np.flatnonzero(usable & confident.any(1)):
+            c = confident[i] & np.isfinite(readings[i])
+            if c.sum():
+                surfaces[i] = surface_at(int(i), uv[i, c], readings[i, c])
     sol: GraphSolve | None = None
     range_used = np.zeros((m, 21), bool)
     rounds = 0
@@ -441,6 +472,8 @@ def solve_from_start(
             max_iterations=cfg.max_iterations, relative_tol=cfg.relative_tol,
             motion_sigmas=((cfg.motion_sigma_rad, cfg.motion_sigma_m)
                            if cfg.motion_sigma_rad > 0 else None),
+            links=depth_links(surfaces, np.where(active[:, None, None], T_c_p, np.nan), K,
+                              cfg.depth_links) if surface_at is not None else (),
         )  # fmt: skip
         T_c_p = np.where(active[:, None, None], sol.T_c_p, T_c_p)
         angles, log_bone, log_scale = sol.angles, sol.log_bone, sol.log_scale
