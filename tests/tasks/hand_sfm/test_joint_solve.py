@@ -70,7 +70,9 @@ def _scene(side=HandSide.RIGHT, seed=0):
 @pytest.mark.parametrize("side", [HandSide.RIGHT, HandSide.LEFT])
 def test_recovers_cameras_angles_and_shape_and_drops_the_wrong_frames(side):
     s = _scene(side)
-    out = solve_from_start(s["keypoints"], K, 0, s["depth_at"], side, JointSolveConfig())
+    # no depth surfaces here (no links): the constant-velocity prior steadies the tilts
+    out = solve_from_start(s["keypoints"], K, 0, s["depth_at"], side,
+                           JointSolveConfig(motion_sigma_rad=0.03))
     assert out.path == "joint" and out.start == "depth"
     rec, fit = out.reconstruction, out.fit
     # the whole-frame failures dropped as whole frames, nothing else
