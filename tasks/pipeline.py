@@ -27,7 +27,7 @@ from graspcap.tasks.core.presets import PIPELINE_PRESETS, UnknownPreset, apply_s
 from graspcap.tasks.hand import fit_hand, refine_grasp
 from graspcap.tasks.hand.final import FinalHand, final_hand, final_pose
 from graspcap.tasks.hand.model import SURFACE_OFFSET_M, HandSide
-from graspcap.tasks.hand_sfm import crosscheck_sfm, reconstruct_hand, select_steady
+from graspcap.tasks.hand_sfm import crosscheck_sfm, joint_solve, reconstruct_hand, select_steady
 from graspcap.tasks.hand_sfm.metric_scale import depth_lookup
 from graspcap.tasks.keypoints import detect_keypoints
 from graspcap.tasks.keypoints.detect_keypoints import why_missing
@@ -124,7 +124,24 @@ def _select_steady(session: Session, config, **up):
     )
 
 
+def _joint_solve(session: Session, config, **up):
+    """The hand model inside the SfM (``hand_sfm.joint_solve``); None with ``mode = off``, and
+    then ``reconstruct_hand`` and ``fit_hand`` run the staged path."""
+    if config.mode is joint_solve.HandPath.OFF:
+        return None
+    keypoints, read = up["detect_keypoints"], session.grasp_depth_reader()
+    return joint_solve.joint_solve(
+        _ideal_keypoints(session, keypoints.keypoints), session.color_K,
+        up["select_steady"].steady_from, depth_lookup(read), HandSide(session.manifest.hand),
+        config, depth_frame=read, T_color_turntable=session.T_color_turntable,
+        why_missing=why_missing(keypoints),
+    )
+
+
 def _reconstruct_hand(session: Session, config, **up):
+    """The staged SfM, or the joint solve's cameras and joints when it ran."""
+    if up["joint_solve"] is not None:
+        return up["joint_solve"].reconstruction
     keypoints, read = up["detect_keypoints"], session.grasp_depth_reader()
     return reconstruct_hand.reconstruct_hand(
         _ideal_keypoints(session, keypoints.keypoints), session.color_K,
@@ -142,6 +159,9 @@ def _crosscheck_sfm(session: Session, config, **up):
 
 
 def _fit_hand(session: Session, config, **up):
+    """The staged hand fit, or the joint solve's hand when it ran."""
+    if up["joint_solve"] is not None:
+        return up["joint_solve"].fit
     return fit_hand.fit_hand(up["reconstruct_hand"].joints_w, HandSide(session.manifest.hand),
                              config)
 
@@ -274,14 +294,20 @@ STAGES: dict[str, Stage] = {
         Stage("select_steady", select_steady.STAGE_VERSION, select_steady.PRESETS,
               ("load_session", "detect_keypoints"), (), _select_steady,
               fields=(_CAM, "grasp.steady_from")),
-        Stage("reconstruct_hand", reconstruct_hand.STAGE_VERSION, reconstruct_hand.PRESETS,
+        Stage("joint_solve", joint_solve.STAGE_VERSION, joint_solve.PRESETS,
               ("load_session", "detect_keypoints", "select_steady"), ("grasp_depth",),
+              _joint_solve, fields=(_CAM, "grasp.count", "grasp.depth", _DEPTH_SCALE, _T_TT,
+                                    "hand")),
+        Stage("reconstruct_hand", reconstruct_hand.STAGE_VERSION, reconstruct_hand.PRESETS,
+              ("load_session", "detect_keypoints", "select_steady", "joint_solve"),
+              ("grasp_depth",),
               _reconstruct_hand, fields=(_CAM, "grasp.count", "grasp.depth", _DEPTH_SCALE, _T_TT)),
         Stage("crosscheck_sfm", crosscheck_sfm.STAGE_VERSION, crosscheck_sfm.PRESETS,
               ("load_session", "detect_keypoints", "reconstruct_hand"), (), _crosscheck_sfm,
               fields=(_CAM,)),
         Stage("fit_hand", fit_hand.STAGE_VERSION, fit_hand.PRESETS,
-              ("load_session", "reconstruct_hand"), (), _fit_hand, fields=("hand",)),
+              ("load_session", "reconstruct_hand", "joint_solve"), (), _fit_hand,
+              fields=("hand",)),
         Stage("estimate_adjustment", estimate_adjustment.STAGE_VERSION,
               estimate_adjustment.PRESETS,
               ("load_session", "register_object", "detect_keypoints", "select_steady",
@@ -387,16 +413,24 @@ def settings_overrides(settings: list[str] | tuple[str, ...],
     return apply_settings(settings, configs_for(preset))
 
 
+OPTIONAL_UPSTREAM = frozenset({"joint_solve"})
+"""Upstream stages a bare :func:`run_stage` may lack (given None): a partial run without
+``joint_solve`` runs the staged hand path, as ``joint_solve.mode = off`` does. A build runs
+every stage, so their results are always in the keys."""
+
+
 def run_stage(
     stage: Stage, session_dir: Path | str, config: StageConfig, upstream: Mapping[str, Any]
 ) -> Any:
     """Run one stage given its upstream results (``load_session`` gets the directory); the
     session a stage gets reads only the manifest fields and file roles it declares
-    (``Stage.fields``, ``Stage.reads``)."""
+    (``Stage.fields``, ``Stage.reads``); an absent result of :data:`OPTIONAL_UPSTREAM` is
+    None."""
     if stage.name == SESSION_STAGE:
         return stage.run(session_dir, config)
     session = restricted(upstream[SESSION_STAGE], stage.fields, stage.name, stage.reads)
-    up = {k: session if k == SESSION_STAGE else upstream[k] for k in stage.upstream}
+    up = {k: session if k == SESSION_STAGE else
+          upstream.get(k) if k in OPTIONAL_UPSTREAM else upstream[k] for k in stage.upstream}
     return stage.run(session, config, **up)
 
 

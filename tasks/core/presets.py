@@ -34,6 +34,8 @@ PIPELINE_PRESETS: dict[str, str] = {
     "thorough": "more registration restarts for register_object",
     "always_global": "estimate_adjustment always runs the global registration",
     "large": "bigger QA pictures, more views",
+    "joint": "the hand model inside the SfM (joint_solve) for cameras, joints and hand fit",
+    "joint_fallback": "the staged hand SfM and fit, the joint solve where they fail",
 }
 
 

@@ -118,6 +118,7 @@ def depth_initialisation(
     min_points: int,
     inlier_m: float = 0.012,
     seed: int = 0,
+    reference: int | None = None,
 ) -> Initialisation | None:
     """Poses from rigid fits of the depth-backprojected joints, joints triangulated from the
     pixels, frames re-posed by PnP; metric, in the frame of the reference camera.
@@ -125,7 +126,8 @@ def depth_initialisation(
     uv : (m, 21, 2) pixels; ok : (m, 21) usable observations (row i is video frame
     ``first_frame + i``); offset_m : (21,) joint centre below the skin; depth_at : a lookup
     or the readings (m, 21) at the keypoints.
-    The reference is the frame with the most depth readings; a frame is posed when at
+    The reference is the frame with the most depth readings (or ``reference``, a row of
+    ``uv``); a frame is posed when at
     least ``min_points`` of its readings agree with the reference within ``inlier_m``.
     Returns None when fewer than two frames can be posed or no joint can be triangulated.
     The ``pair`` of the result is the reference and the frame turned furthest from it.
@@ -134,7 +136,7 @@ def depth_initialisation(
     P = backprojected_joints(uv, ok, K, depth_at, np.asarray(offset_m, float), first_frame)
     valid = np.all(np.isfinite(P), axis=2)
     m = len(uv)
-    a = int(np.argmax(valid.sum(1)))
+    a = int(np.argmax(valid.sum(1))) if reference is None else int(reference)
     if valid[a].sum() < min_points:
         return None
     T_c_w = np.full((m, 4, 4), np.nan)

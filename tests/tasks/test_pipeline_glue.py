@@ -38,4 +38,4 @@ def test_glue_reads_only_declared_upstream_results():
         assert reads[name] <= set(stage.upstream) - {"load_session"}, name
     # the helper is followed: qa_metrics' final hand needs fit_hand and the adjustment
     assert {"fit_hand", "refine_grasp", "estimate_adjustment"} <= reads["qa_metrics"]
-    assert reads["reconstruct_hand"] == {"detect_keypoints", "select_steady"}
+    assert reads["reconstruct_hand"] == {"detect_keypoints", "select_steady", "joint_solve"}

@@ -1,0 +1,127 @@
+"""The staged hand SfM + fit against the joint solve (``joint_solve``), side by side.
+
+    OMP_NUM_THREADS=1 .venv/bin/python bench/hand_solver.py --profile real-detector \
+        --seed 9700 --sessions 6 --frames 40 60
+
+Session i is generated with seed ``[seed, i]``; the stages up to ``select_steady`` run once,
+then each path: ``staged`` (``reconstruct_hand`` then ``fit_hand``, the default pipeline) and
+``joint`` (``joint_solve`` with ``mode = always``: from the staged solution where it exists,
+else from the depth). Scored against the truth by ``graspcap.synth.evaluate``: built or why
+not, cameras (median deg / mm), SfM joints and fitted joints (mm), wall time of the path.
+Prints one row per session and path, then the medians per path.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from graspcap.synth import config_for, generate_session
+from graspcap.synth.evaluate import evaluate
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.hand_sfm.joint_solve import HandPath
+from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
+
+UPSTREAM = ("load_session", "detect_keypoints", "select_steady")
+KEYS = ("camera_rot_deg", "camera_trans_mm", "joints_mpjpe_mm", "fit_joints_mm")
+
+
+def _path(results: dict, configs: dict, d: Path, joint: bool) -> dict:
+    """Run one path's stages on the shared upstream results; metrics or the failure."""
+    res = dict(results)
+    cfg = configs["joint_solve"].model_copy(
+        update={"mode": HandPath.ALWAYS if joint else HandPath.OFF})
+    t0 = time.perf_counter()
+    try:
+        res["joint_solve"] = run_stage(STAGES["joint_solve"], d, cfg, res)
+        for name in ("reconstruct_hand", "fit_hand"):
+            res[name] = run_stage(STAGES[name], d, configs[name], res)
+    except StageError as exc:
+        return {"failed": f"{exc.stage}: {exc.reason[:110]}", "time_s": time.perf_counter() - t0}
+    wall = time.perf_counter() - t0
+    rec = res["reconstruct_hand"]
+    est = {"steady_from": res["select_steady"].steady_from, "joints_w": rec.joints_w,
+           "T_w_c": rec.T_w_c, "camera_solved": rec.pose_valid,
+           "joints_fit_w": res["fit_hand"].joints_fit_w}
+    out = {"failed": None, "time_s": wall, **{k: evaluate(d, est).get(k) for k in KEYS}}
+    js = res["joint_solve"]
+    if js is not None:
+        out |= {"start": js.start, "dropped": int(js.frame_rejected.sum()),
+                "frames": len(js.frame_rejected)}
+    return out
+
+
+def run(profile: str, seed: int, sessions: int, frames: list[int], root: Path,
+        true_onset: bool = False) -> list[dict]:
+    configs = configs_for()
+    rows = []
+    for i in range(sessions):
+        try:
+            d = generate_session(root / profile, [seed, i],
+                                 config_for(profile, frames[i % len(frames)]), None)
+        except StageError:
+            continue
+        results: dict = {}
+        try:
+            for name in UPSTREAM:
+                results[name] = run_stage(STAGES[name], d, configs[name], results)
+        except StageError as exc:
+            rows.append({"session": f"{seed},{i}", "upstream_failed": str(exc)})
+            continue
+        truth = json.loads((d / "ground_truth" / "truth.json").read_text())
+        if true_onset:  # the hand solvers alone, on the true steady frames
+            results["select_steady"] = dataclasses.replace(
+                results["select_steady"], steady_from=int(truth["steady_from"]))
+        detector = (truth.get("randomisation") or {}).get("detector") or {}
+        events = detector.get("events")
+        row = {"session": f"{seed},{i}", "onset_error": results["select_steady"].steady_from
+               - int(truth["steady_from"]),
+               "bad_frames": None if events is None else sum(e not in ("ok", "missing")
+                                                             for e in events)}
+        for name, joint in (("staged", False), ("joint", True)):
+            row[name] = _path(results, configs, d, joint)
+            print(profile, row["session"], row["onset_error"], row["bad_frames"], name,
+                  row[name], flush=True)
+        rows.append(row)
+    return rows
+
+
+def summary(rows: list[dict]) -> None:
+    for name in ("staged", "joint"):
+        done = [r[name] for r in rows if name in r]
+        built = [r for r in done if not r["failed"]]
+        med = {k: np.median([r[k] for r in built if r.get(k) is not None]) if built else np.nan
+               for k in (*KEYS, "time_s")}
+        print(f"{name}: built {len(built)}/{len(done)}  " + "  ".join(
+            f"{k} {v:.2f}" for k, v in med.items()))
+        for r in done:
+            if r["failed"]:
+                print(f"   failed: {r['failed']}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--profile", default="real-detector")
+    parser.add_argument("--seed", type=int, default=9700)
+    parser.add_argument("--sessions", type=int, default=6)
+    parser.add_argument("--frames", type=int, nargs="+", default=[40, 60])
+    parser.add_argument("--true-onset", action="store_true",
+                        help="give both paths the true steady frame (the solvers alone)")
+    parser.add_argument("--json", type=Path, help="write the rows here")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = run(args.profile, args.seed, args.sessions, args.frames, Path(tmp),
+                   args.true_onset)
+    summary(rows)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()

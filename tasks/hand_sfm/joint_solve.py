@@ -1,0 +1,591 @@
+"""The ``joint_solve`` stage: the hand model inside structure from motion (the paper's Eq. 2).
+
+The staged path solves 21 free 3D points and the virtual cameras (``reconstruct_hand``), then
+fits the 20-DoF hand to those points (``fit_hand``). Here the cameras, the 20 joint angles,
+the hand's shape (per-bone length factors) and its metric scale are solved together against
+the 2D detections (``hand_sfm.hand_graph``): the kinematic structure itself rejects what no
+hand could produce, a robust loss takes a swapped finger, and frames whose detections no
+pose of the hand explains (a detection on another hand, mirrored, somewhere else) are dropped
+as whole frames before the solve is repeated. The range readings of the aligned depth at the
+keypoints fix the metric scale, as in ``reconstruct_hand``.
+
+It starts from the staged solution when the staged path succeeds, else from the depth
+(``hand_sfm.depth_init``, the hand fitted to its backprojected joints). ``mode`` says what the
+stage returns: ``off`` nothing (``reconstruct_hand`` and ``fit_hand`` run the staged path),
+``fallback`` the staged result where it succeeds and the joint solve where it fails,
+``always`` the joint solve (from the staged start where there is one). With a result,
+``reconstruct_hand`` and ``fit_hand`` pass on its ``reconstruction`` and ``fit``, so every
+stage downstream (cross-check, adjustment, poses, QA, pictures, catalog rows) reads the same
+types as from the staged path.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from graspcap.tasks.core.config import StageConfig
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.geometry import inv_T
+from graspcap.tasks.hand import fit_hand as fit_hand_stage
+from graspcap.tasks.hand.fit_hand import FitHandConfig, HandFit
+from graspcap.tasks.hand.model import RIGID_PALM_POINTS, SURFACE_OFFSET_M, HandSide
+from graspcap.tasks.hand_sfm import reconstruct_hand as reconstruct_stage
+from graspcap.tasks.hand_sfm.depth_init import depth_initialisation
+from graspcap.tasks.hand_sfm.depth_links import DepthLinkConfig, depth_links
+from graspcap.tasks.hand_sfm.hand_graph import (
+    GraphSolve,
+    HandKinematics,
+    HandPriors,
+    project_hand,
+    solve_graph,
+)
+from graspcap.tasks.hand_sfm.metric_scale import DepthLookup, depth_lookup_from_frames
+from graspcap.tasks.hand_sfm.reconstruct_hand import ReconstructConfig
+from graspcap.tasks.hand_sfm.result import HandReconstruction, SfmDiagnostics
+from graspcap.tasks.hand_sfm.solve import fill_poses, rotation_span_deg
+from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame, hand_centre, surface_cloud
+from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
+
+STAGE = "joint_solve"
+STAGE_VERSION = "joint_solve/1"
+
+
+class HandPath(StrEnum):
+    """Which path gives the session's cameras, joints and hand fit."""
+
+    OFF = "off"
+    """The staged path alone (``reconstruct_hand`` then ``fit_hand``); the stage returns None."""
+    FALLBACK = "fallback"
+    """The staged result where the staged path succeeds, the joint solve where it fails."""
+    ALWAYS = "always"
+    """The joint solve, from the staged solution where there is one, else from the depth."""
+
+
+class JointSolveConfig(StageConfig):
+    mode: HandPath = HandPath.OFF
+    """Which path the build uses (see :class:`HandPath`; ``docs/hand_solver.md`` says why)."""
+    staged: ReconstructConfig = reconstruct_stage.PRESETS["default"]
+    """The staged reconstruction run first (its result starts the joint solve)."""
+    fit: FitHandConfig = fit_hand_stage.PRESETS["default"]
+    """The staged hand fit (and the fit of the depth initialisation's joints)."""
+    min_confidence: float = 0.2
+    """Detections with a lower confidence are treated as missing."""
+    sigma_px: float = 4.0
+    """Pixel sigma of a detection with confidence 1; a detection's sigma is sigma_px / conf."""
+    min_sigma_confidence: float = 0.3
+    """Confidences are clipped below at this value before scaling the sigma."""
+    cauchy_k: float = 2.0
+    """Cauchy loss of the reprojections: residuals beyond this many sigmas count ever less
+    (a swapped finger, a stray joint)."""
+    depth_min_confidence: float = 0.5
+    """Only detections at least this confident read the depth."""
+    depth_sigma_m: float = 0.003
+    """Sigma of a range factor (depth noise plus the skin-to-joint-centre model error)."""
+    depth_gate_m: float = 0.015
+    """Readings further than this from the start get no range factor in the first round (the
+    object or a nearer finger in front of the joint)."""
+    range_gate_sigmas: float = 3.0
+    """Later rounds keep the readings within this many ``depth_sigma_m`` of the last solve."""
+    min_depth_readings: int = 10
+    """Fewest range factors that may fix the metric scale; fewer fails the stage."""
+    limit_sigma_rad: float = 0.01
+    """Sigma of the one-sided joint-limit priors (radians beyond the limit)."""
+    rest_sigma_rad: float = 1.0
+    """Sigma of the weak pull of every angle towards the rest pose."""
+    bone_sigma: float = 0.08
+    """Provisional shape prior: sigma of each log bone-length factor around the template (the
+    anatomical prior of ``tasks/hand/shape.py`` replaces it)."""
+    scale_sigma: float = 0.5
+    """Sigma of the log scale around its start (the range factors fix it)."""
+    start_references: int = 6
+    """Reference frames tried by the depth start (when the staged path fails)."""
+    start_min_share: float = 0.3
+    """Frames the start's own tests reject are left out of the first solve only when at
+    least this share of the posed frames pass them (else the start is too poor to judge by,
+    and the robust first solve sees every posed frame)."""
+    frame_reject_factor: float = 3.0
+    """A frame whose median residual exceeds this many times the median of the frames'
+    medians is dropped as a whole (no pose of the hand explains its detections)..."""
+    frame_reject_min_px: float = 12.0
+    """...and exceeds this many pixels."""
+    depth_links: DepthLinkConfig = DepthLinkConfig()
+    """Dense depth links between the kept frames (as in ``reconstruct_hand``: keypoints alone
+    leave each camera's tilt a degree loose, the registered surface pins it); measured from
+    the last solve's cameras each round. Needs whole depth frames and the turntable pose."""
+    motion_sigma_rad: float = 0.0
+    """Constant-velocity prior of the virtual cameras: sigma of the change of the per-frame
+    rotation (radians) between consecutive kept frames (Cauchy loss; 0 = no motion prior).
+    Off: at 0.03 it turned a realistic session's cameras 1.2 -> 1.9 deg off (seed 9400 #4)."""
+    motion_sigma_m: float = 0.015
+    """...and of the per-frame translation (metres)."""
+    frame_depth_gate_m: float = 0.02
+    """A frame's depth reading agrees with its solved camera within this (metres)..."""
+    frame_min_depth_share: float = 0.25
+    """...and a frame with at least ``frame_min_readings`` readings of which fewer than this
+    share agree is dropped (a detection on another hand or somewhere else lands on the
+    background or the object: measured 0.00 on such frames, 0.42-0.85 on right ones)."""
+    frame_min_readings: int = 5
+    """Fewest readings for the depth test of a frame."""
+    frame_turn_deg_per_frame: float = 8.0
+    """Two solved cameras ``g`` frames apart agree when turned at most ``g`` times this from
+    each other (or ``frame_turn_min_deg``): the hand turns smoothly in the video, so frames off
+    the longest chain of agreeing cameras are dropped (a mirrored detection is explained by a
+    camera on the other side of the hand, 100-180 deg away)..."""
+    frame_turn_min_deg: float = 20.0
+    """...(see ``frame_turn_deg_per_frame``)."""
+    frame_rounds: int = 4
+    """At most this many solve-and-drop rounds (stops when no frame is dropped)."""
+    outlier_px: float = 10.0
+    """A detection is an inlier of the result within this many pixels..."""
+    outlier_factor: float = 3.0
+    """...or within this many times the median residual of the kept frames, whichever is more
+    (real detectors miss by 5-10 % of the hand's image size)."""
+    ransac_px: float = 8.0
+    """RANSAC threshold of the PnP that poses frames the start left unposed, and of the depth
+    initialisation."""
+    min_points_per_frame: int = 6
+    """A frame needs this many detected joints to be solved."""
+    min_frames: int = 5
+    """At least this many frames must be kept."""
+    min_rotation_deg: float = 12.0
+    """The stage raises when no kept camera is turned this far from another."""
+    min_scale: float = 0.6
+    """Smallest plausible hand scale (the model at 1 is an adult mean)."""
+    max_scale: float = 1.5
+    """Largest plausible hand scale."""
+    max_iterations: int = 50
+    """Levenberg-Marquardt iterations per solve."""
+    relative_tol: float = 1e-5
+    """Levenberg-Marquardt stops when an iteration lowers the error by less than this share."""
+
+
+PRESETS: dict[str, JointSolveConfig] = {
+    "default": JointSolveConfig(),
+    "joint": JointSolveConfig(mode=HandPath.ALWAYS),
+    "joint_fallback": JointSolveConfig(mode=HandPath.FALLBACK),
+}
+
+
+@dataclass(frozen=True)
+class JointSolve:
+    """The stage's result.
+
+    reconstruction, fit : what ``reconstruct_hand`` and ``fit_hand`` pass on (same types as
+        the staged path; from the joint solve ``joints_w`` are the model's keypoints, so
+        ``joints_fit_w`` equals them, and ``fit.residual_mm`` is each joint's RMS distance
+        from the rays of its inlier detections).
+    path : "staged" or "joint", which gave the result; start : "staged" or "depth", where the
+        joint solve started (empty for a staged result).
+    staged_error : why the staged path failed (empty when it succeeded).
+    bone_scale : (20,) per-bone length factors (``SKELETON`` order) on top of ``fit.scale``;
+        ones for a staged result.
+    frame_rejected : (m,) bool, frames dropped whole (detections no hand pose explains).
+    frame_median_px : (m,) each frame's median residual at the last solve it was in (NaN
+        where never solved).
+    rounds, iterations : solve rounds and the LM iterations of the last.
+    """
+
+    reconstruction: HandReconstruction
+    fit: HandFit
+    path: str
+    start: str
+    staged_error: str
+    bone_scale: np.ndarray
+    frame_rejected: np.ndarray
+    frame_median_px: np.ndarray
+    rounds: int
+    iterations: int
+
+
+def joint_solve(
+    keypoints: np.ndarray,
+    K: np.ndarray,
+    steady_from: int,
+    depth_at: DepthLookup | np.ndarray,
+    side: HandSide,
+    config: JointSolveConfig = PRESETS["default"],
+    *,
+    depth_frame: DepthFrame | None = None,
+    T_color_turntable: np.ndarray | None = None,
+    why_missing: str = "",
+) -> JointSolve | None:
+    """Cameras, hand pose and shape from ``steady_from`` on; None with ``mode = off``.
+
+    keypoints : (n, 21, 3) ideal pixels and confidence per video frame (0 = missed); K : (3, 3);
+    depth_at : a ``DepthLookup`` or the aligned depth frames (n, h, w) in metres;
+    side : the session's hand. ``depth_frame``, ``T_color_turntable`` and ``why_missing`` go
+    to the staged ``reconstruct_hand`` (see there).
+    Raises ``StageError`` when neither path gives a hand (naming both reasons).
+    """
+    cfg = config
+    if cfg.mode is HandPath.OFF:
+        return None
+    if not callable(depth_at):
+        frames_m = np.asarray(depth_at)
+        depth_frame = depth_frame or (lambda i: frames_m[i])
+        depth_at = depth_lookup_from_frames(frames_m)
+    K = np.asarray(K, dtype=float)
+    side = HandSide(side)
+
+    def staged(config: ReconstructConfig) -> tuple[HandReconstruction, HandFit] | str:
+        try:
+            rec = reconstruct_stage.reconstruct_hand(
+                keypoints, K, steady_from, depth_at, np.asarray(SURFACE_OFFSET_M), config,
+                depth_frame=depth_frame, T_color_turntable=T_color_turntable,
+                why_missing=why_missing,
+            )  # fmt: skip
+            return rec, fit_hand_stage.fit_hand(rec.joints_w, side, cfg.fit)
+        except StageError as exc:
+            return str(exc)
+
+    surface_at = None
+    link_cfg = cfg.depth_links
+    if link_cfg.enabled and depth_frame is not None and T_color_turntable is not None:
+
+        def surface_at(i: int, uv_i: np.ndarray, depth_i: np.ndarray):
+            centre = hand_centre(K, uv_i, depth_i, link_cfg.centre_below_skin_m)
+            if centre is None:
+                return None
+            return surface_cloud(
+                depth_frame(steady_from + i), K, centre, radius_m=link_cfg.radius_m,
+                stride_px=link_cfg.stride_px, T_color_turntable=T_color_turntable,
+                min_height_m=link_cfg.min_height_m,
+            )  # fmt: skip
+
+    found = staged(cfg.staged)
+    if isinstance(found, str):  # the joint solve starts from the depth
+        return solve_from_start(keypoints, K, steady_from, depth_at, side, cfg,
+                                staged_error=found, surface_at=surface_at)
+    rec, fit = found
+    if cfg.mode is HandPath.FALLBACK:
+        m = len(rec.frames)
+        return JointSolve(rec, fit, "staged", "", "", np.ones(20), np.zeros(m, bool),
+                          np.full(m, np.nan), 0, 0)
+    return solve_from_start(keypoints, K, steady_from, depth_at, side, cfg, rec, fit,
+                            surface_at=surface_at)
+
+
+@dataclass(frozen=True)
+class _Start:
+    T_c_p: np.ndarray
+    angles: np.ndarray
+    scale: float
+    name: str
+
+
+def _staged_start(rec: HandReconstruction, fit: HandFit) -> _Start:
+    T_c_p = np.full((len(rec.frames), 4, 4), np.nan)
+    for i in np.flatnonzero(rec.pose_valid):
+        T_c_p[i] = inv_T(rec.T_w_c[i]) @ fit.T_w_p
+    return _Start(T_c_p, fit.angles_rad, fit.scale, "staged")
+
+
+def _depth_start(uv, ok, K, readings, steady_from, side, cfg) -> _Start | str:
+    """The start from the depth, or why there is none: ``hand_sfm.depth_init`` from each of
+    up to ``start_references`` reference frames (spread over those with the most readings),
+    the hand fitted to its joints; the start that the most frames agree with (the frame
+    tests: depth agreement and the smooth turn) wins. A reference on another hand, or
+    before the hand settled, poses few frames that agree."""
+    offset = np.asarray(SURFACE_OFFSET_M)
+    n = np.isfinite(readings).sum(1)
+    rich = np.flatnonzero(n >= cfg.min_points_per_frame)
+    if not len(rich):
+        return "no frame has depth readings at enough detected joints"
+    picks = rich[np.unique(np.linspace(0, len(rich) - 1, cfg.start_references).round()
+                           .astype(int))]
+    best: tuple[int, _Start] | None = None
+    why = "the depth initialisation posed fewer than two frames"
+    for ref in picks:
+        init = depth_initialisation(uv, ok, K, readings, offset, steady_from,
+                                    ransac_px=cfg.ransac_px, min_points=cfg.min_points_per_frame,
+                                    reference=int(ref))
+        if init is None:
+            continue
+        known = np.all(np.isfinite(init.points_w), axis=1)
+        try:
+            fit = fit_hand_stage.fit_hand(np.where(known[:, None], init.points_w, 0.0), side,
+                                          cfg.fit, weights=known.astype(float))
+        except StageError as exc:
+            why = f"the hand fitted to the depth initialisation's joints: {exc.reason}"
+            continue
+        T_c_p = np.einsum("mab,bc->mac", init.T_c_w, fit.T_w_p)
+        posed = np.all(np.isfinite(T_c_p.reshape(len(T_c_p), -1)), axis=1)
+        J = fit.joints_fit_w @ fit.T_w_p[:3, :3] - fit.T_w_p[:3, 3] @ fit.T_w_p[:3, :3]
+        agree = posed & ~_depth_disagrees(T_c_p, J, fit.scale * offset, readings, cfg)
+        agree &= ~_off_smooth_path(T_c_p, agree, cfg)
+        score = int(agree.sum())
+        if best is None or score > best[0]:
+            best = (score, _Start(T_c_p, fit.angles_rad, fit.scale, "depth"))
+    return why if best is None else best[1]
+
+
+def _readings(depth_at: DepthLookup, uv, ok, conf, steady_from, min_conf) -> np.ndarray:
+    """Depth (m, 21) at the confident detections (NaN elsewhere or without a reading)."""
+    sample = ok & (conf >= min_conf)
+    out = np.full(ok.shape, np.nan)
+    for i in np.flatnonzero(sample.any(1)):
+        d = np.asarray(depth_at(steady_from + int(i), uv[i, sample[i]]), dtype=float)
+        out[i, sample[i]] = np.where(np.isfinite(d) & (d > 0), d, np.nan)
+    return out
+
+
+def _residuals(K, T_c_p, J, uv, ok) -> np.ndarray:
+    """Pixel residuals (m, 21); NaN for missing detections or cameras."""
+    proj = project_hand(K, T_c_p, J)
+    res = np.linalg.norm(proj - uv, axis=2)
+    return np.where(ok & np.isfinite(res), res, np.nan)
+
+
+def _frame_medians(res: np.ndarray) -> np.ndarray:
+    out = np.full(len(res), np.nan)
+    has = np.isfinite(res).any(1)
+    out[has] = np.nanmedian(res[has], axis=1)
+    return out
+
+
+def _depth_disagrees(T_c_p, J, offset_m, readings, cfg: JointSolveConfig) -> np.ndarray:
+    """(m,) frames with enough depth readings of which too few agree with the solved camera
+    (``frame_min_depth_share``)."""
+    z = (np.einsum("mab,jb->mja", T_c_p[:, :3, :3], J) + T_c_p[:, None, :3, 3])[..., 2]
+    has = np.isfinite(readings) & np.isfinite(z)
+    with np.errstate(invalid="ignore"):
+        agree = has & (np.abs(z - readings - offset_m) <= cfg.frame_depth_gate_m)
+    n = has.sum(1)
+    return (n >= cfg.frame_min_readings) & (agree.sum(1) < cfg.frame_min_depth_share * n)
+
+
+def _off_smooth_path(T_c_p, active, cfg: JointSolveConfig) -> np.ndarray:
+    """(m,) active frames off the longest chain of frames whose consecutive cameras turn
+    like a hand turning smoothly (at most ``frame_turn_deg_per_frame`` per frame, or
+    ``frame_turn_min_deg``): a mirrored detection is explained by a camera on the other side
+    of the hand, another hand's by a camera somewhere else; either breaks the chain."""
+    idx = np.flatnonzero(active)
+    out = np.zeros(len(T_c_p), bool)
+    if len(idx) < 2:
+        return out
+    R = T_c_p[idx, :3, :3]
+    cos = (np.einsum("kab,nab->kn", R, R) - 1.0) / 2.0
+    turn = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    allowed = np.maximum(cfg.frame_turn_min_deg,
+                         cfg.frame_turn_deg_per_frame * np.abs(idx[:, None] - idx[None, :]))
+    fits = turn <= allowed
+    length, back = np.ones(len(idx), int), np.full(len(idx), -1)
+    for n in range(1, len(idx)):  # longest chain ending at n (a path in a DAG)
+        prev = np.flatnonzero(fits[n, :n])
+        if len(prev):
+            k = prev[np.argmax(length[prev])]
+            length[n], back[n] = length[k] + 1, k
+    n = int(np.argmax(length))
+    on = np.zeros(len(idx), bool)
+    while n >= 0:
+        on[n], n = True, back[n]
+    out[idx[~on]] = True
+    return out
+
+
+def solve_from_start(
+    keypoints: np.ndarray,
+    K: np.ndarray,
+    steady_from: int,
+    depth_at: DepthLookup,
+    side: HandSide,
+    cfg: JointSolveConfig,
+    rec: HandReconstruction | None = None,
+    fit: HandFit | None = None,
+    staged_error: str = "",
+    surface_at: Callable[[int, np.ndarray, np.ndarray], Any] | None = None,
+) -> JointSolve:
+    """The joint solve from the staged solution (``rec``, ``fit``) or, without it, from the
+    depth; whole-frame rejection rounds; the result in the staged path's types.
+    ``surface_at(i, uv, depth) -> SurfaceCloud | None`` gives solve frame i's surface for the
+    dense depth links (None: no links)."""
+    kp = np.asarray(keypoints, dtype=float)[steady_from:]
+    m = len(kp)
+    uv, conf = kp[..., :2], kp[..., 2]
+    ok = (conf >= cfg.min_confidence) & np.all(np.isfinite(kp), axis=2)
+
+    def fail(reason: str) -> StageError:
+        staged = f"; the staged path: {staged_error}" if staged_error else ""
+        return StageError(STAGE, reason + staged)
+
+    if int((ok.sum(1) >= cfg.min_points_per_frame).sum()) < cfg.min_frames:
+        raise fail(f"too few usable frames: fewer than {cfg.min_frames} frames from "
+                   f"{steady_from} on have >= {cfg.min_points_per_frame} detected joints")
+    readings = _readings(depth_at, uv, ok, conf, steady_from, cfg.depth_min_confidence)
+    if rec is not None and fit is not None:
+        start = _staged_start(rec, fit)
+    else:
+        found = _depth_start(uv, ok, K, readings, steady_from, side, cfg)
+        if isinstance(found, str):
+            raise fail(f"no start for the joint solve: {found}")
+        start = found
+    kin = HandKinematics(side)
+    angles = np.clip(start.angles, kin.model.lower_rad, kin.model.upper_rad)
+    log_bone, log_scale = np.zeros(20), float(np.log(start.scale))
+    J = kin.keypoints(angles, log_bone, log_scale)
+    T_c_p = start.T_c_p.copy()
+    for i in range(m):  # frames the start left unposed: PnP against its hand
+        if not np.all(np.isfinite(T_c_p[i])) and ok[i].sum() >= cfg.min_points_per_frame:
+            pose = pnp(K, J[ok[i]], uv[i, ok[i]], cfg.ransac_px, cfg.min_points_per_frame)
+            if pose is not None:
+                T_c_p[i] = pose
+    posed = np.all(np.isfinite(T_c_p.reshape(m, -1)), axis=1)
+    usable = ok.sum(1) >= cfg.min_points_per_frame
+    active = posed & usable
+    offset = np.asarray(SURFACE_OFFSET_M)
+    rejected = active & (_depth_disagrees(T_c_p, J, start.scale * offset, readings, cfg)
+                         | _off_smooth_path(T_c_p, active, cfg))
+    if (active & ~rejected).sum() >= max(cfg.min_frames, cfg.start_min_share * active.sum()):
+        active &= ~rejected  # else the start is too poor to judge frames by: solve them all
+    sigma = cfg.sigma_px / np.maximum(conf, cfg.min_sigma_confidence)
+    priors = HandPriors(cfg.limit_sigma_rad, cfg.rest_sigma_rad, cfg.bone_sigma,
+                        cfg.scale_sigma)
+    gate = cfg.depth_gate_m
+    frame_median = np.full(m, np.nan)
+    surfaces: list = [None] * m
+    if surface_at is not None:
+        confident = ok & (conf >= cfg.depth_min_confidence)
+        for i in np.flatnonzero(usable & confident.any(1)):
+            c = confident[i] & np.isfinite(readings[i])
+            if c.sum():
+                surfaces[i] = surface_at(int(i), uv[i, c], readings[i, c])
+    sol: GraphSolve | None = None
+    range_used = np.zeros((m, 21), bool)
+    rounds = 0
+    for rounds in range(1, cfg.frame_rounds + 1):  # noqa: B007 (returned)
+        if active.sum() < cfg.min_frames:
+            break
+        z = (np.einsum("mab,jb->mja", T_c_p[:, :3, :3], J) + T_c_p[:, None, :3, 3])[..., 2]
+        with np.errstate(invalid="ignore"):
+            range_used = active[:, None] & (
+                np.abs(z - readings - np.exp(log_scale) * offset) <= gate)
+        sol = solve_graph(
+            kin, K, uv, ok & active[:, None], sigma, T_c_p, angles, log_bone, log_scale,
+            priors, robust=lambda: gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.cauchy_k),
+            depth_m=np.where(range_used, readings, np.nan), depth_sigma_m=cfg.depth_sigma_m,
+            max_iterations=cfg.max_iterations, relative_tol=cfg.relative_tol,
+            motion_sigmas=((cfg.motion_sigma_rad, cfg.motion_sigma_m)
+                           if cfg.motion_sigma_rad > 0 else None),
+            links=depth_links(surfaces, np.where(active[:, None, None], T_c_p, np.nan), K,
+                              cfg.depth_links) if surface_at is not None else (),
+        )  # fmt: skip
+        T_c_p = np.where(active[:, None, None], sol.T_c_p, T_c_p)
+        angles, log_bone, log_scale = sol.angles, sol.log_bone, sol.log_scale
+        J = kin.keypoints(angles, log_bone, log_scale)
+        gate = cfg.range_gate_sigmas * cfg.depth_sigma_m
+        # every usable frame judged against the solved hand: the kept with their solved
+        # cameras, the others posed by PnP against it (a frame dropped against a poor start
+        # comes back once the hand is right)
+        level = float(np.nanmedian(_frame_medians(_residuals(K, T_c_p, J, uv, ok))[active]))
+        cand = np.where(active[:, None, None], T_c_p, np.nan)
+        for i in np.flatnonzero(usable & ~active):
+            pose = pnp(K, J[ok[i]], uv[i, ok[i]], max(cfg.ransac_px, 2 * level),
+                       cfg.min_points_per_frame)
+            if pose is not None:
+                cand[i] = pose
+        judged = np.all(np.isfinite(cand.reshape(m, -1)), axis=1)
+        med = _frame_medians(_residuals(K, cand, J, uv, ok))
+        frame_median = np.where(judged, med, frame_median)
+        with np.errstate(invalid="ignore"):
+            bad = med > max(cfg.frame_reject_factor * level, cfg.frame_reject_min_px)
+        bad |= _depth_disagrees(cand, J, np.exp(log_scale) * offset, readings, cfg)
+        bad |= _off_smooth_path(cand, judged, cfg)
+        keep = judged & ~bad
+        if np.array_equal(keep, active) or rounds == cfg.frame_rounds or (
+                keep.sum() < cfg.min_frames):
+            break
+        T_c_p = np.where((keep & ~active)[:, None, None], cand, T_c_p)
+        active = keep
+    rejected = usable & ~active
+    if sol is None or active.sum() < cfg.min_frames:
+        raise fail(f"too few frames explained by one hand: {int(active.sum())} kept of "
+                   f"{int(posed.sum())} posed ({int(rejected.sum())} dropped as whole "
+                   f"frames), need {cfg.min_frames}")
+    if range_used.sum() < cfg.min_depth_readings:
+        raise fail(f"no metric scale: only {int(range_used.sum())} depth readings agree with "
+                   f"the solved hand, need {cfg.min_depth_readings}")
+    scale = float(np.exp(log_scale))
+    if not cfg.min_scale <= scale <= cfg.max_scale:
+        raise fail(f"implausible hand: scale {scale:.3f} outside [{cfg.min_scale}, "
+                   f"{cfg.max_scale}] of the adult template")
+    T_c_p[~active] = np.nan
+    span = rotation_span_deg(T_c_p)
+    if span < cfg.min_rotation_deg:
+        raise fail(f"the kept cameras turn at most {span:.1f} deg < {cfg.min_rotation_deg} "
+                   "deg: too little motion to solve the hand from")
+    return _assemble(kin, K, steady_from, uv, ok, T_c_p, start, angles, log_bone, log_scale,
+                     range_used, frame_median, rejected, sol, rounds, staged_error, cfg)
+
+
+def _assemble(kin, K, steady_from, uv, ok, T_c_p, start, angles, log_bone, log_scale,
+              range_used, frame_median, rejected, sol, rounds, staged_error, cfg) -> JointSolve:
+    """The result in the staged path's types, world = the first steady camera."""
+    m = len(uv)
+    T_c_p_filled, pose_valid = fill_poses(T_c_p)  # also works on T_c_p: a rigid map
+    J = kin.keypoints(angles, log_bone, log_scale)
+    T_w_p = T_c_p_filled[0].copy()  # world = camera 0: the palm in it is T_c0_p
+    T_w_c = np.stack([T_w_p @ inv_T(T) for T in T_c_p_filled])
+    T_w_c[0] = np.eye(4)
+    joints_w = J @ T_w_p[:3, :3].T + T_w_p[:3, 3]
+    res = _residuals(K, T_c_p_filled, J, uv, ok)
+    res[~pose_valid] = np.nan
+    level = float(np.nanmedian(res[pose_valid])) if pose_valid.any() else float("nan")
+    inlier = ok & pose_valid[:, None] & (res < max(cfg.outlier_px, cfg.outlier_factor * level))
+    n_inl = int(inlier.sum())
+    kept = ok & pose_valid[:, None]
+    # each joint's distance from its inlier detections' rays, in mm (pixels at its depth)
+    z = (np.einsum("mab,jb->mja", T_c_p_filled[:, :3, :3], J) + T_c_p_filled[:, None, :3, 3])[
+        ..., 2]
+    ray_mm = np.where(inlier, 1e3 * res * z / K[0, 0], np.nan)
+    seen = np.isfinite(ray_mm).any(0)
+    residual_mm = np.full(21, np.nan)
+    residual_mm[seen] = np.sqrt(np.nanmean(ray_mm[:, seen] ** 2, axis=0))
+    model = kin.model
+    scale = float(np.exp(log_scale))
+    tol = np.radians(cfg.fit.at_limit_tol_deg)
+    fit = HandFit(
+        side=model.side, T_w_p=T_w_p, scale=scale, angles_rad=angles, joints_fit_w=joints_w,
+        residual_mm=residual_mm, rmse_mm=float(np.sqrt(np.nanmean(residual_mm ** 2))),
+        palm_rmse_mm=float(np.sqrt(np.nanmean(residual_mm[list(RIGID_PALM_POINTS)] ** 2))),
+        at_limit=(angles <= model.lower_rad + tol) | (angles >= model.upper_rad - tol),
+    )
+    b = int(np.argmin(np.trace(T_w_c[:, :3, :3], axis1=1, axis2=2)))
+    T_start = np.full((m, 4, 4), np.nan)
+    posed0 = np.all(np.isfinite(start.T_c_p.reshape(m, -1)), axis=1)
+    J0 = model.keypoints(np.clip(start.angles, model.lower_rad, model.upper_rad),
+                         scale=start.scale)
+    ref = int(np.flatnonzero(posed0)[0]) if posed0.any() else 0
+    T_w_p0 = start.T_c_p[ref] if posed0.any() else np.eye(4)
+    T_start[posed0] = np.stack([T_w_p0 @ inv_T(T) for T in start.T_c_p[posed0]])
+    diagnostics = SfmDiagnostics(
+        pair_frames=(steady_from, steady_from + b),
+        parallax_deg=float(np.median(ray_angles_deg(inv_T(T_w_c[b]), joints_w))),
+        rounds=rounds, lm_iterations=sol.iterations, error_initial=float("nan"),
+        error_final=sol.error, scale_samples=int(range_used.sum()),
+        scale_inliers=int(range_used.sum()), scale_spread=float("nan"),
+        T_w_c_init=fill_poses(T_start)[0] if posed0.any() else T_w_c.copy(),
+        joints_w_init=J0 @ T_w_p0[:3, :3].T + T_w_p0[:3, 3],
+        T_w_c_visual=T_w_c.copy(), joints_w_visual=joints_w.copy(), inlier_visual=inlier.copy(),
+        depth_inlier=range_used.copy(), range_factor=range_used.copy(),
+        depth_links=np.zeros((0, 2), int), restarted_after=staged_error,
+    )
+    rec = HandReconstruction(
+        steady_from=int(steady_from), frames=np.arange(steady_from, steady_from + m),
+        T_w_c=T_w_c, pose_valid=pose_valid, joints_w=joints_w,
+        joint_valid=np.ones(21, bool), residuals_px=res, inlier=inlier,
+        reproj_rmse_px=float(np.sqrt(np.mean(res[inlier] ** 2))) if n_inl else float("nan"),
+        inlier_ratio=n_inl / max(int(kept.sum()), 1), scale_m_per_unit=1.0,
+        diagnostics=diagnostics,
+    )
+    return JointSolve(rec, fit, "joint", start.name, staged_error, np.exp(log_bone),
+                      rejected, frame_median, rounds, sol.iterations)
+
+
+__all__ = ["HandPath", "JointSolve", "JointSolveConfig", "PRESETS", "STAGE_VERSION",
+           "joint_solve", "solve_from_start"]

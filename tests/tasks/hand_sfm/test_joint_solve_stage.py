@@ -1,0 +1,85 @@
+"""The joint_solve stage in the pipeline: ``mode`` picks the path, and reconstruct_hand and
+fit_hand pass the joint solve's result on in the staged path's types."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graspcap.synth import config_for, generate_session
+from graspcap.synth.evaluate import evaluate
+from graspcap.tasks.hand.fit_hand import HandFit
+from graspcap.tasks.hand_sfm.joint_solve import HandPath, JointSolve
+from graspcap.tasks.hand_sfm.result import HandReconstruction
+from graspcap.tasks.pipeline import STAGES, configs_for, preset_stages, run_stage
+
+CONFIGS = configs_for()
+
+
+@pytest.fixture(scope="module")
+def upstream(tmp_path_factory):
+    config = config_for("easy", 40).model_copy(update={"write_steady_from": True})
+    session = generate_session(tmp_path_factory.mktemp("joint"), [7, 0], config)
+    results: dict = {}
+    for name in ("load_session", "detect_keypoints", "select_steady"):
+        results[name] = run_stage(STAGES[name], session, CONFIGS[name], results)
+    return session, results
+
+
+def _path(session, upstream, mode: HandPath) -> dict:
+    results = dict(upstream)
+    config = CONFIGS["joint_solve"].model_copy(update={"mode": mode})
+    results["joint_solve"] = run_stage(STAGES["joint_solve"], session, config, results)
+    for name in ("reconstruct_hand", "fit_hand"):
+        results[name] = run_stage(STAGES[name], session, CONFIGS[name], results)
+    return results
+
+
+def _errors(session, results) -> dict[str, float]:
+    rec = results["reconstruct_hand"]
+    return evaluate(session, {
+        "steady_from": results["select_steady"].steady_from, "joints_w": rec.joints_w,
+        "T_w_c": rec.T_w_c, "camera_solved": rec.pose_valid,
+        "joints_fit_w": results["fit_hand"].joints_fit_w,
+    })  # fmt: skip
+
+
+def test_the_dag_and_presets():
+    assert STAGES["joint_solve"].upstream == ("load_session", "detect_keypoints",
+                                              "select_steady")
+    assert "joint_solve" in STAGES["reconstruct_hand"].upstream
+    assert "joint_solve" in STAGES["fit_hand"].upstream
+    assert CONFIGS["joint_solve"].mode is HandPath.OFF
+    assert configs_for("joint")["joint_solve"].mode is HandPath.ALWAYS
+    assert configs_for("joint_fallback")["joint_solve"].mode is HandPath.FALLBACK
+    assert preset_stages("joint") == ("joint_solve",)
+
+
+def test_modes_pick_the_path(upstream):
+    session, results = upstream
+    off = _path(session, results, HandPath.OFF)
+    assert off["joint_solve"] is None
+    assert isinstance(off["reconstruct_hand"], HandReconstruction)
+
+    fallback = _path(session, results, HandPath.FALLBACK)
+    js = fallback["joint_solve"]
+    assert isinstance(js, JointSolve) and js.path == "staged" and js.staged_error == ""
+    assert fallback["reconstruct_hand"] is js.reconstruction and fallback["fit_hand"] is js.fit
+    np.testing.assert_allclose(js.reconstruction.joints_w, off["reconstruct_hand"].joints_w)
+
+    joint = _path(session, results, HandPath.ALWAYS)
+    js = joint["joint_solve"]
+    assert js.path == "joint" and js.start == "staged"
+    assert joint["reconstruct_hand"] is js.reconstruction
+    assert isinstance(joint["fit_hand"], HandFit) and joint["fit_hand"] is js.fit
+    rec = js.reconstruction
+    assert rec.frames.tolist() == off["reconstruct_hand"].frames.tolist()
+    assert np.allclose(rec.T_w_c[0], np.eye(4))
+    assert not js.frame_rejected.any()  # an easy session: every frame is one hand
+    errors = _errors(session, joint)
+    assert errors["camera_rot_deg"] < 1.0 and errors["camera_trans_mm"] < 5.0
+    assert errors["joints_mpjpe_mm"] < 5.0
+    assert errors["fit_joints_mm"] == errors["joints_mpjpe_mm"]  # the SfM joints are the hand's
+    # downstream stages take the joint result as they take the staged one
+    cross = run_stage(STAGES["crosscheck_sfm"], session, CONFIGS["crosscheck_sfm"], joint)
+    assert np.isfinite(cross.max_joint_discrepancy_m)
