@@ -33,6 +33,7 @@ import gtsam
 import numpy as np
 
 from graspcap.tasks.hand.model import SKELETON, SURFACE_OFFSET_M, HandModel, HandSide
+from graspcap.tasks.hand.shape import PRIOR_SQRT_INFORMATION
 from graspcap.tasks.hand_sfm.graph import lm_params
 
 A_KEY, B_KEY, S_KEY = (gtsam.symbol("a", 0), gtsam.symbol("b", 0), gtsam.symbol("s", 0))
@@ -243,11 +244,8 @@ class HandPriors:
 
     limit_sigma_rad: float
     rest_sigma_rad: float
-    bone_sigma: float
-    """Sigma of each log bone factor around ``bone_mean`` (0 = the template)."""
     scale_sigma: float
     """Sigma of the log scale around its start."""
-    bone_mean: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -331,9 +329,9 @@ def solve_graph(
     graph.add(limit_factor(model.lower_rad, model.upper_rad, priors.limit_sigma_rad))
     graph.add(gtsam.PriorFactorVector(A_KEY, model.rest_angles(),
                                       gtsam.noiseModel.Isotropic.Sigma(20, priors.rest_sigma_rad)))
-    bone_mean = np.zeros(20) if priors.bone_mean is None else np.asarray(priors.bone_mean, float)
-    graph.add(gtsam.PriorFactorVector(B_KEY, bone_mean,
-                                      gtsam.noiseModel.Isotropic.Sigma(20, priors.bone_sigma)))
+    # the anatomical shape prior (``hand.shape``): Gaussian in the log factors around the template
+    graph.add(gtsam.PriorFactorVector(
+        B_KEY, np.zeros(20), gtsam.noiseModel.Gaussian.SqrtInformation(PRIOR_SQRT_INFORMATION)))
     graph.add(gtsam.PriorFactorVector(S_KEY, np.array([float(log_scale)]),
                                       gtsam.noiseModel.Isotropic.Sigma(1, priors.scale_sigma)))
     optimizer = gtsam.LevenbergMarquardtOptimizer(

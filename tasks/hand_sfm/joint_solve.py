@@ -53,7 +53,7 @@ from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame, hand_centre, surf
 from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 
 STAGE = "joint_solve"
-STAGE_VERSION = "joint_solve/1"
+STAGE_VERSION = "joint_solve/2"
 
 
 class HandPath(StrEnum):
@@ -98,9 +98,6 @@ class JointSolveConfig(StageConfig):
     """Sigma of the one-sided joint-limit priors (radians beyond the limit)."""
     rest_sigma_rad: float = 1.0
     """Sigma of the weak pull of every angle towards the rest pose."""
-    bone_sigma: float = 0.08
-    """Provisional shape prior: sigma of each log bone-length factor around the template (the
-    anatomical prior of ``tasks/hand/shape.py`` replaces it)."""
     scale_sigma: float = 0.5
     """Sigma of the log scale around its start (the range factors fix it)."""
     start_references: int = 6
@@ -444,8 +441,7 @@ def solve_from_start(
     if (active & ~rejected).sum() >= max(cfg.min_frames, cfg.start_min_share * active.sum()):
         active &= ~rejected  # else the start is too poor to judge frames by: solve them all
     sigma = cfg.sigma_px / np.maximum(conf, cfg.min_sigma_confidence)
-    priors = HandPriors(cfg.limit_sigma_rad, cfg.rest_sigma_rad, cfg.bone_sigma,
-                        cfg.scale_sigma)
+    priors = HandPriors(cfg.limit_sigma_rad, cfg.rest_sigma_rad, cfg.scale_sigma)
     gate = cfg.depth_gate_m
     frame_median = np.full(m, np.nan)
     surfaces: list = [None] * m
@@ -554,6 +550,7 @@ def _assemble(kin, K, steady_from, uv, ok, T_c_p, start, angles, log_bone, log_s
         residual_mm=residual_mm, rmse_mm=float(np.sqrt(np.nanmean(residual_mm ** 2))),
         palm_rmse_mm=float(np.sqrt(np.nanmean(residual_mm[list(RIGID_PALM_POINTS)] ** 2))),
         at_limit=(angles <= model.lower_rad + tol) | (angles >= model.upper_rad - tol),
+        bone_scale=np.exp(log_bone),
     )
     b = int(np.argmin(np.trace(T_w_c[:, :3, :3], axis1=1, axis2=2)))
     T_start = np.full((m, 4, 4), np.nan)
