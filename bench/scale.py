@@ -52,6 +52,7 @@ import json
 import os
 import random
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -226,12 +227,38 @@ def read_probe(catalog: str, seed: int, repeat: int) -> dict:
         cat.hand_mesh(sid, version)
         cat.object_mesh(session_id=sid, version=version)
         arrays_s.append(time.perf_counter() - t)
-    return {"frames_rows": rows, "frames_first_s": first,
+    return {**_frames_log(Path(cat.layout.table("frames"))),
+            "frames_rows": rows, "frames_first_s": first,
             "frames_s": statistics.median(cat_s), "frames_fresh_s": statistics.median(plain_s),
             "frames_ratio": statistics.median(cat_s) / statistics.median(plain_s),
             "frames_parquet_files": len(cat.files("frames", version)),
             "session": sid, "arrays_first_ms": arrays_s[0] * 1000,
             "arrays_ms": statistics.median(arrays_s[1:]) * 1000}
+
+
+def _frames_log(table: Path) -> dict:
+    """Bytes and rows each commit of the ``frames`` Delta table added (its log's ``add``
+    actions): what a build that changes one session writes."""
+    added = []
+    try:
+        for entry in sorted((table / "_delta_log").glob("*.json")):
+            size = rows = 0
+            for line in entry.read_text().splitlines():
+                action = json.loads(line) if line.strip() else {}
+                if "add" in action:
+                    size += action["add"].get("size", 0)
+                    stats = action["add"].get("stats")
+                    rows += json.loads(stats).get("numRecords", 0) if stats else 0
+            added.append((size, rows))
+    except (OSError, ValueError) as exc:
+        return {"frames_log_error": str(exc)}
+    later = added[2:]  # after the table's creation and the cold build's commit
+    return {"frames_commits": len(added),
+            "frames_cold_commit_mb": added[1][0] / 1e6 if len(added) > 1 else None,
+            "frames_later_commit_mb_median":
+                statistics.median(a[0] for a in later) / 1e6 if later else None,
+            "frames_later_commit_rows_median":
+                statistics.median(a[1] for a in later) if later else None}
 
 
 def generate_pool(pool: Path, n: int, profile: str, frames: int, seed: int) -> list[Path]:
@@ -434,6 +461,8 @@ def main() -> None:
                          "new temporary folder)")
     ap.add_argument("--keep", action="store_true", help="keep each size's final catalog")
     args = ap.parse_args()
+    # a SIGTERM unwinds like an exception, so the changed session files are put back
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     if args.short:
         args.sizes, args.arrivals, args.incremental = [3, 6], 2, [3]
     sizes = sorted(args.sizes)
