@@ -39,10 +39,11 @@ the tree (``VmHWM``, read every 0.2 s), the Prefect database, the catalog (witho
 area) and the work area sizes, the number of Parquet files of ``frames``. The changed files
 are restored after each size, so the next size's grown build finds their results cached.
 
-Prints one markdown table per size and one table of each cost against N with the growth
-exponent (log-log slope between the smallest and largest N) and a linear extrapolation to
-``--extrapolate`` (default 1000) sessions when the largest N measured is below it; writes
-every number to ``<out>/scale.json``.
+Prints a line per build and one table of each cost against N with the growth exponent (log-log
+slope between the smallest and largest N) and a linear extrapolation to ``--extrapolate``
+(default 1000) sessions when the largest N measured is below it; writes every number to
+``<out>/scale-<sizes>.json``. ``bench/scale.py --table A.json B.json`` prints that table for
+the sizes of several runs together (a run continued with ``--grow-from``).
 """
 
 from __future__ import annotations
@@ -438,6 +439,11 @@ def main() -> None:
         a = ap.parse_args()
         print(json.dumps(read_probe(a.read_probe, a.seed, a.repeat)))
         return
+    if len(sys.argv) > 1 and sys.argv[1] == "--table":  # runs' JSON files -> one table
+        results = sorted((r for f in sys.argv[2:] for r in json.loads(Path(f).read_text())[
+            "results"]), key=lambda r: r["n"])
+        print(growth_table(results, 1000))
+        return
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[100, 300, 1000])
     ap.add_argument("--short", action="store_true",
@@ -460,6 +466,11 @@ def main() -> None:
                     help="folder for the session pool, catalogs and logs (kept; default: a "
                          "new temporary folder)")
     ap.add_argument("--keep", action="store_true", help="keep each size's final catalog")
+    ap.add_argument("--grow-from", type=Path, default=None, metavar="SNAPSHOT",
+                    help="start the first size from this cold catalog of an earlier run "
+                         "(its cold-N folder; kept with --keep) instead of building it cold")
+    ap.add_argument("--grow-from-cold-s", type=float, default=None,
+                    help="the cold wall seconds of --grow-from's size (from its scale.json)")
     args = ap.parse_args()
     # a SIGTERM unwinds like an exception, so the changed session files are put back
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
@@ -475,20 +486,21 @@ def main() -> None:
     sessions = generate_pool(base / "pool", sizes[-1] + args.arrivals, args.profile,
                              args.frames, args.seed)
     results: list[dict] = []
-    previous = previous_cold = None
+    previous, previous_cold = args.grow_from, args.grow_from_cold_s
     for i, n in enumerate(sizes):
         r = measure_size(n, sessions, base, previous if args.grow else None, previous_cold,
                          args, args.incremental[min(i, len(args.incremental) - 1)])
         results.append(r)
         previous, previous_cold = base / f"cold-{n}", r["cold_total_s"]
-        (base / "scale.json").write_text(json.dumps({"args": {
+        (base / f"scale-{'-'.join(map(str, sizes))}.json").write_text(json.dumps({"args": {
             k: str(v) for k, v in vars(args).items()}, "results": results}, indent=1))
-    if args.grow:
+    if args.grow and not args.keep:
         for n in sizes:
             shutil.rmtree(base / f"cold-{n}", ignore_errors=True)
     print()
     print(growth_table(results, args.extrapolate))
-    print(f"\n(all numbers: {base / 'scale.json'}; build logs {base}/builds-N.log)")
+    print(f"\n(all numbers: {base}/scale-{'-'.join(map(str, sizes))}.json; build logs "
+          f"{base}/builds-N.log)")
 
 
 if __name__ == "__main__":
