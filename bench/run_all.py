@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -10,7 +11,9 @@ BENCHES = [
     "synth_speed.py", "validate_speed.py", "hand_model_speed.py", "fit_hand_speed.py",
     "bench_sfm.py", "steady_bench.py", "registration_bench.py", "accuracy.py", "catalog_bench.py",
     "contactmap_speed.py", "detect_speed.py", "core_scaling.py", "build_overhead.py",
+    "scale.py --short",
 ]
+"""Each entry: a script under bench/ and its arguments."""
 
 
 def main() -> int:
@@ -18,7 +21,8 @@ def main() -> int:
     status = 0
     for name in BENCHES:
         print(f"\n## {name}\n", flush=True)
-        status |= subprocess.call([sys.executable, str(here / name)])
+        script, *args = shlex.split(name)
+        status |= subprocess.call([sys.executable, str(here / script), *args])
     return status
 
 
