@@ -123,7 +123,7 @@ def static_hand(kp: np.ndarray, focal_px: float, corrupt: int = 0):
     if init is None:
         raise SystemExit(f"no two-view start: best parallax {parallax:.2f} deg")
     sigma = cfg.sigma_px / np.maximum(conf, cfg.min_sigma_confidence)
-    ba, res, inlier, _ = solve_visual(cfg, uv, ok, sigma, K, init.T_c_w, init.points_w,
+    ba, res, inlier, _, _ = solve_visual(cfg, uv, ok, sigma, K, init.T_c_w, init.points_w,
                                       init.pair)
     posed = np.all(np.isfinite(ba.T_c_w.reshape(len(kp), -1)), axis=1)
     usable = ok.sum(1) >= cfg.min_points_per_frame

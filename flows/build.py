@@ -353,11 +353,13 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     built = []  # sessions with rows, checked against the catalog's rules below
 
     def fail(i: int, d: Path, sid: str, error: str, stage: str | None, info: dict,
-             common: dict, prev: dict | None, good_prev: bool, attempted: bool,
+             common: dict, prev: dict | None, good_prev: bool,
              own_row: bool = True) -> None:
         """Report session ``i`` failed; give it a failed row unless it keeps its previous good
-        rows, the catalog's latest build already records this failure (replayed), or the id's
-        row is not its own (``own_row=False``: a duplicated id)."""
+        rows, the catalog's latest build already records this failure (known: the same error on
+        the same inputs and configs, replayed from the work area or run again, as a bad
+        manifest's ``load_session`` is on every build), or the id's row is not its own
+        (``own_row=False``: a duplicated id)."""
         nonlocal recorded, new_failures
         row = None
         if own_row and not good_prev:
@@ -366,16 +368,16 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                 check_commit(gc.BuildCommit(build=info_commit, sessions=[row], frames=[]))
             except Exception as exc:  # noqa: BLE001 - the reason goes into the report
                 error, row = f"{error} (no failed row written: {exc})", None
-        # a failure replayed from the work area (no stage body ran) that the catalog's
-        # latest build already records needs no new version
+        # a failure the catalog's latest build already records (same error, same inputs and
+        # configs) needs no new version, whether replayed or run again
         if recorded is None:
             recorded = recorded_failures(cat) if previous is not None else {}
-        replayed = (not attempted and recorded.get(sid) == error
-                    and (good_prev or row is None or (prev is not None and prev["input_digest"]
-                                                      == common["input_digest"]
-                                                      and prev["config_digest"] == cdigest)))
-        new_failures |= not replayed
-        if row is not None and not replayed:
+        known = (recorded.get(sid) == error
+                 and (good_prev or row is None or (prev is not None and prev["input_digest"]
+                                                   == common["input_digest"]
+                                                   and prev["config_digest"] == cdigest)))
+        new_failures |= not known
+        if row is not None and not known:
             rows.append(row)
         by_index[i] = SessionReport(outcome=Outcome.FAILED, status=Status.FAILED.value,
                                    error=error, failed_stage=stage,
@@ -388,7 +390,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         if str(d) in duplicate:  # the id's row is the first folder's: a report, no row
             info = dict(session_id=sid, session_dir=str(d), not_run=tuple(STAGES))
             fail(i, d, sid, duplicate[str(d)], None, info, common, prev_rows.get(sid), False,
-                 attempted=False, own_row=False)
+                 own_row=False)
             continue
         prev = prev_rows.get(sid)
         # previous rows with results (ok, flagged, or failed by QA), not a failed build's row
@@ -398,14 +400,13 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
         retries = {st: n - 1 for (s, st), n in attempts.items() if s == sid and n > 1}
         info = dict(session_id=sid, session_dir=str(d), ran=tuple(ran), cached=tuple(cached),
                     not_run=tuple(not_run), retries=retries, notes=notes)
-        attempted = any(s == sid for s, _ in attempts)
         try:
             common["input_digest"] = _input_digest(work, d)
             if "pictures" in refs:
                 info["pictures"], note = _store_pictures(cat.layout, sid, refs["pictures"])
                 info["notes"] += note
             if error is not None:
-                fail(i, d, sid, error, stage, info, common, prev, good_prev, attempted)
+                fail(i, d, sid, error, stage, info, common, prev, good_prev)
                 continue
             # a row from before a column existed (a migrated catalog's) is rewritten from
             # cached results
@@ -420,15 +421,15 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                 raise ValueError(f"its rows are for session_id {sr.session['session_id']!r}")
         except Exception as exc:  # noqa: BLE001 - one session's bug never loses the build
             fail(i, d, sid, f"assembling the catalog rows: {type(exc).__name__}: {exc}",
-                 None, info, common, prev, good_prev, attempted)
+                 None, info, common, prev, good_prev)
             continue
-        built.append((i, d, sid, sr, info, common, prev, good_prev, attempted))
+        built.append((i, d, sid, sr, info, common, prev, good_prev))
         meshes[sid] = sr.object_mesh  # the session's own mesh (content-addressed)
     shared = _shared_object_notes({sid: (sr.object_id, mesh_digest(sr.object_mesh, sid))
                                    for _, _, sid, sr, *_ in built}, prev_rows)
     # the checks the commit runs, per session: one whose rows, frames or arrays would make it
     # raise fails alone, with the reason, and the others are committed
-    for i, d, sid, sr, info, common, prev, good_prev, attempted in built:
+    for i, d, sid, sr, info, common, prev, good_prev in built:
         if sid in shared:
             info["notes"] = (*info["notes"], shared[sid])
         try:
@@ -437,7 +438,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                                         object_meshes=meshes))
         except Exception as exc:  # noqa: BLE001 - CatalogSchemaError, or a bug in a check
             fail(i, d, sid, f"the catalog refused its rows: {exc}", None, info, common, prev,
-                 good_prev, attempted)
+                 good_prev)
             continue
         rows.append(sr.session)
         frames.extend(sr.frames)

@@ -158,7 +158,7 @@ def swapped_fingers(
 
 def jumping_poses(
     T_c_w: np.ndarray, X: np.ndarray, K: np.ndarray, candidates: np.ndarray, gate_px: float,
-    *, first_frame: int = 0,
+    *, first_frame: int = 0, motion_factor: float = 4.0,
 ) -> dict[int, str]:
     """Posed frames among ``candidates`` (m,) bool whose camera jumps away from its
     neighbours' -> reason.
@@ -166,7 +166,8 @@ def jumping_poses(
     The static hand ``X`` (21, 3) is projected by each frame's pose ``T_c_w`` (m, 4, 4) and by
     the poses of the two nearest candidate frames on each side; the frame's jump is the
     second smallest of those four median displacements (one wrong neighbour on each side
-    cannot make a good frame jump). A frame jumping more than ``gate_px`` is rejected: the
+    cannot make a good frame jump). A frame jumping more than ``gate_px`` and more than
+    ``motion_factor`` times the median frame's jump (the clip's own pace) is rejected: the
     solve posed it to explain a detection no smooth motion of this hand gives (a mirrored
     hand, another hand in a near place).
     """
@@ -179,15 +180,20 @@ def jumping_poses(
     Xc = np.einsum("mab,jb->mja", T_c_w[rows, :3, :3], X[known]) + T_c_w[rows, None, :3, 3]
     with np.errstate(invalid="ignore", divide="ignore"):
         proj = (Xc[..., :2] / Xc[..., 2:]) * np.diag(K)[:2] + K[:2, 2]
-    out: dict[int, str] = {}
-    for n, i in enumerate(rows):
+    jumps = np.empty(len(rows))
+    for n in range(len(rows)):
         near = [k for k in (n - 2, n - 1, n + 1, n + 2) if 0 <= k < len(rows)]
         d = sorted(float(np.median(np.linalg.norm(proj[n] - proj[k], axis=1))) for k in near)
-        jump = d[1] if len(d) > 1 else d[0]
-        if jump > gate_px:
+        jumps[n] = d[1] if len(d) > 1 else d[0]
+    # the session's own pace: a short or fast clip moves the hand tens of pixels between
+    # frames without any wrong detection (an easy 12-frame rig clip: 20-70 px per frame)
+    limit = max(gate_px, motion_factor * float(np.median(jumps)))
+    out: dict[int, str] = {}
+    for n, i in enumerate(rows):
+        if jumps[n] > limit:
             out[int(i)] = (
-                f"frame {i + first_frame}: its camera moves the hand {jump:.0f} px away from "
-                f"where the neighbouring frames' cameras put it (> {gate_px:.1f} px): the "
+                f"frame {i + first_frame}: its camera moves the hand {jumps[n]:.0f} px away from "
+                f"where the neighbouring frames' cameras put it (> {limit:.1f} px): the "
                 "detection is not this hand (mirrored, another hand)"
             )
     return out

@@ -258,8 +258,8 @@ def test_a_build_level_failure_keeps_the_work_and_the_next_build_commits_it(
         shutil.rmtree(work / "results" / stage)
     layout = gc.open(catalog, create=True).layout
     if fault == "lock":
-        monkeypatch.setattr(Catalog, "commit", lambda self, b: commit_module.commit_build(
-            self.layout, b, lock_timeout_s=0.3))
+        monkeypatch.setattr(Catalog, "commit", lambda self, b, gates=None: (
+            commit_module.commit_build(self.layout, b, lock_timeout_s=0.3, gates=gates)))
         held = commit_module.writer_lock(layout, 5)
         expected = "CatalogLockTimeout: another writer"
     else:

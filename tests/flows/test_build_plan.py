@@ -20,6 +20,7 @@ import pytest
 from graspcap.flows import code_digest
 from graspcap.flows.build import build_dataset
 from graspcap.flows.plan import plan_build
+from graspcap.tasks import pipeline
 from tests.flow_fixtures import (  # noqa: F401
     PRESET,
     copy_catalog,
@@ -86,7 +87,8 @@ def test_plan_of_an_unchanged_catalog_is_all_cached_and_writes_nothing(warm, syn
     assert main(["build", str(synth_root), "--catalog", str(catalog), "--preset", PRESET,
                  "--plan"]) == 0
     out = capsys.readouterr().out
-    assert out.splitlines()[-1].startswith("plan: all cached (28 stages of 2 sessions)")
+    n = 2 * len(pipeline.STAGES)  # 2 sessions
+    assert out.splitlines()[-1].startswith(f"plan: all cached ({n} stages of 2 sessions)")
     assert _tree(catalog) == before  # no result, digest, manifest or catalog file written
     # a catalog that does not exist is not created: every stage runs for a new session
     fresh = tmp_path / "none"
@@ -267,7 +269,8 @@ def test_plan_replays_a_remembered_failure_and_retry_failed_runs_it(warm, synth_
     after = _downstream({"fit_hand"}) - {"fit_hand"}
     assert {st for (s, st), p in plans.items() if s == bad and p.action == "not ready"} == after
     text = plan_text(list(plans.values()))
-    assert text.splitlines()[-1] == (f"plan: 28 stages of 2 sessions: {28 - 1 - len(after)} "
+    n = 2 * len(pipeline.STAGES)  # 2 sessions
+    assert text.splitlines()[-1] == (f"plan: {n} stages of 2 sessions: {n - 1 - len(after)} "
                                      f"cached, 0 run, 1 fails again, {len(after)} not ready")
     retry = [p for p in plan_build([synth_root], catalog, PRESET, retry_failed=True)
              if (p.session_id, p.stage) == (bad, "fit_hand")]

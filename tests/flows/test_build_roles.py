@@ -62,7 +62,7 @@ def test_one_grasp_depth_pixel_reruns_only_the_stages_that_read_grasp_depth(
     edited(frame, cv2.imencode(".png", depth)[1].tobytes())
 
     readers = {n for n, s in STAGES.items() if "grasp_depth" in s.reads}
-    assert readers == {"load_session", "reconstruct_hand", "estimate_adjustment",
+    assert readers == {"load_session", "joint_solve", "reconstruct_hand", "estimate_adjustment",
                        "propagate_poses", "pictures"}
     plans = plan_build([synth_root], catalog, PRESET)
     planned = {p.stage for p in plans if p.action == "run"}

@@ -67,17 +67,17 @@ def test_a_build_whose_audit_fails_is_staged_until_published(warm, synth_root, t
     page = Path(report.report_page).read_text()
     assert "<b>staged</b>: audit FAILED against published version 1" in page
 
-    # the next build plans against and writes on top of the staged version (the broken
-    # session's load_session runs again, so its failure makes a version), audited against
-    # the published one: staged again
+    # the next build plans against the staged version; the broken session's load_session
+    # runs again and fails as the catalog already records (same error, same inputs and
+    # configs): nothing new, no version (issue 20 item 6), readers still on version 1
     again = build_dataset([synth_root, more], catalog, PRESET, build_id="again", gates=STRICT)
-    assert (again.previous_version, again.catalog_version) == (2, 3)
+    assert (again.previous_version, again.catalog_version) == (2, None)
     assert sorted(again.unchanged) == sorted(report.unchanged)
-    assert again.publication["state"] == "staged"
-    assert again.publication["audit"]["compared_to"] == 1
+    assert set(again.failed) == {"broken-one"}
+    assert again.publication["published_version"] == 1
 
-    assert gc.open(catalog).publish(3, "a broken capture is expected")
+    assert gc.open(catalog).publish(2, "a broken capture is expected")
     assert gc.open(catalog).table("sessions").num_rows == 3
     status = status_text(catalog)
-    assert "build again (version 3, published)" in status
+    assert "build nightly (version 2, published)" in status
     assert "readers read it by default" in status.splitlines()[0]

@@ -234,7 +234,8 @@ def test_a_session_task_runs_the_stages_left_and_says_how_each_ended(warm, synth
     assert n_futures == 1
     assert settled == {n: "Cached" for n in ("load_session", "register_object",
                                              "detect_keypoints", "select_steady",
-                                             "reconstruct_hand", "crosscheck_sfm")}
+                                             "joint_solve", "reconstruct_hand",
+                                             "crosscheck_sfm")}
     assert list(inner) == [n for n in pipeline.STAGES if n not in settled]  # DAG order
     assert inner["fit_hand"][0] == "Completed" and inner["estimate_adjustment"][0] == "Completed"
     assert inner["register_scan"] == ("Failed", "session x: register_scan: fitness 0.1 below 0.5")
