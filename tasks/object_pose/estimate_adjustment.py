@@ -51,9 +51,11 @@ from graspcap.tasks.object_pose.registration.engine import (
     tls_cost,
 )
 from graspcap.tasks.object_pose.registration.free_rotation import free_axis, free_starts
+from graspcap.tasks.object_pose.registration.grid_search import grid_candidates, rotation_grid
 from graspcap.tasks.object_pose.registration.open3d_threads import single_threaded
 from graspcap.tasks.object_pose.registration.point_clouds import (
     cloud_from_depth,
+    drop_flying_pixels,
     to_pcd,
     valid_depth,
 )
@@ -64,7 +66,7 @@ from graspcap.tasks.object_pose.registration.symmetry import (
     self_flip_axes,
 )
 
-STAGE_VERSION = "estimate_adjustment/15"
+STAGE_VERSION = "estimate_adjustment/16"
 STAGE = "estimate_adjustment"
 
 
@@ -101,6 +103,11 @@ class EstimateAdjustmentConfig(StageConfig):
 
     max_range_m: float = 3.0
     """Depth beyond this is treated as invalid."""
+    drop_flying: bool = True
+    """Drop the pixels on no surface (:func:`point_clouds.drop_flying_pixels`): a Kinect v2's
+    veil at depth edges joins the held object to everything behind it, and the clustering
+    around the hand then finds no object-sized piece (wild [9700, 1], a can at 0.8 m: 15
+    points kept of the 4100 on the can; 4333, 4046 on it, without the veil)."""
     frames_after_onset: int = 5
     """When the first steady frame fails or fits below ``accept_fitness``, the pipeline also
     registers the object in the frame this many later (the onset is often detected a few
@@ -128,6 +135,10 @@ class EstimateAdjustmentConfig(StageConfig):
     """A pixel agrees with the posed object when its depth is within this of the rendered depth."""
     agree_stride_px: int = 2
     """The depth agreement judges every this-th pixel of every this-th row."""
+    hand_free_space: bool = True
+    """The hand's pixels count against a pose that puts the object in front of what they
+    show (the space between the camera and the seen hand surface is empty): masked out
+    alone, they let a pose through the hand or between it and the camera go unjudged."""
     accept_fitness: float = 0.85
     """ICP from register_object's pose is accepted at this fitness."""
     min_fitness: float = 0.5
@@ -172,6 +183,13 @@ class EstimateAdjustmentConfig(StageConfig):
     flipped, are candidates too (:mod:`free_rotation`; a mug, handle hidden). Not gated by
     ``FreeAxis.weakness``: [9900, 4] from onset 26 needs them with its views at 0.07 (50.5 deg
     off without; other mugs 0.07-0.18)."""
+    grid_group: str = "I"
+    """The global path also starts ICP from every rotation of this point group (scipy
+    ``Rotation.create_group``; ``""`` off), each placed on the region by the centroid of the
+    model's camera-facing surface (:mod:`grid_search`): FPFH + RANSAC needs shape features a
+    carton's faces, a can or a small object at 0.8 m do not have."""
+    grid_keep: int = 4
+    """Grid starts (the best by fitness times depth agreement) refined through every level."""
     registration: RegistrationConfig = RegistrationConfig(coarse_model_points=5000)
     """Global registration and ICP settings (a probe's first ICP level against a quarter of
     the model's points). RANSAC keeps 20000 iterations per restart: with 5000 the realistic
@@ -261,7 +279,7 @@ def estimate_adjustment(
         ``ambiguous``.
     """
     cfg = config.registration
-    depth = valid_depth(depth_m, config.max_range_m)
+    depth = _depth(depth_m, K, config)
     if not depth.any():
         raise StageError(STAGE, "depth image has no valid pixel (all zero, NaN or out of range)")
     hand = np.asarray(hand_mask, bool)
@@ -310,7 +328,7 @@ def estimate_adjustment(
         return single
     for v in other_views():  # carried into this frame by the virtual cameras
         hands.append(np.asarray(v.hand_mask, bool))
-        d = valid_depth(v.depth_m, config.max_range_m)
+        d = _depth(v.depth_m, K, config)
         keep = ~grow_mask(hands[-1], config.mask_dilate_px)
         views.append((d, keep, np.asarray(v.T_ref_c, float)))
     if len(views) == 1:
@@ -331,11 +349,18 @@ def estimate_adjustment(
     return single
 
 
+def _depth(depth_m: np.ndarray, K: np.ndarray, config: EstimateAdjustmentConfig) -> np.ndarray:
+    """A view's depth as the stage uses it: valid within range, without flying pixels."""
+    depth = valid_depth(depth_m, config.max_range_m)
+    return drop_flying_pixels(depth, K) if config.drop_flying else depth
+
+
 def _agreement(
     views: list, K: np.ndarray, mesh: tuple, T_w_o: np.ndarray, config: EstimateAdjustmentConfig
 ) -> tuple[float, float, int]:
     """:func:`views_agreement` with the stage's tolerance and pixel stride."""
-    return views_agreement(views, K, mesh, T_w_o, config.agree_tol_m, config.agree_stride_px)
+    return views_agreement(views, K, mesh, T_w_o, config.agree_tol_m, config.agree_stride_px,
+                           free_outside=config.hand_free_space)
 
 
 def spread_frames(pose_valid: np.ndarray, ref: int, count: int) -> list[int]:
@@ -484,6 +509,12 @@ def _from_hypothesis(
     def lead_of(scored: list[Candidate]) -> Candidate:
         return next(c for c in candidates if scores.get(c) is scored[0])
 
+    if config.grid_group:  # starts without features (a carton's faces, a small far object)
+        extra = grid_candidates(
+            scene, model, cfg, rotation_grid(config.grid_group), np.zeros(3), config.grid_keep,
+            cfg.voxel_m, score,
+        )  # fmt: skip
+        candidates = rank([*candidates, *extra], cfg.eval_distance_m)
     centre = candidates[0]  # the pose the symmetry probes turn
     # the model's own near-symmetries are probed too: a mug's principal axes are arbitrary
     # (held-out mug [9900, 7]: its handle-axis twin at agreement 0.71, the truth at 1.0)

@@ -47,12 +47,13 @@ from graspcap.tasks.object_pose.registration.point_clouds import (
     PlatterCrop,
     crop_platter,
     estimate_normals,
+    platter_depth,
     to_pcd,
 )
 from graspcap.tasks.object_pose.registration.symmetry import distinct_from, probe_symmetry
 from graspcap.tasks.object_pose.scan_free_space import free_space_violation, prepare_views
 
-STAGE_VERSION = "register_scan/4"
+STAGE_VERSION = "register_scan/5"
 STAGE = "register_scan"
 
 
@@ -190,9 +191,10 @@ def register_scan(
         if np.ndim(depth_m) != 2:
             raise StageError(STAGE, f"{name} depth has shape {np.shape(depth_m)}, expected (h, w)")
     T_turntable_color = inv_T(np.asarray(T_color_turntable, float))
+    views = [(platter_depth(d, K, config.crop), a) for d, a in views]  # the free space's too
     per_view, counts, pts_all, nrm_all = [], [], [], []
     for depth_m, angle in views:
-        pts_c = crop_platter(depth_m, K, T_color_turntable, config.crop)
+        pts_c = crop_platter(depth_m, K, T_color_turntable, config.crop, prepared=True)
         counts.append(len(pts_c))
         if len(pts_c) < config.min_view_points:
             per_view.append(None)
