@@ -248,6 +248,12 @@ def summarise(rows: list[dict[str, Any]]) -> None:
                   f"{1e3 * np.median(v[:, 1]):.1f} mm; p90 {np.percentile(v[:, 0], 90):.2f} deg"
                   f" / {1e3 * np.percentile(v[:, 1], 90):.1f} mm; within 2 deg/6 mm "
                   f"{int(np.sum((v[:, 0] <= 2) & (v[:, 1] <= 0.006)))}")
+    for k, amb in (("stage1", "stage1_ambiguous"), ("frame", "adj_ambiguous"),
+                   ("scan", "scan_ambiguous")):
+        off = [r for r in rows if k in r["err"] and r["err"][k][0] > 5.0]
+        silent = [r["name"] for r in off if not r.get(amb)]
+        print(f"{k}: {len(off)} more than 5 deg off, {len(silent)} of them not reported "
+              f"ambiguous {silent}")
     times = defaultdict(list)
     for r in rows:
         for k, t in r["times"].items():

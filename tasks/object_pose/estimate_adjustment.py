@@ -27,7 +27,7 @@ frame alone is sharper when it is right).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from functools import partial
 
@@ -37,7 +37,7 @@ from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, rotation_error_deg
 from graspcap.tasks.hand.image_masks import grow_mask
-from graspcap.tasks.object_pose.adjustment_region import hand_mask, near_hand
+from graspcap.tasks.object_pose.adjustment_region import hand_cluster, hand_mask, near_hand
 from graspcap.tasks.object_pose.registration.depth_agreement import views_agreement
 from graspcap.tasks.object_pose.registration.engine import (
     Candidate,
@@ -301,7 +301,9 @@ def estimate_adjustment(
         points = [cloud_from_depth(d, K, keep) @ T[:3, :3].T + T[:3, 3] for d, keep, T in views]
         hand_pts = [cloud_from_depth(d, K, m) @ T[:3, :3].T + T[:3, 3]
                     for (d, _, T), m in zip(views, hands, strict=True)]  # fmt: skip
-        ctx = _Context(views, K, np.concatenate(points), np.concatenate(hand_pts), model, mesh)
+        pts, hand_all = np.concatenate(points), np.concatenate(hand_pts)
+        ctx = _Context(views, K, _within_reach(pts, hand_all, hypotheses, model, config),
+                       hand_all, model, mesh)
         results: list[Adjustment] = []
         errors: list[StageError] = []
         for which, T_start in hypotheses:
@@ -347,6 +349,26 @@ def estimate_adjustment(
     )[0]:
         return multi
     return single
+
+
+def _within_reach(
+    points: np.ndarray, hand_pts: np.ndarray, hypotheses: list, model: Model,
+    config: EstimateAdjustmentConfig,
+) -> np.ndarray:
+    """The ``points`` (n, 3) either path can use: within the box of the hand's own points
+    (:func:`adjustment_region.hand_cluster`) grown as :func:`near_hand` grows it, or within
+    reach of a register_object hypothesis (path 1). Every view's every pixel, carried into
+    the first frame, cost seconds of distance computations per hypothesis."""
+    keep = np.zeros(len(points), bool)
+    for _, T in hypotheses:
+        centre = T[:3, :3] @ model.centroid + T[:3, 3]
+        keep |= np.linalg.norm(points - centre, axis=1) <= model.radius_m + config.stage1_reach_m
+    if len(hand_pts) < config.min_hand_points:
+        return points
+    hand = hand_cluster(hand_pts, config.cluster_voxel_m, config.cluster_eps_m)
+    grow = 2 * (model.radius_m + config.region_margin_m) + 2 * config.cluster_voxel_m
+    keep |= np.all((points >= hand.min(0) - grow) & (points <= hand.max(0) + grow), axis=1)
+    return points[keep]
 
 
 def _depth(depth_m: np.ndarray, K: np.ndarray, config: EstimateAdjustmentConfig) -> np.ndarray:
@@ -448,6 +470,9 @@ class _Context:
     hand_pts: np.ndarray
     model: Model
     mesh: tuple[np.ndarray, np.ndarray]
+    cache: dict = field(default_factory=dict)
+    """What every hypothesis shares: the region around the hand, the global step's
+    candidates, the grid's and the candidates' scores."""
 
 
 def _from_hypothesis(
@@ -480,17 +505,25 @@ def _from_hypothesis(
             T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.STAGE1_ICP, False, which
         )
 
-    # Path 2: global registration on the depth around the hand.
-    region = near_hand(points, hand_pts, model.radius_m, config)
+    # Path 2: global registration on the depth around the hand. The region, the global
+    # step's candidates and their scores do not depend on the hypothesis: found once per
+    # context (a near-symmetric object's two hypotheses paid for two global searches).
+    if "region" not in ctx.cache:
+        ctx.cache["region"] = near_hand(points, hand_pts, model.radius_m, config)
+    region = ctx.cache["region"]
     if len(region) < config.min_points:
         raise StageError(
             STAGE, f"only {len(region)} depth points near the hand: the object is not in view"
         )
-    scene, down, feats = prepare_scene(region, None, np.zeros(3), cfg)
-    candidates = register(scene, down, feats, model, cfg, [("stage1", inv_T(T_w_o1))])
+    if "global" not in ctx.cache:
+        scene, down, feats = prepare_scene(region, None, np.zeros(3), cfg)
+        ctx.cache["global"] = (scene, down, register(scene, down, feats, model, cfg))
+    scene, down, found = ctx.cache["global"]
+    start = refine(scene, model, inv_T(T_w_o1), cfg, "stage1")
+    candidates = rank([start, *found], cfg.eval_distance_m)
     # near-equal candidates are compared on fitness times depth agreement (a carton's twin:
     # 0.99 x 0.91, the truth 1.0 x 1.0); while the best agrees poorly, probes run from it
-    scores: dict[Candidate, Candidate] = {}
+    scores: dict[Candidate, Candidate] = ctx.cache.setdefault("scores", {})
 
     def score(c: Candidate) -> float:
         if c not in scores:
@@ -510,11 +543,12 @@ def _from_hypothesis(
         return next(c for c in candidates if scores.get(c) is scored[0])
 
     if config.grid_group:  # starts without features (a carton's faces, a small far object)
-        extra = grid_candidates(
-            scene, model, cfg, rotation_grid(config.grid_group), np.zeros(3), config.grid_keep,
-            cfg.voxel_m, score,
-        )  # fmt: skip
-        candidates = rank([*candidates, *extra], cfg.eval_distance_m)
+        if "grid" not in ctx.cache:
+            ctx.cache["grid"] = grid_candidates(
+                scene, model, cfg, rotation_grid(config.grid_group), np.zeros(3),
+                config.grid_keep, cfg.voxel_m, score,
+            )  # fmt: skip
+        candidates = rank([*candidates, *ctx.cache["grid"]], cfg.eval_distance_m)
     centre = candidates[0]  # the pose the symmetry probes turn
     # the model's own near-symmetries are probed too: a mug's principal axes are arbitrary
     # (held-out mug [9900, 7]: its handle-axis twin at agreement 0.71, the truth at 1.0)

@@ -73,8 +73,10 @@ def grid_candidates(
 ) -> list[Candidate]:
     """Every rotation of ``rotations`` (k, 3, 3) (object into scene) as a start: translated so
     that the model's camera-facing centroid (seen from ``viewpoint`` (3,), scene frame) is at
-    the scene's centroid, refined by the first ICP level against the coarse model on the
-    scene voxelised at ``voxel_m``; of the distinct results (``ambiguity_min_deg`` or
+    the scene's centroid, refined against the coarse model on the scene voxelised at
+    ``voxel_m`` by ICP reaching ``reach_share`` of the model's radius (the centroids of a
+    partly hidden object and of its facing surface are centimetres apart), then by the
+    first ICP level; of the distinct results (``ambiguity_min_deg`` or
     ``agree_m`` apart) the ``keep`` best by fitness and RMSE, or, given ``score`` (higher is
     better: the depth agreement, which tells a carton from its twin slid along a face at
     equal fitness), the ``keep`` best by it among twice as many, run every level on the
@@ -87,14 +89,17 @@ def grid_candidates(
     view /= max(np.linalg.norm(view), 1e-9)
     coarse = scene.voxel_down_sample(voxel_m) if voxel_m > 0 else scene
     reach = max(cfg.icp_max_distance_m[0], reach_share * model.radius_m)
-    first = cfg.model_copy(update={"icp_voxels_m": (0.0, 0.0), "icp_max_distance_m":
-                                   (reach, cfg.icp_max_distance_m[0])})
+    levels = [cfg.model_copy(update={"icp_voxels_m": (0.0,), "icp_max_distance_m": (d,)})
+              for d in (reach, cfg.icp_max_distance_m[0])]
     found = []
     for j, (R, c_o) in enumerate(zip(rotations, facing_centroids(model, rotations, view),
                                      strict=True)):
-        T_s_o = make_T(R, centre - R @ c_o)
-        found.append(refine(coarse, model, inv_T(T_s_o), first, f"grid:{j}",
-                            eval_points=cfg.probe_eval_points))
+        T_o_s = inv_T(make_T(R, centre - R @ c_o))
+        for level in levels:  # against the coarse model: a wide reach on the dense one is slow
+            c = refine(coarse, model, T_o_s, level, f"grid:{j}",
+                       eval_points=cfg.probe_eval_points, coarse_target=True)
+            T_o_s = c.T_o_s
+        found.append(c)
     distinct: list[Candidate] = []
     for c in rank(found, cfg.eval_distance_m):
         if not any(rotation_error_deg(c.T_o_s, d.T_o_s) < cfg.ambiguity_min_deg
