@@ -189,7 +189,9 @@ class EstimateAdjustmentConfig(StageConfig):
     model's camera-facing surface (:mod:`grid_search`): FPFH + RANSAC needs shape features a
     carton's faces, a can or a small object at 0.8 m do not have."""
     grid_keep: int = 4
-    """Grid starts (the best by fitness times depth agreement) refined through every level."""
+    """Grid starts (the best by fitness times depth agreement) refined through every level.
+    They run only while the global step's best of its first three scores below
+    ``reprobe_below``."""
     registration: RegistrationConfig = RegistrationConfig(coarse_model_points=5000)
     """Global registration and ICP settings (a probe's first ICP level against a quarter of
     the model's points). RANSAC keeps 20000 iterations per restart: with 5000 the realistic
@@ -542,7 +544,10 @@ def _from_hypothesis(
     def lead_of(scored: list[Candidate]) -> Candidate:
         return next(c for c in candidates if scores.get(c) is scored[0])
 
-    if config.grid_group:  # starts without features (a carton's faces, a small far object)
+    lead = max(candidates[:3], key=score)
+    if config.grid_group and ("grid" in ctx.cache or score(lead) < config.reprobe_below):
+        # starts without features (a carton's faces, a small far object), unless the global
+        # step found a pose the depth already explains
         if "grid" not in ctx.cache:
             ctx.cache["grid"] = grid_candidates(
                 scene, model, cfg, rotation_grid(config.grid_group), np.zeros(3),
