@@ -28,6 +28,7 @@ from graspcap.tasks.object_pose.registration.engine import (
     RegistrationConfig,
     rank,
     refine,
+    strided,
 )
 from graspcap.tasks.object_pose.registration.open3d_threads import single_threaded
 
@@ -65,35 +66,39 @@ def grid_candidates(
     model: Model,
     cfg: RegistrationConfig,
     rotations: np.ndarray,
-    viewpoint: np.ndarray,
+    viewpoint: np.ndarray | None,
     keep: int,
     voxel_m: float,
     score: Callable[[Candidate], float] | None = None,
     reach_share: float = 0.5,
+    max_points: int = 800,
 ) -> list[Candidate]:
-    """Every rotation of ``rotations`` (k, 3, 3) (object into scene) as a start: translated so
-    that the model's camera-facing centroid (seen from ``viewpoint`` (3,), scene frame) is at
-    the scene's centroid, refined against the coarse model on the scene voxelised at
-    ``voxel_m`` by ICP reaching ``reach_share`` of the model's radius (the centroids of a
-    partly hidden object and of its facing surface are centimetres apart), then by the
-    first ICP level; of the distinct results (``ambiguity_min_deg`` or
-    ``agree_m`` apart) the ``keep`` best by fitness and RMSE, or, given ``score`` (higher is
-    better: the depth agreement, which tells a carton from its twin slid along a face at
-    equal fitness), the ``keep`` best by it among twice as many, run every level on the
-    whole scene. Returns those, best first."""
+    """Every rotation of ``rotations`` (k, 3, 3) (object into scene) as a start, translated
+    so that the model's camera-facing centroid (seen from ``viewpoint`` (3,), scene frame;
+    the whole model's centroid when None) is at the scene's centroid; refined against the
+    coarse model on the scene voxelised at ``voxel_m`` (at most ``max_points`` of it, an even
+    stride) by ICP reaching ``reach_share`` of
+    the model's radius (the centroids of a partly hidden object and of its facing surface
+    are centimetres apart), then by the first ICP level. Of the distinct results
+    (``ambiguity_min_deg`` or ``agree_m`` apart) the ``keep`` best by fitness and RMSE, or,
+    given ``score`` (higher is better: the depth agreement, which tells a carton from its
+    twin slid along a face at equal fitness), the ``keep`` best by it among twice as many,
+    run every level on the whole scene. Returns those, best first."""
     pts = np.asarray(scene.points)
     if len(pts) == 0 or keep <= 0:
         return []
     centre = pts.mean(0)
-    view = centre - np.asarray(viewpoint, float)
-    view /= max(np.linalg.norm(view), 1e-9)
-    coarse = scene.voxel_down_sample(voxel_m) if voxel_m > 0 else scene
+    if viewpoint is None:  # seen from all round (a fused turntable scan): the whole model
+        centroids = np.repeat(model.centroid[None], len(rotations), axis=0)
+    else:
+        view = centre - np.asarray(viewpoint, float)
+        centroids = facing_centroids(model, rotations, view / max(np.linalg.norm(view), 1e-9))
+    coarse = strided(scene.voxel_down_sample(voxel_m) if voxel_m > 0 else scene, max_points)
     reach = max(cfg.icp_max_distance_m[0], reach_share * model.radius_m)
     levels = [cfg.model_copy(update={"icp_voxels_m": (0.0,), "icp_max_distance_m": (d,)})
               for d in (reach, cfg.icp_max_distance_m[0])]
     found = []
-    for j, (R, c_o) in enumerate(zip(rotations, facing_centroids(model, rotations, view),
-                                     strict=True)):
+    for j, (R, c_o) in enumerate(zip(rotations, centroids, strict=True)):
         T_o_s = inv_T(make_T(R, centre - R @ c_o))
         for level in levels:  # against the coarse model: a wide reach on the dense one is slow
             c = refine(coarse, model, T_o_s, level, f"grid:{j}",
