@@ -50,10 +50,15 @@ def valid_depth(depth_m: np.ndarray, max_range_m: float) -> np.ndarray:
 def drop_flying_pixels(
     depth_m: np.ndarray, K: np.ndarray, tol_m: float = 0.008, slope: float = 4.0,
     min_neighbours: int = 3,
+    min_share: float = 1e-3,
 ) -> np.ndarray:
     """Depth (h, w) with the pixels that lie on no surface set to 0: those with fewer than
     ``min_neighbours`` of their 8 neighbours within ``max(tol_m, slope * z / f)`` of their own
-    depth. A time-of-flight camera (Kinect v2) reads a depth between the near and the far side
+    depth. An image in which fewer than ``min_share`` of the valid pixels are such is
+    returned unchanged: a camera without a veil (a realistic stage-1 image has 0.07 % such
+    pixels, a wild grasp frame 0.2 %; dropping the three in a realistic bottle's crop changed
+    RANSAC's draws and the result). A
+    time-of-flight camera (Kinect v2) reads a depth between the near and the far side
     at a depth edge ("flying pixels", a veil along the silhouette): such a pixel has nearly no
     neighbour at its depth, where a surface pixel, its silhouette's rim included, has at least
     three (``slope`` pixel spacings per pixel: a surface seen at 76 deg of incidence, the
@@ -65,13 +70,21 @@ def drop_flying_pixels(
     tol = np.maximum(np.float32(tol_m), np.float32(slope / f) * d)
     pad = np.pad(d, 1)
     agree = np.zeros((h, w), np.int8)
+    nearer = np.zeros((h, w), bool)
+    farther = np.zeros((h, w), bool)
     for dv in (-1, 0, 1):
         for du in (-1, 0, 1):
             if dv == 0 and du == 0:
                 continue
             nb = pad[1 + dv : 1 + dv + h, 1 + du : 1 + du + w]
-            agree += (nb > 0) & (np.abs(nb - d) <= tol)
-    return np.where((d > 0) & (agree >= min_neighbours), np.asarray(depth_m, float), 0.0)
+            valid = nb > 0
+            agree += valid & (np.abs(nb - d) <= tol)
+            nearer |= valid & (nb < d - tol)
+            farther |= valid & (nb > d + tol)
+    flying = (agree < min_neighbours) & (nearer | farther)  # beside an edge, on no surface
+    if flying.sum() < min_share * max(int((d > 0).sum()), 1):
+        return np.asarray(depth_m, float)  # no veil: the depth as it is, bit for bit
+    return np.where((d > 0) & ~flying, np.asarray(depth_m, float), 0.0)
 
 
 def cloud_from_depth(
