@@ -54,34 +54,41 @@ def drop_flying_pixels(
 ) -> np.ndarray:
     """Depth (h, w) with the pixels that lie on no surface set to 0: those with fewer than
     ``min_neighbours`` of their 8 neighbours within ``max(tol_m, slope * z / f)`` of their own
-    depth. An image in which fewer than ``min_share`` of the valid pixels are such is
-    returned unchanged: a camera without a veil (a realistic stage-1 image has 0.07 % such
-    pixels, a wild grasp frame 0.2 %; dropping the three in a realistic bottle's crop changed
-    RANSAC's draws and the result). A
-    time-of-flight camera (Kinect v2) reads a depth between the near and the far side
-    at a depth edge ("flying pixels", a veil along the silhouette): such a pixel has nearly no
-    neighbour at its depth, where a surface pixel, its silhouette's rim included, has at least
-    three (``slope`` pixel spacings per pixel: a surface seen at 76 deg of incidence, the
-    grazing limit of such sensors). The veil joins a held object to everything behind it and
-    costs registration its inliers; a surface loses at most isolated pixels."""
+    depth AND both a nearer and a farther pixel within two pixels. A time-of-flight camera
+    (Kinect v2) reads a depth between the near and the far side at a depth edge ("flying
+    pixels", a veil along the silhouette, a ramp from the one side to the other): such a pixel
+    has nearly no neighbour at its depth, where a surface pixel, its silhouette's rim
+    included, has at least three (``slope`` pixel spacings per pixel: a surface seen at 76 deg
+    of incidence, the grazing limit of such sensors). A clean camera's silhouette pixel (a
+    thin corner of the rim, or the background beside it) has a nearer or a farther pixel
+    beside it, never both, and is never touched: dropping a realistic bottle's silhouette
+    corners flipped its registration to the symmetric twin. An image in which fewer than
+    ``min_share`` of the valid pixels are such is returned unchanged (a realistic stage-1
+    image had 0.07 % under the one-sided rule, a wild grasp frame 0.2 %). The veil joins a
+    held object to everything behind it and costs registration its inliers; a surface loses
+    at most isolated pixels."""
     d = np.asarray(depth_m, dtype=np.float32)
     h, w = d.shape
     f = float(np.asarray(K, float)[0, 0])
     tol = np.maximum(np.float32(tol_m), np.float32(slope / f) * d)
-    pad = np.pad(d, 1)
+    pad = np.pad(d, 2)
     agree = np.zeros((h, w), np.int8)
     nearer = np.zeros((h, w), bool)
     farther = np.zeros((h, w), bool)
-    for dv in (-1, 0, 1):
-        for du in (-1, 0, 1):
+    for dv in range(-2, 3):
+        for du in range(-2, 3):
             if dv == 0 and du == 0:
                 continue
-            nb = pad[1 + dv : 1 + dv + h, 1 + du : 1 + du + w]
+            nb = pad[2 + dv : 2 + dv + h, 2 + du : 2 + du + w]
             valid = nb > 0
-            agree += valid & (np.abs(nb - d) <= tol)
+            if abs(dv) <= 1 and abs(du) <= 1:
+                agree += valid & (np.abs(nb - d) <= tol)
             nearer |= valid & (nb < d - tol)
             farther |= valid & (nb > d + tol)
-    flying = (agree < min_neighbours) & (nearer | farther)  # beside an edge, on no surface
+    # between a nearer and a farther surface (within 2 pixels: a veil is a ramp from the near
+    # side to the far one) and on no surface; a clean camera's silhouette pixel, its rim or
+    # the background beside it, has only one of the two and is never touched
+    flying = (d > 0) & (agree < min_neighbours) & nearer & farther
     if flying.sum() < min_share * max(int((d > 0).sum()), 1):
         return np.asarray(depth_m, float)  # no veil: the depth as it is, bit for bit
     return np.where((d > 0) & ~flying, np.asarray(depth_m, float), 0.0)

@@ -39,6 +39,18 @@ def test_flying_pixels_are_dropped_and_surfaces_kept():
     assert out[10, 10] == 0.0
 
 
+def test_a_clean_silhouette_is_never_touched():
+    # a noise-free camera: a square before a wall, a one-pixel stick out of it (2 neighbours
+    # at its depth, the wall beside it) and a dropout hole; nothing lies between a nearer and
+    # a farther surface, so nothing is dropped, even with no share gate
+    d = np.full((120, 160), 1.2)
+    d[40:80, 40:100] = 0.8
+    d[30:40, 60] = 0.8
+    d[90:100, 10:20] = 0.0
+    out = drop_flying_pixels(d, K, min_share=0.0)
+    np.testing.assert_array_equal(out, d)
+
+
 def _box_depth(T_c_o, box, w=160, h=120, wall_m=1.2):
     hits = render([box], [T_c_o], K, w, h)
     return np.where(hits.mesh_index == 0, hits.depth_m, wall_m), hits.mesh_index == 0
