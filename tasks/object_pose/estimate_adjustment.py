@@ -27,7 +27,7 @@ frame alone is sharper when it is right).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from functools import partial
 
@@ -37,7 +37,7 @@ from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, rotation_error_deg
 from graspcap.tasks.hand.image_masks import grow_mask
-from graspcap.tasks.object_pose.adjustment_region import hand_mask, near_hand
+from graspcap.tasks.object_pose.adjustment_region import hand_cluster, hand_mask, near_hand
 from graspcap.tasks.object_pose.registration.depth_agreement import views_agreement
 from graspcap.tasks.object_pose.registration.engine import (
     Candidate,
@@ -51,9 +51,11 @@ from graspcap.tasks.object_pose.registration.engine import (
     tls_cost,
 )
 from graspcap.tasks.object_pose.registration.free_rotation import free_axis, free_starts
+from graspcap.tasks.object_pose.registration.grid_search import grid_candidates, rotation_grid
 from graspcap.tasks.object_pose.registration.open3d_threads import single_threaded
 from graspcap.tasks.object_pose.registration.point_clouds import (
     cloud_from_depth,
+    drop_flying_pixels,
     to_pcd,
     valid_depth,
 )
@@ -64,7 +66,7 @@ from graspcap.tasks.object_pose.registration.symmetry import (
     self_flip_axes,
 )
 
-STAGE_VERSION = "estimate_adjustment/15"
+STAGE_VERSION = "estimate_adjustment/16"
 STAGE = "estimate_adjustment"
 
 
@@ -101,6 +103,11 @@ class EstimateAdjustmentConfig(StageConfig):
 
     max_range_m: float = 3.0
     """Depth beyond this is treated as invalid."""
+    drop_flying: bool = True
+    """Drop the pixels on no surface (:func:`point_clouds.drop_flying_pixels`): a Kinect v2's
+    veil at depth edges joins the held object to everything behind it, and the clustering
+    around the hand then finds no object-sized piece (wild [9700, 1], a can at 0.8 m: 15
+    points kept of the 4100 on the can; 4333, 4046 on it, without the veil)."""
     frames_after_onset: int = 5
     """When the first steady frame fails or fits below ``accept_fitness``, the pipeline also
     registers the object in the frame this many later (the onset is often detected a few
@@ -128,6 +135,10 @@ class EstimateAdjustmentConfig(StageConfig):
     """A pixel agrees with the posed object when its depth is within this of the rendered depth."""
     agree_stride_px: int = 2
     """The depth agreement judges every this-th pixel of every this-th row."""
+    hand_free_space: bool = True
+    """The hand's pixels count against a pose that puts the object in front of what they
+    show (the space between the camera and the seen hand surface is empty): masked out
+    alone, they let a pose through the hand or between it and the camera go unjudged."""
     accept_fitness: float = 0.85
     """ICP from register_object's pose is accepted at this fitness."""
     min_fitness: float = 0.5
@@ -172,6 +183,15 @@ class EstimateAdjustmentConfig(StageConfig):
     flipped, are candidates too (:mod:`free_rotation`; a mug, handle hidden). Not gated by
     ``FreeAxis.weakness``: [9900, 4] from onset 26 needs them with its views at 0.07 (50.5 deg
     off without; other mugs 0.07-0.18)."""
+    grid_group: str = "I"
+    """The global path also starts ICP from every rotation of this point group (scipy
+    ``Rotation.create_group``; ``""`` off), each placed on the region by the centroid of the
+    model's camera-facing surface (:mod:`grid_search`): FPFH + RANSAC needs shape features a
+    carton's faces, a can or a small object at 0.8 m do not have."""
+    grid_keep: int = 4
+    """Grid starts (the best by fitness times depth agreement) refined through every level.
+    They run only while the global step's best of its first three scores below
+    ``reprobe_below``."""
     registration: RegistrationConfig = RegistrationConfig(coarse_model_points=5000)
     """Global registration and ICP settings (a probe's first ICP level against a quarter of
     the model's points). RANSAC keeps 20000 iterations per restart: with 5000 the realistic
@@ -261,7 +281,7 @@ def estimate_adjustment(
         ``ambiguous``.
     """
     cfg = config.registration
-    depth = valid_depth(depth_m, config.max_range_m)
+    depth = _depth(depth_m, K, config)
     if not depth.any():
         raise StageError(STAGE, "depth image has no valid pixel (all zero, NaN or out of range)")
     hand = np.asarray(hand_mask, bool)
@@ -283,7 +303,9 @@ def estimate_adjustment(
         points = [cloud_from_depth(d, K, keep) @ T[:3, :3].T + T[:3, 3] for d, keep, T in views]
         hand_pts = [cloud_from_depth(d, K, m) @ T[:3, :3].T + T[:3, 3]
                     for (d, _, T), m in zip(views, hands, strict=True)]  # fmt: skip
-        ctx = _Context(views, K, np.concatenate(points), np.concatenate(hand_pts), model, mesh)
+        pts, hand_all = np.concatenate(points), np.concatenate(hand_pts)
+        ctx = _Context(views, K, _within_reach(pts, hand_all, hypotheses, model, config),
+                       hand_all, model, mesh)
         results: list[Adjustment] = []
         errors: list[StageError] = []
         for which, T_start in hypotheses:
@@ -310,7 +332,7 @@ def estimate_adjustment(
         return single
     for v in other_views():  # carried into this frame by the virtual cameras
         hands.append(np.asarray(v.hand_mask, bool))
-        d = valid_depth(v.depth_m, config.max_range_m)
+        d = _depth(v.depth_m, K, config)
         keep = ~grow_mask(hands[-1], config.mask_dilate_px)
         views.append((d, keep, np.asarray(v.T_ref_c, float)))
     if len(views) == 1:
@@ -331,11 +353,38 @@ def estimate_adjustment(
     return single
 
 
+def _within_reach(
+    points: np.ndarray, hand_pts: np.ndarray, hypotheses: list, model: Model,
+    config: EstimateAdjustmentConfig,
+) -> np.ndarray:
+    """The ``points`` (n, 3) either path can use: within the box of the hand's own points
+    (:func:`adjustment_region.hand_cluster`) grown as :func:`near_hand` grows it, or within
+    reach of a register_object hypothesis (path 1). Every view's every pixel, carried into
+    the first frame, cost seconds of distance computations per hypothesis."""
+    keep = np.zeros(len(points), bool)
+    for _, T in hypotheses:
+        centre = T[:3, :3] @ model.centroid + T[:3, 3]
+        keep |= np.linalg.norm(points - centre, axis=1) <= model.radius_m + config.stage1_reach_m
+    if len(hand_pts) < config.min_hand_points:
+        return points
+    hand = hand_cluster(hand_pts, config.cluster_voxel_m, config.cluster_eps_m)
+    grow = 2 * (model.radius_m + config.region_margin_m) + 2 * config.cluster_voxel_m
+    keep |= np.all((points >= hand.min(0) - grow) & (points <= hand.max(0) + grow), axis=1)
+    return points[keep]
+
+
+def _depth(depth_m: np.ndarray, K: np.ndarray, config: EstimateAdjustmentConfig) -> np.ndarray:
+    """A view's depth as the stage uses it: valid within range, without flying pixels."""
+    depth = valid_depth(depth_m, config.max_range_m)
+    return drop_flying_pixels(depth, K) if config.drop_flying else depth
+
+
 def _agreement(
     views: list, K: np.ndarray, mesh: tuple, T_w_o: np.ndarray, config: EstimateAdjustmentConfig
 ) -> tuple[float, float, int]:
     """:func:`views_agreement` with the stage's tolerance and pixel stride."""
-    return views_agreement(views, K, mesh, T_w_o, config.agree_tol_m, config.agree_stride_px)
+    return views_agreement(views, K, mesh, T_w_o, config.agree_tol_m, config.agree_stride_px,
+                           free_outside=config.hand_free_space)
 
 
 def spread_frames(pose_valid: np.ndarray, ref: int, count: int) -> list[int]:
@@ -423,6 +472,9 @@ class _Context:
     hand_pts: np.ndarray
     model: Model
     mesh: tuple[np.ndarray, np.ndarray]
+    cache: dict = field(default_factory=dict)
+    """What every hypothesis shares: the region around the hand, the global step's
+    candidates, the grid's and the candidates' scores."""
 
 
 def _from_hypothesis(
@@ -455,17 +507,25 @@ def _from_hypothesis(
             T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.STAGE1_ICP, False, which
         )
 
-    # Path 2: global registration on the depth around the hand.
-    region = near_hand(points, hand_pts, model.radius_m, config)
+    # Path 2: global registration on the depth around the hand. The region, the global
+    # step's candidates and their scores do not depend on the hypothesis: found once per
+    # context (a near-symmetric object's two hypotheses paid for two global searches).
+    if "region" not in ctx.cache:
+        ctx.cache["region"] = near_hand(points, hand_pts, model.radius_m, config)
+    region = ctx.cache["region"]
     if len(region) < config.min_points:
         raise StageError(
             STAGE, f"only {len(region)} depth points near the hand: the object is not in view"
         )
-    scene, down, feats = prepare_scene(region, None, np.zeros(3), cfg)
-    candidates = register(scene, down, feats, model, cfg, [("stage1", inv_T(T_w_o1))])
+    if "global" not in ctx.cache:
+        scene, down, feats = prepare_scene(region, None, np.zeros(3), cfg)
+        ctx.cache["global"] = (scene, down, register(scene, down, feats, model, cfg))
+    scene, down, found = ctx.cache["global"]
+    start = refine(scene, model, inv_T(T_w_o1), cfg, "stage1")
+    candidates = rank([start, *found], cfg.eval_distance_m)
     # near-equal candidates are compared on fitness times depth agreement (a carton's twin:
     # 0.99 x 0.91, the truth 1.0 x 1.0); while the best agrees poorly, probes run from it
-    scores: dict[Candidate, Candidate] = {}
+    scores: dict[Candidate, Candidate] = ctx.cache.setdefault("scores", {})
 
     def score(c: Candidate) -> float:
         if c not in scores:
@@ -484,6 +544,16 @@ def _from_hypothesis(
     def lead_of(scored: list[Candidate]) -> Candidate:
         return next(c for c in candidates if scores.get(c) is scored[0])
 
+    lead = max(candidates[:3], key=score)
+    if config.grid_group and ("grid" in ctx.cache or score(lead) < config.reprobe_below):
+        # starts without features (a carton's faces, a small far object), unless the global
+        # step found a pose the depth already explains
+        if "grid" not in ctx.cache:
+            ctx.cache["grid"] = grid_candidates(
+                scene, model, cfg, rotation_grid(config.grid_group), np.zeros(3),
+                config.grid_keep, cfg.voxel_m, score,
+            )  # fmt: skip
+        candidates = rank([*candidates, *ctx.cache["grid"]], cfg.eval_distance_m)
     centre = candidates[0]  # the pose the symmetry probes turn
     # the model's own near-symmetries are probed too: a mug's principal axes are arbitrary
     # (held-out mug [9900, 7]: its handle-axis twin at agreement 0.71, the truth at 1.0)
@@ -492,6 +562,12 @@ def _from_hypothesis(
     probe = partial(probe_symmetry, flip_axes=self_flip_axes(model) if flips else None)
     if config.check_ambiguity:
         candidates = probe(scene, model, candidates, cfg)
+        if centre is not lead and lead in candidates:
+            # the grid displaced the global step's best: its twins are probed too (lifted mug
+            # seed 2, 120 deg: a grid pose 9 deg off at 0.97 led, the truth at 0.998 is a
+            # turn of the global step's pose; which one led hung on a handful of depth pixels)
+            rest = [c for c in candidates if c is not lead]
+            candidates = probe(scene, model, [lead, *rest], cfg)
     scored = combined(candidates)
     for _ in range(config.probe_rounds if config.check_ambiguity else 0):
         if scored[0].fitness >= config.reprobe_below:

@@ -65,10 +65,13 @@ def _compare(
     tol_m: float,
     keep: np.ndarray | None,
     stride_px: int = 1,
+    free_outside: bool = False,
 ) -> tuple[int, int, float]:
     """(pixels judged, pixels agreeing, sum of their squared depth differences): the mesh is
     rendered only over the pixel box its vertices project into (identical rays, fewer), at
-    every ``stride_px``-th pixel and row of it."""
+    every ``stride_px``-th pixel and row of it. With ``free_outside`` the pixels outside
+    ``keep`` whose depth lies more than ``tol_m`` beyond the rendered mesh are judged too, as
+    disagreeing: what is seen there (a hand) is seen through where the mesh would be."""
     h, w = depth_m.shape
     T_c_o = np.asarray(T_c_o, float)
     K = np.asarray(K, float)
@@ -83,11 +86,16 @@ def _compare(
     depth_m = depth_m[v0:v1:s, u0:u1:s]
     hits = render([mesh], [T_c_o], K_box, depth_m.shape[1], depth_m.shape[0])
     seen = (hits.mesh_index == 0) & (depth_m > 0)
+    through = 0
     if keep is not None:
-        seen &= keep[v0:v1:s, u0:u1:s]
+        kept = keep[v0:v1:s, u0:u1:s]
+        if free_outside:
+            out = seen & ~kept
+            through = int(np.count_nonzero(depth_m[out] > hits.depth_m[out] + tol_m))
+        seen &= kept
     diff = depth_m[seen] - hits.depth_m[seen]
     agree = np.abs(diff) <= tol_m
-    return int(seen.sum()), int(agree.sum()), float(np.sum(diff[agree] ** 2))
+    return int(seen.sum()) + through, int(agree.sum()), float(np.sum(diff[agree] ** 2))
 
 
 def views_agreement(
@@ -97,6 +105,7 @@ def views_agreement(
     T_w_o: np.ndarray,
     tol_m: float,
     stride_px: int = 1,
+    free_outside: bool = False,
 ) -> tuple[float, float, int]:
     """Does the depth show the object at ``T_w_o``? In every view ``(depth (h, w), keep
     (h, w), T_ref_c (4, 4))`` renders the mesh at ``inv(T_ref_c) @ T_w_o``; over the pixels
@@ -105,12 +114,14 @@ def views_agreement(
     sees through where the object would be; nearer depth means something unmasked covers it
     (or the pose is inside another surface): both count against the pose. Returns (agreeing
     share, RMS depth difference of the agreeing pixels, pixels judged), over all views, on
-    every ``stride_px``-th pixel and row (:func:`depth_agreement`)."""
+    every ``stride_px``-th pixel and row (:func:`depth_agreement`). With ``free_outside``
+    the masked pixels (the hand) count against the pose where their depth lies beyond the
+    rendered object: the object can be behind the hand, never in front of what is seen."""
     n = n_agree = 0
     sq = 0.0
     for depth, keep, T_ref_c in views:
         dn, da, dsq = _compare(
-            depth, K, mesh, inv_T(T_ref_c) @ T_w_o, tol_m, keep, stride_px
+            depth, K, mesh, inv_T(T_ref_c) @ T_w_o, tol_m, keep, stride_px, free_outside
         )
         n, n_agree, sq = n + dn, n_agree + da, sq + dsq
     if n == 0 or n_agree == 0:

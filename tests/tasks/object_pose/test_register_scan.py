@@ -76,10 +76,10 @@ def test_same_input_gives_bit_identical_output(flipped_mug):
 
 
 def test_a_contradicted_pose_is_reported_when_the_search_cannot_leave_it(flipped_mug):
-    """Without the grid probes the flipped pose stays; the result says the views contradict
-    it instead of hiding it."""
+    """Without the grid probes and grid starts the flipped pose stays; the result says the
+    views contradict it instead of hiding it."""
     views, K, T_ct, T_to, _ = flipped_mug
-    cfg = RegisterScanConfig(probe_grid="", check_ambiguity=False)
+    cfg = RegisterScanConfig(probe_grid="", check_ambiguity=False, grid_group="")
     r = register_scan(views, K, T_ct, MUG.vertices, MUG.faces, cfg)
     assert pose_error(r.T_turntable_o_scan, T_to)[0] > 170
     assert r.free_space_violation > PRESETS["default"].grid_above
