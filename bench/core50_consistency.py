@@ -109,6 +109,7 @@ def intrinsics(focal_px: float) -> np.ndarray:
 def static_hand(kp: np.ndarray, focal_px: float, corrupt: int = 0):
     """The reprojection-only static-hand solve of ``reconstruct_hand`` (module docstring):
     (:class:`Consistency`, T_c_w (n, 4, 4), points_w (21, 3), residuals (n, 21), inliers)."""
+    from graspcap.tasks.core.geometry import rotation_error_deg
     from graspcap.tasks.hand_sfm.reconstruct_hand import PRESETS
     from graspcap.tasks.hand_sfm.solve import rotation_span_deg, solve_visual
     from graspcap.tasks.hand_sfm.two_view_init import initialise
@@ -130,7 +131,7 @@ def static_hand(kp: np.ndarray, focal_px: float, corrupt: int = 0):
     share = float(inlier.sum() / ok.sum())
     rmse = float(np.sqrt(np.mean(res[inlier] ** 2)))
     turn = float(rotation_span_deg(ba.T_c_w))
-    steps = [np.degrees(np.arccos(np.clip((np.trace(a[:3, :3] @ b[:3, :3].T) - 1) / 2, -1, 1)))
+    steps = [rotation_error_deg(b[:3, :3], a[:3, :3])
              for a, b in zip(ba.T_c_w[:-1], ba.T_c_w[1:], strict=True)
              if np.all(np.isfinite(a)) and np.all(np.isfinite(b))]
     facts = Consistency(

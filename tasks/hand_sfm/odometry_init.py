@@ -22,7 +22,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from graspcap.tasks.core.geometry import inv_T
+from graspcap.tasks.core.geometry import inv_T, rotation_error_deg
 from graspcap.tasks.hand_sfm.depth_links import DepthLinkConfig, icp_batch
 from graspcap.tasks.hand_sfm.surface_clouds import SurfaceCloud
 from graspcap.tasks.hand_sfm.two_view_init import (
@@ -90,7 +90,7 @@ def _grow(surfaces, K, cfg, T, start, order, max_skip, max_gap, max_rmse_m) -> i
                 effective_points=cfg.effective_points,
             )  # fmt: skip
             R, t = T_a_b[0, :3, :3], T_a_b[0, :3, 3]
-            angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+            angle = rotation_error_deg(np.eye(3), R)
             if (overlap[0] >= cfg.min_overlap and rmse[0] <= max_rmse_m
                     and angle <= cfg.max_step_deg and np.linalg.norm(t) <= cfg.max_step_m):
                 T[b] = inv_T(T_a_b[0]) @ T[a]  # T_b_w = (T_a_b)^-1 T_a_w
