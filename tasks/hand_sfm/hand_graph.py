@@ -180,6 +180,23 @@ def limit_factor(lower: np.ndarray, upper: np.ndarray, sigma_rad: float) -> gtsa
     return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(20, sigma_rad), [A_KEY], error)
 
 
+def _pose_residual(residual: Callable[..., np.ndarray], poses: list, H: list | None,
+                   step: float) -> np.ndarray:
+    """``residual(*poses)``; with ``H``, each pose's (6, 6) Jacobian by central differences
+    along its retraction, written into ``H`` (a ``CustomFactor`` error function's job)."""
+    if H is not None:
+        for n, pose in enumerate(poses):
+            cols = []
+            for d in range(6):
+                e = np.zeros(6)
+                e[d] = step
+                plus, minus = list(poses), list(poses)
+                plus[n], minus[n] = pose.retract(e), pose.retract(-e)
+                cols.append((residual(*plus) - residual(*minus)) / (2 * step))
+            H[n] = np.stack(cols, axis=1)
+    return residual(*poses)
+
+
 def motion_factor(a: int, b: int, c: int, noise: gtsam.noiseModel.Base,
                   step: float = 1e-6) -> gtsam.CustomFactor:
     """Constant velocity of the virtual camera over frames a < b < c (6,): the per-frame
@@ -193,19 +210,7 @@ def motion_factor(a: int, b: int, c: int, noise: gtsam.noiseModel.Base,
                 - gtsam.Pose3.Logmap(Tb.compose(Tc.inverse())) / gb)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        poses = [values.atPose3(k) for k in this.keys()]
-        r = residual(*poses)
-        if H is not None:
-            for n in range(3):
-                cols = []
-                for d in range(6):
-                    e = np.zeros(6)
-                    e[d] = step
-                    plus, minus = list(poses), list(poses)
-                    plus[n], minus[n] = poses[n].retract(e), poses[n].retract(-e)
-                    cols.append((residual(*plus) - residual(*minus)) / (2 * step))
-                H[n] = np.stack(cols, axis=1)
-        return r
+        return _pose_residual(residual, [values.atPose3(k) for k in this.keys()], H, step)
 
     return gtsam.CustomFactor(noise, [camera_key(a), camera_key(b), camera_key(c)], error)
 
@@ -222,18 +227,7 @@ def link_factor(a: int, b: int, T_a_b: np.ndarray, noise: gtsam.noiseModel.Base,
         return gtsam.Pose3.Logmap(meas_inv.compose(Ta.compose(Tb.inverse())))
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        poses = [values.atPose3(k) for k in this.keys()]
-        if H is not None:
-            for n in range(2):
-                cols = []
-                for d in range(6):
-                    e = np.zeros(6)
-                    e[d] = step
-                    plus, minus = list(poses), list(poses)
-                    plus[n], minus[n] = poses[n].retract(e), poses[n].retract(-e)
-                    cols.append((residual(*plus) - residual(*minus)) / (2 * step))
-                H[n] = np.stack(cols, axis=1)
-        return residual(*poses)
+        return _pose_residual(residual, [values.atPose3(k) for k in this.keys()], H, step)
 
     return gtsam.CustomFactor(noise, [camera_key(a), camera_key(b)], error)
 

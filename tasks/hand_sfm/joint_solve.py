@@ -49,7 +49,7 @@ from graspcap.tasks.hand_sfm.metric_scale import DepthLookup, depth_lookup_from_
 from graspcap.tasks.hand_sfm.reconstruct_hand import ReconstructConfig
 from graspcap.tasks.hand_sfm.result import HandReconstruction, SfmDiagnostics
 from graspcap.tasks.hand_sfm.solve import fill_poses, rotation_span_deg
-from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame, hand_centre, surface_cloud
+from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame, surface_reader
 from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 
 STAGE = "joint_solve"
@@ -244,16 +244,11 @@ def joint_solve(
     surface_at = None
     link_cfg = cfg.depth_links
     if link_cfg.enabled and depth_frame is not None and T_color_turntable is not None:
-
-        def surface_at(i: int, uv_i: np.ndarray, depth_i: np.ndarray):
-            centre = hand_centre(K, uv_i, depth_i, link_cfg.centre_below_skin_m)
-            if centre is None:
-                return None
-            return surface_cloud(
-                depth_frame(steady_from + i), K, centre, radius_m=link_cfg.radius_m,
-                stride_px=link_cfg.stride_px, T_color_turntable=T_color_turntable,
-                min_height_m=link_cfg.min_height_m,
-            )  # fmt: skip
+        surface_at = surface_reader(
+            depth_frame, K, steady_from, T_color_turntable,
+            centre_below_skin_m=link_cfg.centre_below_skin_m, radius_m=link_cfg.radius_m,
+            stride_px=link_cfg.stride_px, min_height_m=link_cfg.min_height_m,
+        )
 
     found = staged(cfg.staged)
     if isinstance(found, str):  # the joint solve starts from the depth

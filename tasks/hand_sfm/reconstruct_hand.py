@@ -47,7 +47,7 @@ from graspcap.tasks.hand_sfm.solve import (
     solve_rgbd,
     solve_visual,
 )
-from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame, hand_centre, surface_cloud
+from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame, surface_reader
 from graspcap.tasks.hand_sfm.two_view_init import Initialisation, check_frames, initialise
 
 __all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",
@@ -309,15 +309,11 @@ def reconstruct_hand(
         and T_color_turntable is not None
     )
 
-    def surface_at(i: int, uv_i: np.ndarray, depth_i: np.ndarray):
-        centre = hand_centre(K, uv_i, depth_i, link_cfg.centre_below_skin_m)
-        if centre is None:
-            return None
-        return surface_cloud(
-            depth_frame(steady_from + i), K, centre, radius_m=link_cfg.radius_m,
-            stride_px=link_cfg.stride_px, T_color_turntable=T_color_turntable,
-            min_height_m=link_cfg.min_height_m,
-        )  # fmt: skip
+    surface_at = surface_reader(
+        depth_frame, K, steady_from, T_color_turntable,
+        centre_below_skin_m=link_cfg.centre_below_skin_m, radius_m=link_cfg.radius_m,
+        stride_px=link_cfg.stride_px, min_height_m=link_cfg.min_height_m,
+    )
 
     compute = partial(
         frame_depth, uv=kp[..., :2], usable=ok, depth_at=depth_at, first_frame=steady_from,

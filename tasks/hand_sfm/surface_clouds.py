@@ -130,3 +130,30 @@ def _tight(
     last = f * np.tan(theta + half) + c0 + margin
     new_lo = lo + stride * max(int(np.floor((first - lo) / stride)), 0)
     return new_lo, max(min(hi, int(np.ceil(last)) + 1), new_lo)
+
+
+def surface_reader(
+    depth_frame: Callable[[int], np.ndarray],
+    K: np.ndarray,
+    first_frame: int,
+    T_color_turntable: np.ndarray,
+    *,
+    centre_below_skin_m: float,
+    radius_m: float,
+    stride_px: int,
+    min_height_m: float,
+) -> Callable[[int, np.ndarray, np.ndarray], SurfaceCloud | None]:
+    """``(i, uv_i, depth_i) -> `` the surface of row ``i`` (video frame ``first_frame + i``)
+    around the hand its keypoints ``uv_i`` and their depth readings ``depth_i`` place, or None
+    without a reading: the depth links' surfaces (``DepthLinkConfig``'s fields)."""
+
+    def surface_at(i: int, uv_i: np.ndarray, depth_i: np.ndarray) -> SurfaceCloud | None:
+        centre = hand_centre(K, uv_i, depth_i, centre_below_skin_m)
+        if centre is None:
+            return None
+        return surface_cloud(
+            depth_frame(first_frame + i), K, centre, radius_m=radius_m, stride_px=stride_px,
+            T_color_turntable=T_color_turntable, min_height_m=min_height_m,
+        )  # fmt: skip
+
+    return surface_at
