@@ -33,11 +33,8 @@ from graspcap.flows.rows import (
     predates_columns,
     session_rows,
 )
-from graspcap.flows.workarea import ResultRef, WorkArea
+from graspcap.flows.workarea import BUILDS_LOG, ResultRef, WorkArea
 from graspcap.schemas.tables import Status
-
-BUILDS_LOG = "builds.jsonl"
-"""The work area's log of builds, one JSON record a line (``graspcap status``)."""
 
 
 def last_build_failures(cat: gc.Catalog, work: WorkArea) -> set[str]:

@@ -49,19 +49,14 @@ from prefect.futures import as_completed
 
 import graspcap
 import graspcap.catalog as gc
-from graspcap.flows.assemble import (
-    BUILDS_LOG,
-    assemble,
-    last_build_failures,
-    recorded_failures,
-)
+from graspcap.flows.assemble import assemble, last_build_failures, recorded_failures
 from graspcap.flows.cached import session_id_of
 from graspcap.flows.progress import ProgressFn, Tracker, reporting_to
 from graspcap.flows.report import BuildFailed, BuildReport, Outcome
 from graspcap.flows.retention import RunRetention, prune_flow_runs
 from graspcap.flows.runtime import build_settings, task_runner, worker_api
 from graspcap.flows.session import InSession, Settled, failure_text, submit_session
-from graspcap.flows.workarea import WorkArea
+from graspcap.flows.workarea import BUILDS_LOG, WorkArea
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.session.discover import discover
 
