@@ -191,7 +191,8 @@ def _write_lerobot(catalog: Catalog, v: int, partial: Path, licence: str, fps: f
     note = (f"LeRobot v3.0-style layout (`meta/info.json`: fps {fps:g}): one episode per "
             "session with frames (failed sessions have none), `episode_index` in session_id "
             "order; `meta/episodes/` maps each episode to its session, object, participant, "
-            "intent and status. Poses are 16 float64, the row-major 4x4.")
+            "intent and status, and gives its hand's scale and shape (`hand_scale`, "
+            "`hand_shape`: 20 bone lengths, m). Poses are 16 float64, the row-major 4x4.")
     card = render_card(catalog_uri=catalog.layout.uri, version=v, info=_version_info(catalog, v),
                        sessions=sessions, frame_counts=_frame_counts(frames),
                        schemas={"sessions": sessions.schema, "frames": frames.schema},

@@ -2,8 +2,9 @@
 episodes, tasks and stats); docs/catalog.md "LeRobot layout".
 
 One episode per session with frames (failed sessions have none and are left out), in
-``session_id`` order; one row per frame, in frame order. All frames go to
-``data/chunk-000/file-000.parquet`` and all episodes to
+``session_id`` order, with the session's labels, status and hand (``hand_scale``,
+``hand_shape``: the subject's 20 bone lengths in metres); one row per frame, in frame order.
+All frames go to ``data/chunk-000/file-000.parquet`` and all episodes to
 ``meta/episodes/chunk-000/file-000.parquet`` (one file each: LeRobot splits files at 100 MB,
 a reader follows ``data/chunk_index``/``data/file_index`` of each episode either way).
 """
@@ -30,6 +31,8 @@ DEFAULT_FPS = 30.0
 
 _POSES = ("T_w_c", "T_c_o", "T_c_p")
 _ANGLES = 20
+_BONES = 20
+"""Bone lengths of ``sessions.hand_shape`` (``tasks.hand.shape.BONE_NAMES``' order)."""
 _POSE_NAMES = [f"r{r}c{c}" for r in range(4) for c in range(4)]
 _JOINT_NAMES = [f"j{j:02d}.{a}" for j in range(21) for a in "xyz"]
 
@@ -168,6 +171,11 @@ def write_lerobot(sessions: pa.Table, frames: pa.Table, fps: float, out: Path
         "participant": pa.array([r["participant"] for r in srows], pa.string()),
         "intent": pa.array([r["intent"] for r in srows], pa.string()),
         "status": pa.array([r["status"] for r in srows], pa.string()),
+        # the subject's hand: the model's scale and its 20 bone lengths (m; null on a row
+        # written before catalog format 7, which has no hand_shape)
+        "hand_scale": pa.array([r["hand_scale"] for r in srows], pa.float64()),
+        "hand_shape": pa.array([r.get("hand_shape") for r in srows],
+                               pa.list_(pa.float64(), _BONES)),
     })
     ep_file = out / EPISODES_PATH.format(chunk_index=0, file_index=0)
     ep_file.parent.mkdir(parents=True, exist_ok=True)

@@ -124,10 +124,11 @@ def run_build(roots: Sequence[Path], catalog: Path, preset: str = "default",
 def status_text(catalog: Path, limit: int = 5) -> str:
     """Recent builds (newest first): outcome counts, failures with reasons, stage runs."""
     import graspcap.catalog as gc
+    from graspcap.flows.workarea import BUILDS_LOG
 
     cat = gc.open(catalog)
     out = []
-    log = cat.layout.root / "work" / "builds.jsonl"
+    log = cat.layout.root / "work" / BUILDS_LOG
     records, torn = _build_records(log)
     committed = {}
     removed: list[str] = []
@@ -275,6 +276,7 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
     from contextlib import nullcontext
 
     from graspcap.flows.runtime import local_server, schedule_problem
+    from graspcap.flows.workarea import BUILDS_LOG
 
     work = Path(catalog).expanduser().resolve() / "work"
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "INFO")  # the runs' logs, in the UI
@@ -311,7 +313,7 @@ def serve(roots: Sequence[Path], catalog: Path, preset: str = "default", *,
         deployment = build_flow.to_deployment(
             name=name, cron=cron, interval=interval_s, parameters=params, concurrency_limit=1)
         when = f"cron {cron!r}" if cron is not None else f"every {interval_s:g} s"
-        watcher = RunWatcher(api, f"{build_flow.name}/{name}", work / "builds.jsonl",
+        watcher = RunWatcher(api, f"{build_flow.name}/{name}", work / BUILDS_LOG,
                              when, sys.stdout)
         watcher.start()
         import warnings

@@ -26,10 +26,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from graspcap.flows.workarea import TEMP_PREFIX
+from graspcap.flows.workarea import BUILDS_LOG, TEMP_PREFIX
 
-BUILDS_LOG = "builds.jsonl"
-"""The work area's log of build records (``flows/build.py`` appends one per build)."""
 MIN_AGE_S = 3600.0
 """Results written more recently than this are kept whatever the records say."""
 

@@ -49,6 +49,8 @@ from graspcap.catalog.errors import writing
 
 _CHUNK = 1 << 20
 EXECUTIONS = "executions.jsonl"
+BUILDS_LOG = "builds.jsonl"
+"""The work area's log of builds, one JSON record a line (``graspcap status``)."""
 RACY_S = 2.0
 """A file modified less than this long before it is hashed may change again within the same
 mtime tick (a coarse file-system clock): its digest is used but not remembered (git's

@@ -17,11 +17,12 @@ own flipped twin as well as the truth (rig seed 11 #0: 163 deg off, fitness 0.98
 handle hidden any turn about its body's axis. The global path's candidates include, when the
 model's principal axes are ill-defined, half turns about its own near-symmetry axes and the best
 pose turned about the rotation the depth leaves free, to the rotation nearest register_object's
-(:mod:`free_rotation`). Other steady frames (``other_views``) show it turned: when the first
-frame alone fits below ``views_below_fitness`` or is ambiguous (axes ill-defined), their points,
-carried into the first frame by ``reconstruct_hand``'s virtual cameras, are registered together
-with it, every pose is scored against all their depth images and the better pose is kept (one
-frame alone is sharper when it is right).
+(:mod:`free_rotation`; the search among these twins: :mod:`twin_search`). Other steady frames
+(``other_views``) show it turned: when the first frame alone fits below ``views_below_fitness``
+or is ambiguous (axes ill-defined), their points, carried into the first frame by
+``reconstruct_hand``'s virtual cameras, are registered together with it, every pose is scored
+against all their depth images and the better pose is kept (one frame alone is sharper when it
+is right).
 """
 
 from __future__ import annotations
@@ -29,18 +30,16 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
-from functools import partial
 
 import numpy as np
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.core.geometry import inv_T, rotation_error_deg
+from graspcap.tasks.core.geometry import inv_T
 from graspcap.tasks.hand.image_masks import grow_mask
 from graspcap.tasks.object_pose.adjustment_region import hand_cluster, hand_mask, near_hand
 from graspcap.tasks.object_pose.registration.depth_agreement import views_agreement
 from graspcap.tasks.object_pose.registration.engine import (
-    Candidate,
     Model,
     RegistrationConfig,
     prepare_model,
@@ -48,10 +47,7 @@ from graspcap.tasks.object_pose.registration.engine import (
     rank,
     refine,
     register,
-    tls_cost,
 )
-from graspcap.tasks.object_pose.registration.free_rotation import free_axis, free_starts
-from graspcap.tasks.object_pose.registration.grid_search import grid_candidates, rotation_grid
 from graspcap.tasks.object_pose.registration.open3d_threads import single_threaded
 from graspcap.tasks.object_pose.registration.point_clouds import (
     cloud_from_depth,
@@ -59,12 +55,8 @@ from graspcap.tasks.object_pose.registration.point_clouds import (
     to_pcd,
     valid_depth,
 )
-from graspcap.tasks.object_pose.registration.symmetry import (
-    as_good_as,
-    axes_ill_defined,
-    probe_symmetry,
-    self_flip_axes,
-)
+from graspcap.tasks.object_pose.registration.symmetry import axes_ill_defined
+from graspcap.tasks.object_pose.registration.twin_search import search_twins
 
 STAGE_VERSION = "estimate_adjustment/16"
 STAGE = "estimate_adjustment"
@@ -523,91 +515,10 @@ def _from_hypothesis(
     scene, down, found = ctx.cache["global"]
     start = refine(scene, model, inv_T(T_w_o1), cfg, "stage1")
     candidates = rank([start, *found], cfg.eval_distance_m)
-    # near-equal candidates are compared on fitness times depth agreement (a carton's twin:
-    # 0.99 x 0.91, the truth 1.0 x 1.0); while the best agrees poorly, probes run from it
-    scores: dict[Candidate, Candidate] = ctx.cache.setdefault("scores", {})
-
-    def score(c: Candidate) -> float:
-        if c not in scores:
-            agree = _agreement(views, K, mesh, inv_T(c.T_o_s), config)[0]
-            scores[c] = replace(c, fitness=c.fitness * agree)
-        return scores[c].fitness
-
-    def combined(cands: list[Candidate]) -> list[Candidate]:
-        top = cands[0].fitness - 2 * cfg.ambiguity_fitness_tol
-        for c in cands:
-            if c.fitness >= top:
-                score(c)
-        kept = [scores[c] for c in cands if c in scores]
-        return sorted(kept, key=lambda c: (tls_cost(c, cfg.eval_distance_m), c.origin))
-
-    def lead_of(scored: list[Candidate]) -> Candidate:
-        return next(c for c in candidates if scores.get(c) is scored[0])
-
-    lead = max(candidates[:3], key=score)
-    if config.grid_group and ("grid" in ctx.cache or score(lead) < config.reprobe_below):
-        # starts without features (a carton's faces, a small far object), unless the global
-        # step found a pose the depth already explains
-        if "grid" not in ctx.cache:
-            ctx.cache["grid"] = grid_candidates(
-                scene, model, cfg, rotation_grid(config.grid_group), np.zeros(3),
-                config.grid_keep, cfg.voxel_m, score,
-            )  # fmt: skip
-        candidates = rank([*candidates, *ctx.cache["grid"]], cfg.eval_distance_m)
-    centre = candidates[0]  # the pose the symmetry probes turn
-    # the model's own near-symmetries are probed too: a mug's principal axes are arbitrary
-    # (held-out mug [9900, 7]: its handle-axis twin at agreement 0.71, the truth at 1.0)
-    mixed = config.check_ambiguity and axes_ill_defined(model, config.ill_defined_ratio)
-    flips = mixed and config.flip_probes
-    probe = partial(probe_symmetry, flip_axes=self_flip_axes(model) if flips else None)
-    if config.check_ambiguity:
-        candidates = probe(scene, model, candidates, cfg)
-        if centre is not lead and lead in candidates:
-            # the grid displaced the global step's best: its twins are probed too (lifted mug
-            # seed 2, 120 deg: a grid pose 9 deg off at 0.97 led, the truth at 0.998 is a
-            # turn of the global step's pose; which one led hung on a handful of depth pixels)
-            rest = [c for c in candidates if c is not lead]
-            candidates = probe(scene, model, [lead, *rest], cfg)
-    scored = combined(candidates)
-    for _ in range(config.probe_rounds if config.check_ambiguity else 0):
-        if scored[0].fitness >= config.reprobe_below:
-            break
-        centre = lead_of(scored)
-        rest = [c for c in candidates if c is not centre]
-        candidates = probe(
-            scene, model, [centre, *rest], cfg, None, lambda c: score(c) >= config.reprobe_below
-        )
-        before, scored = scored[0], combined(candidates)
-        if scored[0] is before:
-            break
-    if config.check_ambiguity and lead_of(scored) is not centre:
-        # a probe beat the pose the probes turned: only probes turning the new best find
-        # its own twins (realistic carton [9000, 0]: the truth was never a candidate)
-        centre = lead_of(scored)
-        rest = [c for c in candidates if c is not centre]
-        candidates = probe(scene, model, [centre, *rest], cfg)
-        scored = combined(candidates)
-    if mixed and config.free_turns:
-        # held-out mug [9900, 4], handle hidden: the truth never a candidate, its twin kept
-        free = free_axis(np.asarray(down.points), np.asarray(down.normals))
-        starts = free_starts(inv_T(lead_of(scored).T_o_s), free, T_w_o1[:3, :3], region.mean(0))
-        turns = [refine(scene, model, inv_T(T), cfg, origin) for origin, T in starts]
-        scored = combined(rank([*candidates, *turns], cfg.eval_distance_m))
-    candidates = scored
-    best = candidates[0]
-    equal = [c for c in candidates if as_good_as(c, best, cfg)]
-    tied = [c for c in equal if c.fitness >= best.fitness - config.tie_tol]
-    nearest: Candidate = min(
-        tied, key=lambda c: rotation_error_deg(inv_T(c.T_o_s)[:3, :3], T_w_o1[:3, :3])
-    )
-    # poses closer than ambiguity_min_deg are one solution: its best-scoring one (a probe
-    # can slide along a flat face, same rotation, 30 mm off, scoring a little lower)
-    chosen = next(
-        c for c in tied if rotation_error_deg(c.T_o_s, nearest.T_o_s) < cfg.ambiguity_min_deg
-    )
-    ambiguous = any(
-        rotation_error_deg(c.T_o_s, chosen.T_o_s) >= cfg.ambiguity_min_deg for c in equal
-    )
+    chosen, ambiguous = search_twins(
+        scene, down, region, model, candidates, T_w_o1,
+        lambda T: _agreement(views, K, mesh, T, config)[0], cfg, config, ctx.cache,
+    )  # fmt: skip
     T_w_o = inv_T(chosen.T_o_s)
     fit, rmse, n = _agreement(views, K, mesh, T_w_o, config)
     if n < config.min_points or fit < config.min_fitness:

@@ -222,6 +222,8 @@ def test_lerobot_layout(catalog, capsys, tmp_path):
     # episodes: lengths sum to the frames, contiguous ranges, one per session with frames
     episodes = pq.read_table(out / "meta" / "episodes" / "chunk-000" / "file-000.parquet")
     ep = episodes.to_pylist()
+    assert episodes.schema.field("hand_shape").type == pa.list_(pa.float64(), 20)
+    assert episodes.schema.field("hand_scale").type == pa.float64()
     assert [e["session_id"] for e in ep] == with_frames
     assert [e["episode_index"] for e in ep] == [0, 1, 2, 3]
     assert sum(e["length"] for e in ep) == info["total_frames"]
@@ -234,6 +236,9 @@ def test_lerobot_layout(catalog, capsys, tmp_path):
         row = by_id[e["session_id"]]
         assert (e["object_id"], e["participant"], e["status"]) == (
             row["object_id"], row["participant"], row["status"])
+        # the subject's hand round-trips exactly: scale and 20 bone lengths (m)
+        assert row["hand_shape"] is not None and len(row["hand_shape"]) == 20
+        assert e["hand_scale"] == row["hand_scale"] and e["hand_shape"] == row["hand_shape"]
         lo, hi = e["dataset_from_index"], e["dataset_to_index"]
         assert hi - lo == e["length"] == FRAMES
         assert (episode_col[lo:hi] == e["episode_index"]).all()

@@ -15,6 +15,7 @@ import pytest
 
 import graspcap.catalog as gc
 from graspcap.catalog.layout import PLAIN_NAME, CatalogLayout, path_name
+from graspcap.flows import assemble as assemble_module
 from graspcap.flows import build as build_module
 from graspcap.flows.build import build_dataset
 from graspcap.flows.report import BuildFailed, BuildReport, Outcome, SessionReport
@@ -96,7 +97,7 @@ def test_per_session_mishaps_after_the_stages_never_lose_the_build(warm, synth_r
     (extra / "climber" / "session.json").write_text(json.dumps({**manifest,
                                                                 "session_id": climber}))
 
-    real_rows = build_module.session_rows
+    real_rows = assemble_module.session_rows
     pictures_seen = []
 
     def rows_with_a_bug(results, **kw):
@@ -111,9 +112,9 @@ def test_per_session_mishaps_after_the_stages_never_lose_the_build(warm, synth_r
                           str(layout.pictures_root / "ab" / "ab.png"))
         return real_write(layout, session_id, pictures)
 
-    real_write = build_module._write_pictures
-    monkeypatch.setattr(build_module, "session_rows", rows_with_a_bug)
-    monkeypatch.setattr(build_module, "_write_pictures", disk_full)
+    real_write = assemble_module._write_pictures
+    monkeypatch.setattr(assemble_module, "session_rows", rows_with_a_bug)
+    monkeypatch.setattr(assemble_module, "_write_pictures", disk_full)
     report = build_dataset([synth_root, extra], catalog, PRESET, build_id="mishaps")
 
     assert report.catalog_version == 1
@@ -183,26 +184,26 @@ def test_pictures_are_stored_by_content_and_a_failed_write_is_a_note(tmp_path):
     files = {"keypoints.png": b"k", "contact.ply": b"c"}
     pictures = SimpleNamespace(files=lambda: files)
     escaped = f"../../../../tmp/escaped-session-{uuid.uuid4().hex}"
-    orig_load = build_module.WorkArea.load
+    orig_load = assemble_module.WorkArea.load
     try:
-        build_module.WorkArea.load = staticmethod(lambda ref: pictures)
-        stored, notes = build_module._store_pictures(layout, escaped, None)
+        assemble_module.WorkArea.load = staticmethod(lambda ref: pictures)
+        stored, notes = assemble_module._store_pictures(layout, escaped, None)
         assert notes == ()
         for name, data in files.items():
             digest = hashlib.sha256(data).hexdigest()
             suffix = Path(name).suffix
             assert stored[name] == f"pictures/{digest[:2]}/{digest}{suffix}"
             assert (layout.root / stored[name]).read_bytes() == data
-        assert build_module._store_pictures(layout, "other", None) == (stored, ())  # once
+        assert assemble_module._store_pictures(layout, "other", None) == (stored, ())  # once
         assert not Path("/tmp", escaped.rsplit("/", 1)[1]).exists()
         shutil.rmtree(tmp_path / "cat" / "pictures")
         (tmp_path / "cat" / "pictures").write_text("a file where the folder should be")
-        stored, (text,) = build_module._store_pictures(layout, "p02", None)  # a note
+        stored, (text,) = assemble_module._store_pictures(layout, "p02", None)  # a note
         assert stored == {}
         assert text.startswith(f"pictures of p02 not written to {layout.pictures_root}")
         assert "NotADirectoryError" in text or "FileExistsError" in text
     finally:
-        build_module.WorkArea.load = orig_load
+        assemble_module.WorkArea.load = orig_load
 
 
 def test_rows_the_catalog_would_refuse_fail_that_session_alone(warm, synth_root, tmp_path,
@@ -211,7 +212,7 @@ def test_rows_the_catalog_would_refuse_fail_that_session_alone(warm, synth_root,
     the catalog's reason; the other session is committed in the same version."""
     catalog, work = _fresh_catalog_on_warm_work(warm, tmp_path / "b")
     good, bad = _ids(synth_root)
-    real_rows = build_module.session_rows
+    real_rows = assemble_module.session_rows
 
     def short_contact(results, **kw):
         sr = real_rows(results, **kw)
@@ -220,7 +221,7 @@ def test_rows_the_catalog_would_refuse_fail_that_session_alone(warm, synth_root,
         arrays = type(sr.arrays)(**{**sr.arrays.__dict__, "contact": sr.arrays.contact[:-1]})
         return type(sr)(sr.session, sr.frames, arrays, sr.object_id, sr.object_mesh)
 
-    monkeypatch.setattr(build_module, "session_rows", short_contact)
+    monkeypatch.setattr(assemble_module, "session_rows", short_contact)
     report = build_dataset([synth_root], catalog, PRESET, build_id="refused")
     assert report.catalog_version == 1 and report.added == [good]
     assert report.failed[bad].startswith("the catalog refused its rows: table 'arrays/contact'")
@@ -234,7 +235,7 @@ def test_rows_the_catalog_would_refuse_fail_that_session_alone(warm, synth_root,
     again = build_dataset([synth_root], catalog, PRESET, build_id="refused-again")
     assert again.catalog_version is None and again.failed == report.failed
     # fixed: the session is committed from its cached results
-    monkeypatch.setattr(build_module, "session_rows", real_rows)
+    monkeypatch.setattr(assemble_module, "session_rows", real_rows)
     fixed = build_dataset([synth_root], catalog, PRESET, build_id="fixed")
     assert fixed.failed == {} and fixed.changed == [bad] and fixed.catalog_version == 2
 
@@ -364,12 +365,12 @@ def test_a_failed_row_the_catalog_refuses_is_left_out_and_replayed(warm, synth_r
     build record, the others committed; an unchanged rebuild makes no new version."""
     catalog, _ = _fresh_catalog_on_warm_work(warm, tmp_path / "d")
     tiny = write_session(tmp_path / "more" / "tiny", session_id="tiny-one")
-    real_failed_row = build_module.failed_row
+    real_failed_row = assemble_module.failed_row
 
     def bad_failed_row(*args, **kwargs):
         return {**real_failed_row(*args, **kwargs), "bogus": 1}
 
-    monkeypatch.setattr(build_module, "failed_row", bad_failed_row)
+    monkeypatch.setattr(assemble_module, "failed_row", bad_failed_row)
     report = build_dataset([synth_root, tiny.parent], catalog, PRESET, build_id="no-row")
     assert report.catalog_version == 1 and sorted(report.added) == sorted(_ids(synth_root))
     assert "no failed row written: table 'sessions', column 'bogus'" in report.failed["tiny-one"]
