@@ -9,14 +9,19 @@ sessions (no audit), then ``--changes`` commits of one session each with the def
 session. Times ``audit.audit_version`` of the last of them against the published version
 before it (median of ``--repeat``, in this process, after one untimed call) and the whole
 commit of it; prints the audit's verdict and what it measured, so runs of two commits can be
-compared (the verdicts must match).
+compared (the verdicts must match). ``--compare REV`` also loads ``catalog/audit.py`` as it was
+at git revision REV and times its ``audit_version`` on the same catalog, the two taking turns
+in each repetition (a shared machine's load weighs on both alike), and checks the two give the
+same verdict, reasons and measurements (less what only the newer one measures).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -36,7 +41,26 @@ def session_ids(n: int) -> list[str]:
     return [f"p{i // 300:02d}-{OBJECTS[i % 3]}-use-{i % 300 // 3:03d}" for i in range(n)]
 
 
-def one_size(root: Path, n: int, frames: int, batch: int, changes: int, repeat: int) -> dict:
+def old_audit(rev: str):
+    """``catalog/audit.py`` at git revision ``rev``, as a module of its own."""
+    here = Path(__file__).resolve().parents[1]
+    text = subprocess.run(["git", "show", f"{rev}:catalog/audit.py"], cwd=here, check=True,
+                          capture_output=True, text=True).stdout
+    path = Path(tempfile.mkdtemp()) / "audit_old.py"
+    path.write_text(text)
+    spec = importlib.util.spec_from_file_location("graspcap_audit_old", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # (its dataclasses look themselves up there)
+    spec.loader.exec_module(module)
+    return module
+
+
+NEW_KEYS = ("duplicate_frame_keys", "frames_read")
+"""What only the newer audit measures (left out of the comparison)."""
+
+
+def one_size(root: Path, n: int, frames: int, batch: int, changes: int, repeat: int,
+             old=None) -> dict:
     cat = gc.open(root, create=True)
     ids = session_ids(n)
     t0 = time.perf_counter()
@@ -54,8 +78,16 @@ def one_size(root: Path, n: int, frames: int, batch: int, changes: int, repeat: 
     last = max(rows)
     pins, before = table_versions_of(rows[last]), table_versions_of(rows[last - 1])
     audit = audit_version(cat.layout, pins, (last - 1, before), gates)  # warm
-    times = []
+    times, old_times, same = [], [], None
+    if old is not None:
+        was = old.audit_version(cat.layout, pins, (last - 1, before), old.AuditGates())
+        now = {k: v for k, v in audit.measured.items() if k not in NEW_KEYS}
+        same = (was.passed, was.reasons, was.measured) == (audit.passed, audit.reasons, now)
     for _ in range(repeat):
+        if old is not None:
+            t0 = time.perf_counter()
+            old.audit_version(cat.layout, pins, (last - 1, before), old.AuditGates())
+            old_times.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
         again = audit_version(cat.layout, pins, (last - 1, before), gates)
         times.append(time.perf_counter() - t0)
@@ -66,6 +98,8 @@ def one_size(root: Path, n: int, frames: int, batch: int, changes: int, repeat: 
             "fill_s": round(fill_s, 1), "commit_s": round(statistics.median(commit_s), 3),
             "audit_s": round(statistics.median(times), 4),
             "audit_min_s": round(min(times), 4), "passed": audit.passed,
+            "old_audit_s": round(statistics.median(old_times), 4) if old_times else None,
+            "same_as_old": same,
             "reasons": audit.reasons, "measured": audit.measured,
             "stored_matches": stored is not None and stored["passed"] == audit.passed
             and stored["reasons"] == audit.reasons}
@@ -79,16 +113,21 @@ def main() -> None:
     ap.add_argument("--changes", type=int, default=3)
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--out", type=Path)
+    ap.add_argument("--compare", metavar="REV", help="time catalog/audit.py of git REV too")
     args = ap.parse_args()
+    old = old_audit(args.compare) if args.compare else None
     results = []
     for n in args.sizes:
         with tempfile.TemporaryDirectory(prefix="audit-cost-") as tmp:
             r = one_size(Path(tmp) / "cat", n, args.frames, args.batch, args.changes,
-                         args.repeat)
+                         args.repeat, old)
         results.append(r)
         print(f"N={n:5d} frames rows {r['frames_rows']:7d} files {r['frames_files']:3d}  "
-              f"audit {r['audit_s']*1e3:8.1f} ms (min {r['audit_min_s']*1e3:.1f})  commit "
-              f"{r['commit_s']:.2f} s  passed {r['passed']} {r['reasons']}", flush=True)
+              f"audit {r['audit_s']*1e3:8.1f} ms (min {r['audit_min_s']*1e3:.1f}; read "
+              f"{r['measured']['frames_read']}; before: every row's key)  commit "
+              f"{r['commit_s']:.2f} s  passed {r['passed']} {r['reasons']}"
+              + (f"  | {args.compare}: audit {r['old_audit_s']*1e3:8.1f} ms, same verdict and "
+                 f"measurements: {r['same_as_old']}" if old else ""), flush=True)
     if args.out:
         args.out.write_text(json.dumps(results, indent=1, default=str))
     print(json.dumps([{k: r[k] for k in ("sessions", "measured")} for r in results],
