@@ -18,12 +18,14 @@ import json
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
+from urllib.parse import unquote
 
 import pyarrow as pa
 import pyarrow.compute as pc
+from deltalake import DeltaTable
 from pydantic import BaseModel, ConfigDict, Field
 
-from graspcap.catalog.delta import delta_table, read_table
+from graspcap.catalog.delta import delta_table, read_files, read_table
 from graspcap.catalog.layout import CatalogLayout
 from graspcap.schemas.tables import DATA_TABLES, TABLE_SCHEMAS, Status
 
@@ -91,45 +93,47 @@ def _share(n: int, total: int) -> float:
 
 def audit_version(layout: CatalogLayout, pins: Mapping[str, int],
                   published: tuple[int, Mapping[str, int]] | None, gates: AuditGates,
-                  removed: Sequence[str] = ()) -> AuditResult:
+                  removed: Sequence[str] = (), *, incremental: bool = True) -> AuditResult:
     """Audit the tables at Delta versions ``pins`` (the new version, not yet published)
     against ``published`` (``(version, its pins)`` or None) with ``gates``; ``removed``:
-    sessions the commit removes on purpose."""
+    sessions the commit removes on purpose. What it reads of ``frames``: :func:`frames_facts`
+    (``incremental=False``: every row's key, whatever the published version's audit said)."""
     reasons: list[str] = []
     measured: dict[str, Any] = {}
     schema_problems = []
+    tables = {name: delta_table(layout, name, pins[name]) for name in DATA_TABLES}
     for name in DATA_TABLES:
-        have = {f.name for f in delta_table(layout, name, pins[name]).schema().fields}
+        have = {f.name for f in tables[name].schema().fields}
         missing = [c for c in TABLE_SCHEMAS[name].names if c not in have]
         if missing:
             schema_problems.append(f"table {name!r} lacks column(s) {missing}")
     if schema_problems:
         reasons += [f"schema: {p}" for p in schema_problems]
-    sessions = read_table(layout, "sessions", pins["sessions"],
-                          ["session_id", "status", "input_digest"])
-    frames = read_table(layout, "frames", pins["frames"], ["session_id", "frame"])
+    sessions = read_files("sessions", tables["sessions"].file_uris(),
+                          ["session_id", "status", "input_digest"], layout)
+    facts = frames_facts(layout, tables["frames"], published, removed, incremental,
+                         tables["builds"])
     ids = sessions["session_id"].to_pylist()
     status = dict(zip(ids, sessions["status"].to_pylist(), strict=True))
     measured["sessions"] = len(ids)
-    measured["frames"] = frames.num_rows
+    measured["frames"] = facts.rows
     dupes = len(ids) - len(set(ids))
     if dupes:
         reasons.append(f"rows: {dupes} duplicate session_id row(s) in sessions")
-    keys = frames.group_by(["session_id", "frame"]).aggregate([([], "count_all")])
-    dup_frames = int(pc.sum(pc.greater(keys["count_all"], 1)).as_py() or 0)
-    if dup_frames:
-        reasons.append(f"rows: {dup_frames} (session_id, frame) key(s) appear more than once "
-                       "in frames")
-    per_session = dict(zip(*[c.to_pylist() for c in frames.group_by("session_id").aggregate(
-        [([], "count_all")]).select(["session_id", "count_all"]).columns], strict=True))
+    measured["duplicate_frame_keys"] = facts.duplicate_keys
+    measured["frames_read"] = {"how": facts.how, "keys": facts.keys_read,
+                               "session_ids": facts.ids_read}
+    if facts.duplicate_keys:
+        reasons.append(f"rows: {facts.duplicate_keys} (session_id, frame) key(s) appear more "
+                       "than once in frames")
     if gates.require_frames:
         empty = sorted(s for s, st in status.items()
-                       if st != Status.FAILED and not per_session.get(s))
+                       if st != Status.FAILED and s not in facts.sessions)
         measured["sessions_without_frames"] = empty
         if empty:
             reasons.append(f"rows: {len(empty)} {Status.OK}/{Status.FLAGGED} session(s) without "
                            f"frames rows: {_few(empty)}")
-    orphans = sorted(set(per_session) - set(ids))
+    orphans = sorted(facts.sessions - set(ids))
     if orphans:
         reasons.append(f"rows: frames of {len(orphans)} session(s) not in sessions: "
                        f"{_few(orphans)}")
@@ -141,15 +145,135 @@ def audit_version(layout: CatalogLayout, pins: Mapping[str, int],
         reasons.append(f"failed share: {failed} of {len(ids)} sessions failed ({share:.1%} > "
                        f"max_failed_share {gates.max_failed_share:.1%})")
     if published is not None:
-        _against_published(layout, published, gates, status, sessions, frames.num_rows,
-                           set(removed), failed, reasons, measured)
+        _against_published(layout, published, gates, status, sessions, facts, set(removed),
+                           failed, reasons, measured)
     return AuditResult(not reasons, reasons, published[0] if published else None, measured,
                        gates.model_dump(mode="json"))
 
 
+@dataclass(frozen=True)
+class FramesFacts:
+    """What the audit needs of ``frames`` (:func:`frames_facts`)."""
+
+    rows: int
+    """Rows of the new version."""
+    duplicate_keys: int
+    """(session_id, frame) keys that appear more than once in it."""
+    sessions: set[str]
+    """Sessions with at least one row in it."""
+    published_rows: int | None
+    """Rows of the published version, less those of the sessions removed on purpose (None:
+    no published version)."""
+    how: str
+    """``full`` (every row's key read) or ``incremental`` (see :func:`frames_facts`)."""
+    keys_read: int
+    """Rows whose ``session_id`` and ``frame`` were read."""
+    ids_read: int
+    """Further rows whose ``session_id`` alone was read (the kept files')."""
+
+
+def frames_facts(layout: CatalogLayout, new: DeltaTable,
+                 published: tuple[int, Mapping[str, int]] | None,
+                 removed: Sequence[str] = (), incremental: bool = True,
+                 builds: DeltaTable | None = None) -> FramesFacts:
+    """The facts of ``frames`` at the new version (``new``) the audit checks, read in
+    proportion to what changed since ``published`` where that is exact.
+
+    Row counts come from the Delta log (each file's ``numRecords``), never from the rows.
+    The files of the new version are those it shares with the published one (*kept*: their
+    rows are the published version's) and those added since. When the published version's
+    own audit found no duplicate key (its builds row says so), the kept files have none
+    among themselves either, so only the added files' ``(session_id, frame)`` are read, the
+    kept files' ``session_id`` only (one dictionary-encoded column: which sessions have rows),
+    and both columns of a kept file only for a session that also has added rows (a commit
+    that left a rewritten session's old rows: exactly the duplicates to find). Otherwise (no
+    published version, or one whose audit did not find its keys unique) every row's key is
+    read, as before. The same facts either way; ``tests/catalog/test_catalog_wap.py``."""
+    files = _file_rows(layout, new)
+    rows = sum(files.values())
+    if published is None:
+        keys = read_files("frames", list(files), ["session_id", "frame"], layout)
+        return FramesFacts(rows, _duplicates(keys), set(pc.unique(keys["session_id"])
+                                                        .to_pylist()), None, "full",
+                           keys.num_rows, 0)
+    number, pins = published
+    old_files = _file_rows(layout, delta_table(layout, "frames", pins["frames"]))
+    gone = pa.array(sorted(set(removed)), pa.string())
+    if incremental and _published_keys_unique(layout, builds, number, pins):
+        kept = [f for f in files if f in old_files]
+        added = [f for f in files if f not in old_files]
+        fresh = read_files("frames", added, ["session_id", "frame"], layout)
+        held = read_files("frames", kept, ["session_id"], layout)["session_id"]
+        fresh_ids = pc.unique(fresh["session_id"])
+        both = pc.filter(fresh_ids, pc.is_in(fresh_ids, pc.unique(held)))
+        if len(both):
+            old_keys = read_files("frames", kept, ["session_id", "frame"], layout)
+            fresh = pa.concat_tables([fresh, old_keys.filter(pc.is_in(old_keys["session_id"],
+                                                                      both))])
+        published_rows = sum(old_files.values())
+        if len(gone):
+            dropped = [f for f in old_files if f not in files]
+            old_ids = read_files("frames", dropped, ["session_id"], layout)["session_id"]
+            published_rows -= _count_in(held, gone) + _count_in(old_ids, gone)
+        sessions = set(fresh_ids.to_pylist()) | set(pc.unique(held).to_pylist())
+        return FramesFacts(rows, _duplicates(fresh), sessions, published_rows, "incremental",
+                           fresh.num_rows, len(held))
+    keys = read_files("frames", list(files), ["session_id", "frame"], layout)
+    published_rows = sum(old_files.values())
+    if len(gone):
+        old_ids = read_files("frames", list(old_files), ["session_id"], layout)["session_id"]
+        published_rows -= _count_in(old_ids, gone)
+    return FramesFacts(rows, _duplicates(keys), set(pc.unique(keys["session_id"]).to_pylist()),
+                       published_rows, "full", keys.num_rows, 0)
+
+
+def _file_rows(layout: CatalogLayout, table: DeltaTable) -> dict[str, int]:
+    """``{file URI: rows}`` of a ``frames`` version, the rows from its log's statistics (the
+    file's ``session_id`` column where the log has none)."""
+    uris = table.file_uris()
+    actions = pa.table(table.get_add_actions(flatten=True)).select(["path", "num_records"])
+    stats = {unquote(p).rsplit("/", 1)[-1]: n for p, n in zip(
+        actions["path"].to_pylist(), actions["num_records"].to_pylist(), strict=True)}
+    out = {}
+    for uri in uris:
+        n = stats.get(unquote(uri).rsplit("/", 1)[-1])
+        out[uri] = int(n) if n is not None else read_files("frames", [uri], ["session_id"],
+                                                           layout).num_rows
+    return out
+
+
+def _published_keys_unique(layout: CatalogLayout, builds: DeltaTable, number: int,
+                           pins: Mapping[str, int]) -> bool:
+    """Whether the published version ``number``'s own audit found every (session_id, frame)
+    key of its ``frames`` unique (False when it has no audit, or one from before the count was
+    kept). Its builds row is in ``builds`` (the new version's builds table: the published
+    version is never newer than the version a build commits on), else at its own pins."""
+    for table in ([builds] if builds is not None else []) + [None]:
+        files = table.file_uris() if table is not None else None
+        rows = (read_files("builds", files, ["catalog_version", "audit_json"], layout)
+                if files is not None else read_table(layout, "builds", pins["builds"],
+                                                     ["catalog_version", "audit_json"]))
+        for row in rows.filter(pc.equal(rows["catalog_version"], number)).to_pylist():
+            if row["audit_json"]:
+                measured = json.loads(row["audit_json"]).get("measured", {})
+                return measured.get("duplicate_frame_keys") == 0
+            return False
+    return False
+
+
+def _duplicates(keys: pa.Table) -> int:
+    """(session_id, frame) keys of ``keys`` that appear more than once."""
+    counted = keys.group_by(["session_id", "frame"]).aggregate([([], "count_all")])
+    return int(pc.sum(pc.greater(counted["count_all"], 1)).as_py() or 0)
+
+
+def _count_in(values: pa.ChunkedArray | pa.Array, wanted: pa.Array) -> int:
+    return int(pc.sum(pc.is_in(values, wanted)).as_py() or 0)
+
+
 def _against_published(layout: CatalogLayout, published: tuple[int, Mapping[str, int]],
                        gates: AuditGates, status: dict[str, str], sessions: pa.Table,
-                       frames_rows: int, removed: set[str], failed: int, reasons: list[str],
+                       facts: FramesFacts, removed: set[str], failed: int, reasons: list[str],
                        measured: dict[str, Any]) -> None:
     """The gates that compare with the published version (``audit_version``)."""
     share = _share(failed, len(status))
@@ -195,12 +319,7 @@ def _against_published(layout: CatalogLayout, published: tuple[int, Mapping[str,
                        f"version {number}: {which}{more} "
                        f"({_share(len(regressed), len(same_inputs)):.1%} > max_regressed_share "
                        f"{limit:.1%})")
-    old_frames = delta_table(layout, "frames", pins["frames"]).count()
-    if removed:
-        gone = read_table(layout, "frames", pins["frames"], ["session_id"])
-        old_frames -= int(pc.sum(pc.is_in(gone["session_id"], pa.array(sorted(removed),
-                                                                       pa.string()))).as_py()
-                          or 0)
+    old_frames, frames_rows = facts.published_rows, facts.rows
     measured["published_frames"] = old_frames
     drop = gates.max_frames_drop_share
     if drop is not None and frames_rows < old_frames * (1 - drop) - 1e-9:
