@@ -281,7 +281,7 @@ def read_latest(layout: CatalogLayout, name: str) -> pa.Table:
 
     When their log is damaged (a gap, an unreadable entry), the rows of the readable entries:
     both tables are append-only, so every row read is one that was committed, and readers of
-    the versions whose rows survive keep working (writers stop: ``commit.recover``).
+    the versions whose rows survive keep working (writers stop: ``recovery.recover``).
     """
     try:
         return read_table(layout, name, delta_version(layout, name))

@@ -26,16 +26,16 @@ from datetime import UTC, datetime
 
 from deltalake import WriterProperties, write_deltalake
 
-from graspcap.catalog.commit import (
+from graspcap.catalog.commit import FRAMES_FILE_BYTES, writer_lock
+from graspcap.catalog.delta import delta_table, table_versions_of
+from graspcap.catalog.errors import CatalogError
+from graspcap.catalog.recovery import (
     _marked,
     _table_write,
     last_version_row,
     recover,
     write_published,
-    writer_lock,
 )
-from graspcap.catalog.delta import delta_table, table_versions_of
-from graspcap.catalog.errors import CatalogError
 from graspcap.catalog.states import base_of, version_states
 from graspcap.catalog.store import Catalog
 from graspcap.catalog.validate import to_table
@@ -45,12 +45,18 @@ WRITER = WriterProperties(compression="SNAPPY")
 """The codec ``write_deltalake`` gives the build's files (optimize's default is ZSTD: in one
 noisy check its ``frames`` of 20 sessions read in 7.8 ms warm against 4.4 ms;
 docs/benchmarks.md)."""
+TARGET_BYTES = {"frames": FRAMES_FILE_BYTES}
+"""Compaction's target file size per table (others: deltalake's default, 100 MiB). ``frames``
+keeps the builds' bound: ``compact`` merges only files under the target, in bins up to it, so
+the large session-sorted files stay as they are, the small ones of incremental builds merge,
+every session's rows stay in one or two files, and a later one-session build still rewrites
+one file of at most ~1.4x the target (docs/catalog.md, "The frames layout")."""
 MIN_FILES = 2
+"""A table of fewer files than this is not compacted."""
 BOOKKEEPING = ("versions", "tags", "publications")
 """Append-only tables no version pins, with one file per row: compacted with the data tables
 (every reader reads them whole at their newest Delta version; a lost log entry's rows are
 still in the old files, which ``catalog repair`` reads)."""
-"""A table of fewer files than this is not compacted."""
 
 
 @dataclass(frozen=True)
@@ -104,7 +110,8 @@ def optimize_catalog(catalog: Catalog, *, min_files: int = MIN_FILES) -> Optimiz
             after = before
             if before >= min_files:
                 with _table_write(layout, name):
-                    dt.optimize.compact(commit_properties=_marked(version, build_id),
+                    dt.optimize.compact(target_size=TARGET_BYTES.get(name),
+                                        commit_properties=_marked(version, build_id),
                                         writer_properties=WRITER)
                 dt = delta_table(layout, name)
                 after = len(dt.file_uris())
