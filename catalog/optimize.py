@@ -26,7 +26,7 @@ from datetime import UTC, datetime
 
 from deltalake import WriterProperties, write_deltalake
 
-from graspcap.catalog.commit import FRAMES_FILE_BYTES, writer_lock
+from graspcap.catalog.commit import FRAMES_FILE_BYTES, FRAMES_WRITER, writer_lock
 from graspcap.catalog.delta import delta_table, table_versions_of
 from graspcap.catalog.errors import CatalogError
 from graspcap.catalog.recovery import (
@@ -112,7 +112,8 @@ def optimize_catalog(catalog: Catalog, *, min_files: int = MIN_FILES) -> Optimiz
                 with _table_write(layout, name):
                     dt.optimize.compact(target_size=TARGET_BYTES.get(name),
                                         commit_properties=_marked(version, build_id),
-                                        writer_properties=WRITER)
+                                        writer_properties=FRAMES_WRITER if name == "frames"
+                                        else WRITER)
                 dt = delta_table(layout, name)
                 after = len(dt.file_uris())
             by_table[name] = [before, after]
