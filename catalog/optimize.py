@@ -4,13 +4,15 @@ Every build adds files to ``sessions``, ``frames`` and ``builds`` (one overwrite
 table per build), so after many incremental builds a table is read from hundreds of small
 files. ``optimize_catalog`` (``graspcap catalog optimize``, and a build every
 ``OPTIMIZE_EVERY`` versions) runs deltalake's ``DeltaTable.optimize.compact()`` on each data
-table, writes a Delta checkpoint of every table (``create_checkpoint``: a reader replays the
-log from it instead of from the first entry), compacts the bookkeeping tables (``versions``,
-``tags``, ``publications``: one small file per row, read whole by every reader that resolves a
-version) and appends one catalog version (build id
-``optimize-<time>``, the same rows and state as the version it compacts) pinning the compacted
-Delta versions. Nothing older changes: compaction only adds files and a Delta version (the
-replaced files are marked removed in the new Delta version, never deleted), every older
+table (``frames`` to the builds' target file size, ``TARGET_BYTES``: only files under it merge,
+so a one-session build still rewrites one ~9 MB file afterwards), writes a Delta checkpoint of
+every table (``create_checkpoint``: a reader replays the log from it instead of from the first
+entry), compacts the bookkeeping tables (``versions``, ``tags``, ``publications``: one small
+file per row, read whole by every reader that resolves a version) and appends one catalog
+version (build id ``optimize-<time>``, the same rows and state as the version it compacts)
+pinning the compacted Delta versions. Nothing older changes: compaction only adds files and a
+Delta version (the replaced files are marked removed in the new Delta version, never deleted),
+every older
 catalog version and tag still pins its old Delta versions and reads its old files, and the
 tables keep ``delta.enableExpiredLogCleanup=false``, so the checkpoint deletes no log entry.
 Only ``catalog vacuum`` deletes files, and it keeps every file a kept version pins.
