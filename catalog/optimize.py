@@ -12,9 +12,9 @@ file per row, read whole by every reader that resolves a version) and appends on
 version (build id ``optimize-<time>``, the same rows and state as the version it compacts)
 pinning the compacted Delta versions. Nothing older changes: compaction only adds files and a
 Delta version (the replaced files are marked removed in the new Delta version, never deleted),
-every older
-catalog version and tag still pins its old Delta versions and reads its old files, and the
-tables keep ``delta.enableExpiredLogCleanup=false``, so the checkpoint deletes no log entry.
+every older catalog version and tag still pins its old Delta versions and reads its old files,
+and the tables keep ``delta.enableExpiredLogCleanup=false``, so the checkpoint deletes no log
+entry.
 Only ``catalog vacuum`` deletes files, and it keeps every file a kept version pins.
 Runs under the writer lock, with the commit protocol's recovery: a compaction killed before its
 versions row is rolled back by the next writer like any orphan.
