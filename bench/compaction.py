@@ -15,7 +15,8 @@ per N, a new catalog with N sessions committed at once (the cold build), then a 
 changes one session, a build of 10 new sessions (new takes of existing participants, so their
 ids sort among the old ones), ``optimize_catalog``, and one more one-session change. For each
 commit: wall time and the ``frames`` Parquet files and bytes its Delta commits add and remove
-(from the add/remove actions of the log entries between the two versions' pins).
+(from the add/remove actions of the log entries between the two versions' pins); then the time
+to read the newest ``frames``. ``--frames-file-mb M`` tries another target file size.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import pyarrow.compute as pc
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import graspcap.catalog as gc  # noqa: E402
+from graspcap.catalog import commit, optimize  # noqa: E402
 from graspcap.catalog.optimize import optimize_catalog  # noqa: E402
 from tests.catalog_factory import make_build  # noqa: E402
 
@@ -129,6 +131,13 @@ def one_session(sizes: list[int], frames: int) -> None:
                 print(f"| {n} | {what} | {wall:.2f} | {acts['added']} / {acts['removed']} | "
                       f"{_mb(acts['added_bytes'])} / {_mb(acts['removed_bytes'])} | "
                       f"{len(files)}, {_mb(total)} |", flush=True)
+            reads = []
+            for _ in range(5):
+                t0 = time.perf_counter()
+                gc.open(root).table("frames")
+                reads.append(time.perf_counter() - t0)
+            print(f"| {n} | read the newest `frames` (`gc.open(...).table`, median of 5) | "
+                  f"{statistics.median(reads):.2f} | | | |", flush=True)
 
 
 def main() -> None:
@@ -138,8 +147,15 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--one-session", type=int, nargs="+", metavar="N",
                     help="measure one-session commits on catalogs of N sessions instead")
+    ap.add_argument("--frames-file-mb", type=float, default=None,
+                    help="with --one-session: the frames target file size (MiB) to try "
+                         "instead of catalog.commit.FRAMES_FILE_BYTES")
     args = ap.parse_args()
+    if args.frames_file_mb is not None:
+        commit.FRAMES_FILE_BYTES = int(args.frames_file_mb * 2**20)
+        optimize.TARGET_BYTES["frames"] = commit.FRAMES_FILE_BYTES
     if args.one_session:
+        print(f"frames target file size {commit.FRAMES_FILE_BYTES / 2**20:g} MiB")
         one_session(args.one_session, args.frames)
         return
     objects = ("mug", "drill", "bowl")
