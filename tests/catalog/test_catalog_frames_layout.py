@@ -18,7 +18,7 @@ FRAMES = 100
 IDS = [f"p{i:02d}-{('mug', 'drill', 'bowl')[i % 3]}-use-00" for i in range(N)]
 TARGET = 1 << 20
 """A small target file size, so 60 sessions make several files: deltalake checks the size
-after each 1,024 rows (~1.8 MB here), so every file holds 1,024 rows, ~10 sessions."""
+after each 1,024 rows (over 1 MiB here), so every file holds 1,024 rows, ~10 sessions."""
 
 
 def _frames_pin(cat: gc.Catalog, version: int) -> int:
