@@ -11,11 +11,14 @@ Protocol (under the writer lock):
    commit carries the catalog version it was made for (commit metadata
    ``graspcap.catalog_version``), and ``published.json`` records the newest published version
    after each versions row: the evidence that tells a killed writer's orphans from a
-   published version whose row was lost. Version numbers are never reused;
+   published version whose row was lost. Version numbers are never reused (this step lives in
+   ``catalog/recovery.py``);
 3. write the arrays (content-addressed Zarr groups, temp name then rename; first remove what
    killed writers left under ``arrays/.tmp``);
 4. per data table one Delta commit: replace the rows of the sessions the build touches
-   (``mode="overwrite"`` with a ``session_id IN (...)`` predicate), append the builds row;
+   (``mode="overwrite"`` with a ``session_id IN (...)`` predicate; rows sorted by session and
+   ``frames`` in files of about ``FRAMES_FILE_BYTES``, so the commit rewrites only the files
+   that hold a touched session), append the builds row;
 5. append the ``versions`` row: this write is the linearisation point. Readers resolve a catalog
    version through ``versions`` and read each table at its pinned Delta version, so until step 5
    lands the build is invisible, and a crash anywhere before it is undone by the next writer.
@@ -39,9 +42,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
-from deltalake import CommitProperties, DeltaTable, write_deltalake
-from deltalake.exceptions import DeltaError
+from deltalake import ColumnProperties, WriterProperties, write_deltalake
 
 from graspcap.catalog.arrays import (
     array_digest,
@@ -54,18 +55,12 @@ from graspcap.catalog.delta import (
     INITIAL_TABLE_VERSIONS,
     delta_table,
     delta_version,
-    entry_path,
-    intact_files,
-    log_dir,
-    log_problems,
-    lost_versions,
     read_latest,
     read_table,
     table_versions_of,
 )
 from graspcap.catalog.diff import diff_sessions
 from graspcap.catalog.errors import (
-    CatalogDamaged,
     CatalogDiskFull,
     CatalogError,
     CatalogLockTimeout,
@@ -73,6 +68,13 @@ from graspcap.catalog.errors import (
     writing,
 )
 from graspcap.catalog.layout import CatalogLayout
+from graspcap.catalog.recovery import (
+    _marked,
+    _table_write,
+    last_version_row,
+    recover,
+    write_published,
+)
 from graspcap.catalog.states import base_of, published_of, version_states
 from graspcap.catalog.validate import Batch, rows_to_columns, to_table
 from graspcap.schemas.tables import (
@@ -209,186 +211,6 @@ def writer_lock(layout: CatalogLayout, timeout_s: float) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-VERSION_KEY = "graspcap.catalog_version"
-"""Commit metadata of every table commit a build makes: the catalog version it was made for."""
-BUILD_KEY = "graspcap.build_id"
-
-
-def _marked(version: int, build_id: str, **more: Any) -> CommitProperties:
-    return CommitProperties(custom_metadata={VERSION_KEY: str(version), BUILD_KEY: build_id,
-                                             **{k: str(v) for k, v in more.items()}})
-
-
-def last_version_row(layout: CatalogLayout) -> dict | None:
-    """The newest ``versions`` row, or None for an empty catalog."""
-    versions = read_latest(layout, "versions")
-    if versions.num_rows == 0:
-        return None
-    i = int(pc.index(versions["version"], pc.max(versions["version"])).as_py())
-    return versions.slice(i, 1).to_pylist()[0]
-
-
-def read_published(layout: CatalogLayout) -> dict | None:
-    """``published.json``: ``{"version": N, "table_versions": {...}}`` or None (absent, or
-    unreadable: it is evidence only, the versions table stays the truth)."""
-    try:
-        record = json.loads(layout.published_file.read_text())
-        return record if isinstance(record, dict) and type(record.get("version")) is int \
-            else None
-    except (OSError, ValueError, RecursionError):
-        return None
-
-
-def write_published(layout: CatalogLayout, row: Mapping[str, Any]) -> None:
-    """Record ``row`` (a ``versions`` row) as published (temp file, then rename)."""
-    record = {"version": int(row["version"]), "build_id": row["build_id"],
-              "table_versions": json.loads(row["table_versions"])}
-    tmp = layout.published_file.with_suffix(".json.tmp")
-    try:
-        with writing(layout.published_file):
-            tmp.write_text(json.dumps(record, sort_keys=True) + "\n")
-            os.replace(tmp, layout.published_file)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def _commit_marks(dt: DeltaTable, start: int) -> list[tuple[int, int | None]]:
-    """``(Delta version, catalog version it was made for or None)`` of commits ``start``..."""
-    out = []
-    for entry in dt.history(dt.version() - start + 1):
-        mark = entry.get(VERSION_KEY)
-        out.append((int(entry["version"]), int(mark) if mark is not None else None))
-    return sorted(out)
-
-
-def check_versions(layout: CatalogLayout) -> tuple[dict | None, list[str]]:
-    """The last ``versions`` row and the problems that forbid writing on top of it.
-
-    Problems: a table log with a gap or an unreadable entry; version numbers with a gap; a
-    versions row pinning a Delta version its table no longer has; evidence that a version
-    after the last row was published (``published.json``, a tag, a table commit or builds row
-    made for a later version, a ``versions`` data file no log entry lists).
-    """
-    problems = [p for name in TABLE_SCHEMAS for p in log_problems(layout, name, parse=False)]
-    if problems:
-        return None, problems
-    versions = read_latest(layout, "versions")
-    numbers = sorted(versions["version"].to_pylist())
-    row = last_version_row(layout)
-    last = numbers[-1] if numbers else 0
-    lost = sorted(set(range(1, last + 1)) - set(numbers))
-    if lost:
-        problems.append(f"{layout.table('versions')}: the versions table has no row for "
-                        f"version(s) {lost} although later versions exist (rows deleted)")
-    newest = {name: delta_version(layout, name) for name in TABLE_SCHEMAS}
-    for r in versions.to_pylist():
-        for name, pinned in table_versions_of(r).items():
-            if pinned > newest[name]:
-                problems.append(
-                    f"{log_dir(layout, name)}: version {r['version']} pins table {name!r} at "
-                    f"Delta version {pinned} but its log ends at {newest[name]} "
-                    f"({lost_versions(list(range(newest[name] + 1, pinned + 1)))})")
-    published = read_published(layout)
-    if published is not None and published["version"] > last:
-        problems.append(f"{layout.published_file}: version {published['version']} was "
-                        f"published, but the versions table ends at version {last} (its "
-                        "rows or log entries after that were lost)")
-    tags = read_latest(layout, "tags")
-    for tag, version in zip(tags["tag"].to_pylist(), tags["version"].to_pylist(), strict=True):
-        if version > last:
-            problems.append(f"{layout.table('tags')}: tag {tag!r} points at version {version} "
-                            f"but the versions table ends at version {last}")
-    changes = (read_latest(layout, "publications").select(["version", "state"]).to_pylist()
-               if "publications" in TABLE_SCHEMAS else [])  # else: an older format's golden
-    for version, state in ((c["version"], c["state"]) for c in changes):
-        if version > last:
-            problems.append(f"{layout.table('publications')}: version {version} was {state}, "
-                            f"but the versions table ends at version {last}")
-    expected = table_versions_of(row) if row else INITIAL_TABLE_VERSIONS
-    for name in DATA_TABLES if row is not None and not problems else ():
-        have = delta_table(layout, name, expected[name]).count()  # from the log's stats
-        if have != row[f"rows_{name}"]:
-            problems.append(
-                f"{layout.table(name)}: table {name!r} at version {last} has {have} rows, but "
-                f"version {last} was committed with {row[f'rows_{name}']}: a Delta log entry "
-                "of it was altered")
-    for name in DATA_TABLES:
-        if newest[name] <= expected[name]:
-            continue
-        for delta_v, made_for in _commit_marks(delta_table(layout, name), expected[name] + 1):
-            if made_for is not None and made_for > last + 1:
-                problems.append(
-                    f"{entry_path(layout, name, delta_v)}: table {name!r}: Delta version "
-                    f"{delta_v} was made for catalog version {made_for}, so "
-                    f"{_published(last + 1, made_for - 1)} published, but the versions table "
-                    f"ends at {last}")
-    builds = read_table(layout, "builds", newest["builds"], ["build_id", "catalog_version"])
-    for build_id, made_for in zip(builds["build_id"].to_pylist(),
-                                  builds["catalog_version"].to_pylist(), strict=True):
-        if made_for > last + 1:
-            problems.append(f"{layout.table('builds')}: build {build_id!r} was committed as "
-                            f"version {made_for}, so {_published(last + 1, made_for - 1)} "
-                            f"published, but the versions table ends at {last}")
-    if published is None:  # no record (older catalog): look for a row whose log entry is lost
-        listed = {str(Path(f).resolve()) for f in intact_files(layout, "versions")}
-        for path in sorted(layout.table("versions").glob("*.parquet")):
-            if str(path.resolve()) in listed:
-                continue
-            try:
-                stray = pq.read_table(path, columns=["version"])["version"].to_pylist()
-            except (OSError, pa.ArrowException):
-                continue
-            if any(v > last for v in stray):
-                entry = entry_path(layout, "versions", newest["versions"] + 1)
-                problems.append(f"{path}: holds the versions row of version(s) "
-                                f"{sorted(v for v in stray if v > last)}, which no log entry "
-                                f"lists (its log entry {entry} was lost, or a writer died "
-                                "while appending it)")
-    return row, problems
-
-
-def _published(first: int, last: int) -> str:
-    return f"version {first} was" if first == last else f"versions {first}-{last} were"
-
-
-REPAIR_VERSIONS = (
-    "when the lost or garbled files are the versions table's log entries, `graspcap catalog "
-    "repair --catalog CATALOG` puts their rows back from the rows' own data files; "
-    "else put the lost files back from a backup or snapshot of the catalog (the newest version "
-    "stays unwritable until then: rolling the tables back would drop data a reader may have "
-    "seen, and a new version would reuse a published number). Readers of the intact versions "
-    "keep working; to go on without the lost version, rebuild into a new catalog (`graspcap "
-    "build SESSIONS --catalog NEW`) or export a readable one (`graspcap catalog export VERSION "
-    "--out DIR`)")
-
-
-def recover(layout: CatalogLayout) -> dict[str, int]:
-    """Roll back table commits no ``versions`` row could have published; return
-    ``{table: rolled-back-from}``.
-
-    Only commits of a writer that died between a table commit and its ``versions`` row are
-    undone; when anything says a version after the last row was published (``check_versions``)
-    nothing is rolled back and ``CatalogDamaged`` names what is missing. Call only under the
-    writer lock.
-    """
-    row, problems = check_versions(layout)
-    if problems:
-        raise CatalogDamaged(layout.uri, problems, REPAIR_VERSIONS)
-    last = row["version"] if row else 0
-    expected = table_versions_of(row) if row else INITIAL_TABLE_VERSIONS
-    rolled = {}
-    for name in DATA_TABLES:
-        dt = delta_table(layout, name)
-        if dt.version() != expected[name]:
-            rolled[name] = dt.version()
-            with _table_write(layout, name):
-                dt.restore(expected[name], commit_properties=_marked(
-                    last, "recover", **{"graspcap.rolled_back_from": dt.version()}))
-    if row is not None and (read_published(layout) or {}).get("version", 0) < last:
-        write_published(layout, row)  # a writer died between its versions row and the record
-    return rolled
-
-
 def _landed(layout: CatalogLayout, version: int, build_id: str) -> bool:
     """Whether the versions row of ``version`` by ``build_id`` is committed."""
     try:
@@ -396,20 +218,6 @@ def _landed(layout: CatalogLayout, version: int, build_id: str) -> bool:
     except CatalogError:
         return False
     return row is not None and row["version"] == version and row["build_id"] == build_id
-
-
-@contextmanager
-def _table_write(layout: CatalogLayout, name: str) -> Iterator[None]:
-    """One Delta commit to table ``name``: ENOSPC names the table folder; any other deltalake
-    error becomes a ``CatalogError`` naming the table, without the Rust backtrace."""
-    try:
-        with writing(layout.table(name)):
-            yield
-    except DeltaError as exc:
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise CatalogError(
-            f"writing table {name!r} ({layout.table(name)}) failed: {first[:500]}; nothing "
-            "of this build is committed and every earlier version is intact") from None
 
 
 def _as_list(values: Any) -> list:
@@ -470,6 +278,40 @@ def _known(name: str, row: dict[str, Any]) -> dict[str, Any]:
     older formats, ``tests/golden/make_golden.py``, write with fewer columns)."""
     names = set(TABLE_SCHEMAS[name].names)
     return {k: v for k, v in row.items() if k in names}
+
+
+FRAMES_FILE_BYTES = 8 << 20
+"""Target size of a ``frames`` Parquet file (``write_deltalake(target_file_size=...)``). With
+the rows sorted by session the files hold disjoint ``session_id`` ranges, so a build that
+replaces one session rewrites the one file that holds it (two when it straddles a boundary),
+not the whole table; ``optimize`` compacts small files up to this size too. Files come out at
+the first multiple of 1,024 rows past the target (~9 MB here: deltalake 1.6 slices a batch
+into 1,024-row pieces and checks the size after each). The size trades the rewrite against
+the per-file cost of a full read (docs/catalog.md, "The frames layout"; docs/benchmarks.md,
+``bench/compaction.py --one-session``)."""
+
+
+FRAMES_WRITER = WriterProperties(
+    compression="SNAPPY",
+    default_column_properties=ColumnProperties(dictionary_enabled=False),
+    column_properties={c: ColumnProperties(dictionary_enabled=True) for c in
+                       ("session_id", "build_id", "camera_reason", "hand_reason",
+                        "object_reason")})
+"""How ``frames`` files are written (builds and ``optimize``): dictionary encoding only for the
+strings. Measured floats never repeat, and each file's failed dictionary attempt costs up to
+1 MiB a column: 1,000 sessions in ~9 MB files took 105 MB with it, 90 MB without (one file:
+91 MB; ``FRAMES_FILE_BYTES``)."""
+
+
+def session_order(table: pa.Table) -> pa.Table:
+    """``table``'s rows sorted by ``session_id`` (then ``frame``, when it has one), as one
+    record batch: the form a build writes them in. One batch matters: deltalake spreads several
+    batches over parallel writers, each file then holding every other batch (overlapping
+    ranges), while it writes one batch's slices in order."""
+    keys = [("session_id", "ascending")]
+    if "frame" in table.column_names:
+        keys.append(("frame", "ascending"))
+    return table.sort_by(keys).combine_chunks()
 
 
 def _predicate(ids: list[str]) -> str:
@@ -537,13 +379,16 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
         marked = _marked(version, commit.build.build_id)
         if touched:
             with _table_write(layout, "sessions"):
-                write_deltalake(str(layout.table("sessions")), sessions, mode="overwrite",
-                                predicate=_predicate(touched), commit_properties=marked)
+                write_deltalake(str(layout.table("sessions")), session_order(sessions),
+                                mode="overwrite", predicate=_predicate(touched),
+                                commit_properties=marked)
         _pause("after_sessions")
         if touched:
             with _table_write(layout, "frames"):
-                write_deltalake(str(layout.table("frames")), frames, mode="overwrite",
-                                predicate=_predicate(touched), commit_properties=marked)
+                write_deltalake(str(layout.table("frames")), session_order(frames),
+                                mode="overwrite", predicate=_predicate(touched),
+                                target_file_size=FRAMES_FILE_BYTES,
+                                writer_properties=FRAMES_WRITER, commit_properties=marked)
         _pause("after_frames")
 
         published = published_of(states)

@@ -281,10 +281,10 @@ def read_latest(layout: CatalogLayout, name: str) -> pa.Table:
 
     When their log is damaged (a gap, an unreadable entry), the rows of the readable entries:
     both tables are append-only, so every row read is one that was committed, and readers of
-    the versions whose rows survive keep working (writers stop: ``commit.recover``).
+    the versions whose rows survive keep working (writers stop: ``recovery.recover``).
     """
-    try:
-        return read_table(layout, name, delta_version(layout, name))
+    try:  # one log load: the newest version's file list (not its number, then that version's)
+        return read_files(name, delta_table(layout, name).file_uris(), None, layout)
     except CatalogDamaged:
         if not layout.is_local or name not in ("versions", "tags") \
                 or not log_entries(layout, name)[0]:  # no log at all: nothing to trust

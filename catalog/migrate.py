@@ -48,7 +48,7 @@ import pyarrow as pa
 from deltalake import DeltaTable, Field, write_deltalake
 
 from graspcap.catalog.arrays import add_manifest, all_digests, remove_temp_groups
-from graspcap.catalog.commit import last_version_row, recover, writer_lock
+from graspcap.catalog.commit import writer_lock
 from graspcap.catalog.delta import create_tables, delta_version
 from graspcap.catalog.errors import CatalogError, CatalogFormatError
 from graspcap.catalog.layout import (
@@ -57,6 +57,7 @@ from graspcap.catalog.layout import (
     read_format,
     write_format_file,
 )
+from graspcap.catalog.recovery import last_version_row, recover
 from graspcap.catalog.validate import to_table
 from graspcap.schemas.tables import (
     CATALOG_FORMAT_VERSION,

@@ -4,15 +4,17 @@ Every build adds files to ``sessions``, ``frames`` and ``builds`` (one overwrite
 table per build), so after many incremental builds a table is read from hundreds of small
 files. ``optimize_catalog`` (``graspcap catalog optimize``, and a build every
 ``OPTIMIZE_EVERY`` versions) runs deltalake's ``DeltaTable.optimize.compact()`` on each data
-table, writes a Delta checkpoint of every table (``create_checkpoint``: a reader replays the
-log from it instead of from the first entry), compacts the bookkeeping tables (``versions``,
-``tags``, ``publications``: one small file per row, read whole by every reader that resolves a
-version) and appends one catalog version (build id
-``optimize-<time>``, the same rows and state as the version it compacts) pinning the compacted
-Delta versions. Nothing older changes: compaction only adds files and a Delta version (the
-replaced files are marked removed in the new Delta version, never deleted), every older
-catalog version and tag still pins its old Delta versions and reads its old files, and the
-tables keep ``delta.enableExpiredLogCleanup=false``, so the checkpoint deletes no log entry.
+table (``frames`` to the builds' target file size, ``TARGET_BYTES``: only files under it merge,
+so a one-session build still rewrites one ~9 MB file afterwards), writes a Delta checkpoint of
+every table (``create_checkpoint``: a reader replays the log from it instead of from the first
+entry), compacts the bookkeeping tables (``versions``, ``tags``, ``publications``: one small
+file per row, read whole by every reader that resolves a version) and appends one catalog
+version (build id ``optimize-<time>``, the same rows and state as the version it compacts)
+pinning the compacted Delta versions. Nothing older changes: compaction only adds files and a
+Delta version (the replaced files are marked removed in the new Delta version, never deleted),
+every older catalog version and tag still pins its old Delta versions and reads its old files,
+and the tables keep ``delta.enableExpiredLogCleanup=false``, so the checkpoint deletes no log
+entry.
 Only ``catalog vacuum`` deletes files, and it keeps every file a kept version pins.
 Runs under the writer lock, with the commit protocol's recovery: a compaction killed before its
 versions row is rolled back by the next writer like any orphan.
@@ -26,16 +28,16 @@ from datetime import UTC, datetime
 
 from deltalake import WriterProperties, write_deltalake
 
-from graspcap.catalog.commit import (
+from graspcap.catalog.commit import FRAMES_FILE_BYTES, FRAMES_WRITER, writer_lock
+from graspcap.catalog.delta import delta_table, table_versions_of
+from graspcap.catalog.errors import CatalogError
+from graspcap.catalog.recovery import (
     _marked,
     _table_write,
     last_version_row,
     recover,
     write_published,
-    writer_lock,
 )
-from graspcap.catalog.delta import delta_table, table_versions_of
-from graspcap.catalog.errors import CatalogError
 from graspcap.catalog.states import base_of, version_states
 from graspcap.catalog.store import Catalog
 from graspcap.catalog.validate import to_table
@@ -45,12 +47,18 @@ WRITER = WriterProperties(compression="SNAPPY")
 """The codec ``write_deltalake`` gives the build's files (optimize's default is ZSTD: in one
 noisy check its ``frames`` of 20 sessions read in 7.8 ms warm against 4.4 ms;
 docs/benchmarks.md)."""
+TARGET_BYTES = {"frames": FRAMES_FILE_BYTES}
+"""Compaction's target file size per table (others: deltalake's default, 100 MiB). ``frames``
+keeps the builds' bound: ``compact`` merges only files under the target, in bins up to it, so
+the large session-sorted files stay as they are, the small ones of incremental builds merge,
+every session's rows stay in one or two files, and a later one-session build still rewrites
+one file of at most ~1.4x the target (docs/catalog.md, "The frames layout")."""
 MIN_FILES = 2
+"""A table of fewer files than this is not compacted."""
 BOOKKEEPING = ("versions", "tags", "publications")
 """Append-only tables no version pins, with one file per row: compacted with the data tables
 (every reader reads them whole at their newest Delta version; a lost log entry's rows are
 still in the old files, which ``catalog repair`` reads)."""
-"""A table of fewer files than this is not compacted."""
 
 
 @dataclass(frozen=True)
@@ -104,8 +112,10 @@ def optimize_catalog(catalog: Catalog, *, min_files: int = MIN_FILES) -> Optimiz
             after = before
             if before >= min_files:
                 with _table_write(layout, name):
-                    dt.optimize.compact(commit_properties=_marked(version, build_id),
-                                        writer_properties=WRITER)
+                    dt.optimize.compact(target_size=TARGET_BYTES.get(name),
+                                        commit_properties=_marked(version, build_id),
+                                        writer_properties=FRAMES_WRITER if name == "frames"
+                                        else WRITER)
                 dt = delta_table(layout, name)
                 after = len(dt.file_uris())
             by_table[name] = [before, after]

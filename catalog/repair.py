@@ -2,7 +2,7 @@
 
 A ``versions`` row is one small Parquet file that the log entry of its append lists. When that
 entry is deleted or garbled, the row's file is still there, unlisted: writers stop on it
-(``commit.check_versions``) and the version is invisible. ``repair_versions`` (under the writer
+(``recovery.check_versions``) and the version is invisible. ``repair_versions`` (under the writer
 lock) moves a garbled entry aside (``<entry>.damaged``), fills every hole in the log with an
 entry that changes nothing (a ``commitInfo`` only), and appends the unlisted rows whose version
 numbers the table lacks, as one new commit. A row so restored pins table versions that were

@@ -23,14 +23,7 @@ from deltalake import write_deltalake
 
 from graspcap.catalog.arrays import read_group
 from graspcap.catalog.audit import AuditGates
-from graspcap.catalog.commit import (
-    REPAIR_VERSIONS,
-    BuildCommit,
-    BuildInfo,
-    check_versions,
-    commit_build,
-    writer_lock,
-)
+from graspcap.catalog.commit import BuildCommit, BuildInfo, commit_build, writer_lock
 from graspcap.catalog.delta import (
     REPAIR_LOG,
     MissingFiles,
@@ -44,6 +37,7 @@ from graspcap.catalog.delta import (
 from graspcap.catalog.diff import diff_sessions
 from graspcap.catalog.errors import CatalogDamaged, CatalogError, VersionNotFound, writing
 from graspcap.catalog.layout import CatalogLayout, check_format, write_format_file
+from graspcap.catalog.recovery import REPAIR_VERSIONS, check_versions
 from graspcap.catalog.states import base_of, published_of, version_states
 from graspcap.catalog.vacuum import VacuumReport, vacuum_catalog, vacuumed_versions
 from graspcap.catalog.validate import to_table

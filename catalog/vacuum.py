@@ -23,10 +23,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from graspcap.catalog.arrays import all_digests, remove_temp_groups
-from graspcap.catalog.commit import recover, writer_lock
+from graspcap.catalog.commit import writer_lock
 from graspcap.catalog.delta import delta_version, table_files
 from graspcap.catalog.errors import writing
 from graspcap.catalog.layout import CatalogLayout
+from graspcap.catalog.recovery import recover
 from graspcap.schemas.tables import DATA_TABLES, TABLE_SCHEMAS, ZARR_LAYOUT
 
 if TYPE_CHECKING:
