@@ -224,7 +224,7 @@ def cache_key(stage_name: str, session_dir: Path | str, config: StageConfig,
     except OSError:  # missing, not a regular file, a symlink loop: load_session says which
         return None
     return stage_key(stage.version, config, f"{reads}:{_fields_digest(fields)}",
-                     {k: upstream[k] for k in stage.key_upstream}, stage_code(stage).digest)
+                     {k: upstream[k] for k in stage.key_upstream}, _code(stage, work).digest)
 
 
 _ABSENT = {"(absent)": True}
@@ -339,8 +339,14 @@ def key_parts(stage_name: str, session_dir: Path | str, config: StageConfig,
             "files": by_role,
             "fields": {k: hashlib.sha256(_canonical(v).encode()).hexdigest()[:16]
                        for k, v in fields.items()},
-            **stage_code(stage).as_dict(),
+            **_code(stage, work).as_dict(),
             "upstream": {k: upstream[k].digest for k in stage.key_upstream if k in upstream}}
+
+
+def _code(stage, work: WorkArea):
+    """``stage_code`` remembered in the work area's ``digests/`` across processes (read only
+    for a read-only work area)."""
+    return stage_code(stage, work.root / "digests", write=not work.readonly)
 
 
 def _relative(path: Path, base: Path) -> str:
