@@ -356,3 +356,38 @@ def test_a_stage_in_a_session_task_retries_transient_faults_only(warm, synth_roo
         fs.run_retrying("register_scan", session, "s0", pipeline.configs_for(PRESET)[
             "register_scan"], work, "b-det", True, {"load_session": up})
     assert len(calls) == 4 and len(work.executions("b-det")) == 1
+
+
+def test_load_session_file_lists_are_remembered_by_the_result_digest(tmp_path, monkeypatch):
+    """A new process reads a ``load_session`` result's file list from the work area's memo
+    (named by the result's content digest) instead of unpickling it; ``--plan`` writes none."""
+    from graspcap.flows import cached
+    from graspcap.flows.workarea import ResultRef
+
+    listing = {"manifest": [tmp_path / "s" / "session.json"],
+               "grasp_rgb": [tmp_path / "s" / f"{i}.png" for i in range(3)]}
+    loads = []
+
+    class Loaded:
+        def input_files(self):
+            return {k: list(v) for k, v in listing.items()}
+
+    monkeypatch.setattr(WorkArea, "load", classmethod(lambda cls, ref: loads.append(ref)
+                                                      or Loaded()))
+    ref = ResultRef("load_session", "k1", str(tmp_path / "r.pkl"), "d" * 64, "b")
+
+    def fresh(work):
+        cached._FILES.clear()  # as in a new process
+        return cached.loaded_session_files(ref, work)
+
+    assert fresh(WorkArea.reader(tmp_path / "work")) == listing and len(loads) == 1
+    assert not (tmp_path / "work").exists()  # a read-only work area writes nothing
+    work = WorkArea(tmp_path / "work")
+    assert fresh(work) == listing and len(loads) == 2
+    assert (tmp_path / "work" / "digests" / f"files-{'d' * 64}.json").exists()
+    assert fresh(work) == listing and len(loads) == 2  # from the memo: nothing unpickled
+    assert fresh(WorkArea.reader(tmp_path / "work")) == listing and len(loads) == 2
+    other = ResultRef("load_session", "k2", str(tmp_path / "r2.pkl"), "e" * 64, "b")
+    cached._FILES.clear()
+    cached.loaded_session_files(other, work)
+    assert len(loads) == 3  # another result: its own list
