@@ -187,25 +187,48 @@ def _stage_outcomes(futures: Mapping[str, Any]):
     return refs, ran, cached, not_run, error, failed_stage, tuple(notes)
 
 
-@flow(name="graspcap-build", persist_result=False, log_prints=False)
-def build_flow(roots: list[str], catalog: str, preset: str = "default",
-               overrides: dict[str, Any] | None = None, retry_failed: bool = False,
-               work_root: str | None = None, build_id: str | None = None,
-               gates: dict[str, Any] | None = None,
-               optimize_every: int | None = OPTIMIZE_EVERY,
-               retention: dict[str, Any] | None = None) -> BuildReport:
-    """The whole build as one flow run (module docstring). ``gates``: the audit's
-    (``catalog.audit.AuditGates`` fields); ``optimize_every``: see :data:`OPTIMIZE_EVERY`;
-    ``retention``: Prefect's finished flow runs kept (``flows.retention.RunRetention``
-    fields), pruned at the end of the build (a scheduled ``graspcap serve`` build too)."""
+@dataclasses.dataclass
+class _Prepared:
+    """A build up to its stage tasks: what discovery found and what the work area settles."""
+
+    t0: float
+    cat: gc.Catalog
+    work: WorkArea
+    configs: dict[str, StageConfig]
+    cdigest: str
+    version: str
+    found: Any
+    dirs: list[Path]
+    ids: list[str]
+    duplicate: dict[str, str]
+    settled: dict[str, dict[str, Settled]]
+    """By session directory: the stages the work area settles (``settle_session``)."""
+    t_discover: float
+    done: Any = None
+    """The assembled rows, when a build outside Prefect found something to write."""
+    t_run: float = 0.0
+
+    @property
+    def idle(self) -> bool:
+        """True when every stage of every session is settled: no stage task to run."""
+        from graspcap.tasks.pipeline import STAGES
+
+        return all(len(s) == len(STAGES) for s in self.settled.values())
+
+
+_HANDOFF: dict[str, _Prepared] = {}
+"""Preparations made before Prefect started, by build id, for the flow run to take over."""
+
+
+def _prepare(roots: list[str], catalog: str, preset: str, overrides: dict[str, Any] | None,
+             retry_failed: bool, work_root: str | None) -> _Prepared:
+    """Steps 1 and the settling part of 2 (module docstring), without Prefect."""
+    from graspcap.flows.session import settle_session
+
     t0 = time.perf_counter()
-    gates = gc.AuditGates(**(gates or {}))
-    build_id = build_id or time.strftime("%Y%m%dT%H%M%S") + "-" + uuid.uuid4().hex[:8]
     cat = gc.open(catalog, create=True)
     work = WorkArea(work_root or cat.layout.root / "work")
     configs = resolve_configs(preset, overrides)
-    cdigest = configs_digest(configs)
-    version = code_version()
     found = discover([Path(r) for r in roots])
     dirs = found.sessions
     ids = [_session_id(d) for d in dirs]
@@ -222,25 +245,73 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
                 "(sorted) and is the one built; session ids must be unique: rename one")
         seen.setdefault(sid, d)
     t_discover = time.perf_counter()
+    settled = {str(d): settle_session(str(Path(d).resolve()), configs, work,
+                                      replay_failures=not retry_failed)
+               for d in dirs if str(d) not in duplicate}
+    return _Prepared(t0, cat, work, configs, configs_digest(configs), code_version(), found,
+                     dirs, ids, duplicate, settled, t_discover)
 
+
+@flow(name="graspcap-build", persist_result=False, log_prints=False)
+def build_flow(roots: list[str], catalog: str, preset: str = "default",
+               overrides: dict[str, Any] | None = None, retry_failed: bool = False,
+               work_root: str | None = None, build_id: str | None = None,
+               gates: dict[str, Any] | None = None,
+               optimize_every: int | None = OPTIMIZE_EVERY,
+               retention: dict[str, Any] | None = None) -> BuildReport:
+    """The whole build as one flow run (module docstring). ``gates``: the audit's
+    (``catalog.audit.AuditGates`` fields); ``optimize_every``: see :data:`OPTIMIZE_EVERY`;
+    ``retention``: Prefect's finished flow runs kept (``flows.retention.RunRetention``
+    fields), pruned at the end of the build (a scheduled ``graspcap serve`` build too)."""
+    build_id = build_id or _new_build_id()
+    prep = _HANDOFF.pop(build_id, None) or _prepare(roots, catalog, preset, overrides,
+                                                     retry_failed, work_root)
+    return _build(prep, roots, preset, retry_failed, build_id, gates, optimize_every,
+                  retention)
+
+
+def _new_build_id() -> str:
+    return time.strftime("%Y%m%dT%H%M%S") + "-" + uuid.uuid4().hex[:8]
+
+
+def _build(prep: _Prepared, roots: list[str], preset: str, retry_failed: bool, build_id: str,
+           gates: dict[str, Any] | None, optimize_every: int | None,
+           retention: dict[str, Any] | None, quiet: bool = False) -> BuildReport | None:
+    """Steps 2-6 of the module docstring. ``quiet``: outside Prefect, for a build whose
+    stages are all settled (``prep.idle``): the report when it has nothing to commit either,
+    else None, with ``prep`` in ``_HANDOFF`` for the flow run to finish."""
+    gates = gc.AuditGates(**(gates or {}))
+    cat, work, configs, version = prep.cat, prep.work, prep.configs, prep.version
+    dirs, ids, duplicate, cdigest = prep.dirs, prep.ids, prep.duplicate, prep.cdigest
+    t0, t_discover = prep.t0, prep.t_discover
     # on Dask, one task per session (its stages plain calls in it): a dispatch costs ~0.4 s
     runner = getattr(FlowRunContext.get(), "task_runner", None)
     per_session = type(runner).__name__ == "DaskTaskRunner"
     submitted = {str(d): submit_session(d, configs, work, build_id, session_id=sid,
                                         replay_failures=not retry_failed, settle=True,
-                                        per_session=per_session)
+                                        per_session=per_session,
+                                        settled=prep.settled.get(str(d)))
                  for d, sid in zip(dirs, ids, strict=True) if str(d) not in duplicate}
-    log = _run_log()
-    _watch(submitted, {str(d): sid for d, sid in zip(dirs, ids, strict=True)}, log)
+    log = None if quiet else _run_log()
+    session_ids = {str(d): sid for d, sid in zip(dirs, ids, strict=True)}
+    if not quiet:
+        _watch(submitted, session_ids, log)
     outcomes = {d: _stage_outcomes(f) for d, f in submitted.items()}
     # the stored result each stage used, by session (`catalog vacuum --work` keeps them)
     used = {sid: {name: ref.key for name, ref in outcomes[str(d)][0].items()}
             for d, sid in zip(dirs, ids, strict=True) if str(d) in outcomes}
-    t_run = time.perf_counter()
+    t_run = prep.t_run if prep.done is not None else time.perf_counter()
 
     previous = cat.base_version()  # planned against what the commit writes on top of
-    done = assemble(cat, work, gc.BuildInfo(build_id, version, cdigest), previous,
-                    list(zip(dirs, ids, strict=True)), duplicate, outcomes)
+    done = prep.done if prep.done is not None else assemble(
+        cat, work, gc.BuildInfo(build_id, version, cdigest), previous,
+        list(zip(dirs, ids, strict=True)), duplicate, outcomes)
+    if quiet and (done.rows or done.new_failures):
+        prep.done, prep.t_run = done, t_run
+        _HANDOFF[build_id] = prep
+        return None
+    if quiet:
+        _watch(submitted, session_ids)  # progress: every stage settled
     reports = done.reports
     t_rows = time.perf_counter()
 
@@ -248,7 +319,7 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
               "preset": preset, "retry_failed": retry_failed, "work": str(work.root),
               "gates": gates.model_dump(mode="json"),
               "configs": {n: json.loads(c.canonical_json()) for n, c in configs.items()},
-              "not_sessions": [str(p) for p in found.not_sessions]}
+              "not_sessions": [str(p) for p in prep.found.not_sessions]}
     run = FlowRunContext.get()
     if run is not None and getattr(run, "flow_run", None) is not None:
         params["flow_run_id"] = str(run.flow_run.id)  # the Prefect run (UI) of this build
@@ -277,15 +348,16 @@ def build_flow(roots: list[str], catalog: str, preset: str = "default",
     publication = _publication(cat, new_version)
     if new_version is not None and optimize_every and new_version % optimize_every == 0:
         publication["optimized"] = _optimize(cat)
-    t_prune = time.perf_counter()
-    if prune_flow_runs(RunRetention(**(retention or {}))) is not None:
+    t_prune = time.perf_counter()  # a quiet build made no flow run: nothing new to prune
+    if not quiet and prune_flow_runs(RunRetention(**(retention or {}))) is not None:
         seconds["prune_runs"] = time.perf_counter() - t_prune
     seconds["total"] = time.perf_counter() - t0
     report = BuildReport(build_id, new_version, previous, tuple(reports), seconds, params,
                          publication=publication)
     report = dataclasses.replace(report, report_page=_report_page(cat, report))
     _log_build(work, {**report.record(), "keys": used})
-    _qa_artifact(cat, report)
+    if not quiet:
+        _qa_artifact(cat, report)
     if log is not None:
         for s in report.sessions:
             if s.outcome == Outcome.FAILED:
@@ -421,7 +493,8 @@ def build_dataset(roots: Sequence[Path | str], catalog: Path | str, preset: str 
                   progress: ProgressFn | None = None,
                   gates: gc.AuditGates | Mapping[str, Any] | None = None,
                   optimize_every: int | None = OPTIMIZE_EVERY,
-                  retention: RunRetention | None = None) -> BuildReport:
+                  retention: RunRetention | None = None,
+                  flow_when_idle: bool = False) -> BuildReport:
     """Build (or update) the catalog at ``catalog`` from the sessions under ``roots``.
 
     ``dask``: None (threads in this process, ``workers`` of them), ``"local:N"`` (a Dask
@@ -433,13 +506,34 @@ def build_dataset(roots: Sequence[Path | str], catalog: Path | str, preset: str 
     when the new version's number is a multiple of it. ``retention``: how many of Prefect's
     flow runs to keep (``flows/retention.py``; default ``RunRetention()``), pruned at the
     end of the build.
+
+    A build that has nothing to run (every stage of every session settled by the work area)
+    and nothing to commit (every session unchanged, no new failure) starts no Prefect: no
+    API server, no flow run, no QA artifact, no pruning; it writes what any build without a
+    version writes (its record in ``builds.jsonl``, its report page) and returns the same
+    report. ``flow_when_idle=True`` runs it as a flow run all the same. A build with
+    something to run or commit hands what it settled before Prefect started to its flow run
+    (nothing is settled twice).
     """
     if isinstance(gates, gc.AuditGates):
         gates = gates.model_dump()
     gates = gc.AuditGates(**dict(gates or {})).model_dump()  # a bad gate fails before Prefect
-    runner = task_runner_ or task_runner(dask, workers)
-    with reporting_to(progress), worker_api(dask) as api_url, build_settings(api_url):
-        return build_flow.with_options(task_runner=runner)(
-            [str(r) for r in roots], str(catalog), preset, dict(overrides or {}),
-            retry_failed, None if work is None else str(work), build_id, gates,
-            optimize_every, (retention or RunRetention()).model_dump())
+    build_id = build_id or _new_build_id()
+    args = ([str(r) for r in roots], str(catalog), preset, dict(overrides or {}), retry_failed,
+            None if work is None else str(work))
+    retention_ = (retention or RunRetention()).model_dump()
+    try:
+        with reporting_to(progress):
+            prep = _prepare(*args)
+            if prep.idle and not flow_when_idle:
+                report = _build(prep, args[0], preset, retry_failed, build_id, gates,
+                                optimize_every, retention_, quiet=True)
+                if report is not None:
+                    return report
+            _HANDOFF[build_id] = prep
+        runner = task_runner_ or task_runner(dask, workers)
+        with reporting_to(progress), worker_api(dask) as api_url, build_settings(api_url):
+            return build_flow.with_options(task_runner=runner)(
+                *args, build_id, gates, optimize_every, retention_)
+    finally:
+        _HANDOFF.pop(build_id, None)

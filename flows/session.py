@@ -186,13 +186,16 @@ def settle_session(session_dir: Path | str, configs: Mapping[str, StageConfig], 
 def submit_session(session_dir: Path | str, configs: Mapping[str, StageConfig],
                    work: WorkArea, build_id: str, session_id: str | None = None,
                    stages: Mapping | None = None, replay_failures: bool = True,
-                   settle: bool = False, per_session: bool = False
+                   settle: bool = False, per_session: bool = False,
+                   settled: Mapping[str, Settled] | None = None
                    ) -> dict[str, PrefectFuture | Settled | InSession]:
     """Submit the stages of one session into the running flow; futures by stage name.
     ``replay_failures=False`` runs stages whose remembered failure would be replayed.
     ``settle=True``: stages the work area settles (:func:`settle_session`) get no task; they
     are :class:`Settled` in the returned mapping and their refs are passed on as they are.
-    ``per_session=True`` (a Dask runner): the stages that must run go to ONE task,
+    ``settled``: what :func:`settle_session` gave for this session just before (used instead
+    of settling again when ``settle``). ``per_session=True`` (a Dask runner): the stages that
+    must run go to ONE task,
     :func:`run_session_task`, and are :class:`InSession` in the returned mapping.
 
     Upstream futures are passed as parameters, so Prefect resolves them to their refs and a
@@ -204,7 +207,8 @@ def submit_session(session_dir: Path | str, configs: Mapping[str, StageConfig],
     session_dir = str(Path(session_dir).resolve())
     session_id = session_id or session_id_of(Path(session_dir))
     out: dict[str, PrefectFuture | Settled | InSession] = (
-        dict(settle_session(session_dir, configs, work, stages, replay_failures))
+        dict(settled if settled is not None
+             else settle_session(session_dir, configs, work, stages, replay_failures))
         if settle else {})
     if per_session:
         to_run = [name for name in stages if name not in out]

@@ -21,6 +21,10 @@ A deterministic failure (a ``StageError``) is remembered too, as ``<key>.failed.
 reason): running the same stage version and config on the same bytes fails the same way, so an
 unchanged rebuild replays it instead of running the stage again; ``--retry-failed`` ignores it.
 
+File digests (the inputs of every cache key) are remembered by (path, size, mtime_ns, inode)
+in ``<root>/digests/``, one JSON memo per folder of input files (:meth:`WorkArea.file_digest`):
+an unchanged session costs a new process one ``stat`` per file, no hashing.
+
 ``executions.jsonl`` is the side channel of stage-body executions: one JSON line per
 attempt (stage, session, key, build, seconds, CPU seconds, pid, ok, error), appended with
 ``O_APPEND`` in one ``write``, so lines from concurrent workers never interleave.
@@ -58,9 +62,8 @@ mtime tick (a coarse file-system clock): its digest is used but not remembered (
 STALE_TEMP_S = 6 * 3600.0
 """A temporary file this old is a killed writer's, whatever host wrote it."""
 TEMP_PREFIX = ".tmp-"
-MEMO_MIN_BYTES = 1 << 20
-"""Digests of files at least this big are also remembered on disk (``<root>/digests/``), for the
-next process; a smaller file is hashed as fast as its memo file would be read (~1 GB/s)."""
+DIGEST_MEMO_FORMAT = 1
+"""Format of the folder memos under ``<root>/digests/`` (``dir-<sha of folder>.json``)."""
 
 
 @dataclass(frozen=True)
@@ -102,6 +105,12 @@ class WorkArea:
     _memo: dict[str, str] = {}
     """File digests by (path, size, mtime_ns, inode), for every work area of this process."""
     _MEMO_MAX = 200_000
+    _folders: dict[tuple[str, str], dict[str, list]] = {}
+    """Folder memos read or added to by this process, by (digest index, folder)."""
+    _FOLDERS_MAX = 50_000
+    _dirty: dict[int, set[str]] = {}
+    """Folders whose memo a thread added digests to and has not written yet, by thread."""
+    _memo_lock = threading.Lock()
     _swept: set[Path] = set()
     """Roots whose stale temporary files this process has removed."""
     readonly: bool = False
@@ -164,29 +173,15 @@ class WorkArea:
     def file_digest(self, path: Path) -> str:
         """sha256 of a file's bytes, remembered by (path, size, mtime_ns, inode) so unchanged
         files are not hashed again on every build (a file replaced by a rename, even with the
-        same size and mtime, has a new inode): in this process's memory, and for a file of at
-        least ``MEMO_MIN_BYTES`` in ``<root>/digests/``. A file modified less than ``RACY_S``
-        ago is hashed every time."""
-        st = os.stat(path)
-        ident = f"{os.path.abspath(path)}|{st.st_size}|{st.st_mtime_ns}|{st.st_ino}"
-        name = hashlib.sha256(ident.encode()).hexdigest()[:32]
-        if (digest := self._memo.get(name)) is not None:
-            return digest
-        memo = self._digest_index / name
-        big = st.st_size >= MEMO_MIN_BYTES
-        try:
-            digest = memo.read_text() if big else None
-        except FileNotFoundError:
-            digest = None
-        if not digest:
-            digest = sha256_file(Path(path))
-            if time.time_ns() - st.st_mtime_ns < RACY_S * 1e9:
-                return digest  # may change again within the same mtime tick: not remembered
-            if big and not self.readonly:
-                _atomic_write(memo, digest.encode())
-        if len(self._memo) >= self._MEMO_MAX:
-            self._memo.clear()
-        self._memo[name] = digest
+        same size and mtime, has a new inode): in this process's memory, and for files of any
+        size in one memo per folder under ``<root>/digests/`` (:meth:`_folder_memo`), so a new
+        process settles an unchanged session with a ``stat`` of each file and one small read
+        per folder. A file modified less than ``RACY_S`` before it is hashed is not remembered
+        (git's "racily clean" rule). The known risk, the one Make, git and DVC take too: a file
+        rewritten with the same size, the same mtime_ns and the same inode (a tool that writes
+        in place and then restores the old mtime) keeps its old digest; ``touch`` it."""
+        digest = self._digest(path)
+        self._flush_memos()
         return digest
 
     def files_digest(self, paths: list[Path]) -> str:
@@ -194,8 +189,79 @@ class WorkArea:
         h = hashlib.sha256()
         for p in paths:
             h.update(str(p).encode())
-            h.update(self.file_digest(p).encode())
+            h.update(self._digest(p).encode())
+        self._flush_memos()
         return h.hexdigest()
+
+    def _digest(self, path: Path) -> str:
+        st = os.stat(path)
+        full = os.path.abspath(path)
+        ident = f"{full}|{st.st_size}|{st.st_mtime_ns}|{st.st_ino}"
+        if (digest := self._memo.get(ident)) is not None:
+            return digest
+        folder, name = os.path.split(full)
+        stamp = [st.st_size, st.st_mtime_ns, st.st_ino]
+        memo = self._folder_memo(folder)
+        found = memo.get(name)
+        if found is not None and found[:3] == stamp and isinstance(found[3], str):
+            digest = found[3]
+        else:
+            digest = sha256_file(Path(path))
+            if time.time_ns() - st.st_mtime_ns < RACY_S * 1e9:
+                return digest  # may change again within the same mtime tick: not remembered
+            with self._memo_lock:
+                memo[name] = [*stamp, digest]
+                self._dirty.setdefault(threading.get_ident(), set()).add(folder)
+        if len(self._memo) >= self._MEMO_MAX:
+            self._memo.clear()
+        self._memo[ident] = digest
+        return digest
+
+    def _memo_file(self, folder: str) -> Path:
+        return self._digest_index / ("dir-" + hashlib.sha256(folder.encode()).hexdigest()[:32]
+                                     + ".json")
+
+    def _folder_memo(self, folder: str) -> dict[str, list]:
+        """The digests remembered for the files of ``folder`` (``name -> [size, mtime_ns,
+        inode, sha256]``), read once per process and work area."""
+        key = (str(self._digest_index), folder)
+        with self._memo_lock:
+            if (memo := self._folders.get(key)) is not None:
+                return memo
+        memo = self._read_memo(folder)
+        with self._memo_lock:
+            if len(self._folders) >= self._FOLDERS_MAX:
+                self._folders.clear()
+            return self._folders.setdefault(key, memo)
+
+    def _read_memo(self, folder: str) -> dict[str, list]:
+        try:
+            raw = json.loads(self._memo_file(folder).read_bytes())
+        except (OSError, ValueError):
+            return {}
+        if not isinstance(raw, dict) or raw.get("format") != DIGEST_MEMO_FORMAT \
+                or raw.get("folder") != folder or not isinstance(raw.get("files"), dict):
+            return {}  # another format, or a hash collision of two folders' names
+        return {n: v for n, v in raw["files"].items() if isinstance(v, list) and len(v) == 4}
+
+    def _flush_memos(self) -> None:
+        """Write the folder memos this thread added digests to (merged with what another
+        process wrote meanwhile; the last writer of an entry wins, a lost entry is only hashed
+        again). A read-only work area writes nothing."""
+        with self._memo_lock:
+            folders = self._dirty.pop(threading.get_ident(), set())
+            wanted = {f: dict(self._folders.get((str(self._digest_index), f), {}))
+                      for f in folders}
+        if self.readonly:
+            return
+        for folder, files in wanted.items():
+            merged = {**self._read_memo(folder), **files}
+            try:
+                _atomic_write(self._memo_file(folder), json.dumps(
+                    {"format": DIGEST_MEMO_FORMAT, "folder": folder, "files": merged},
+                    separators=(",", ":")).encode())
+            except OSError:
+                pass  # a memo is an aid: the next process hashes these files again
 
     # --- results ----------------------------------------------------------------------------
     def result_path(self, stage: str, key: str) -> Path:

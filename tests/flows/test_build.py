@@ -98,6 +98,44 @@ def test_unchanged_rebuild_runs_nothing_and_makes_no_version(warm, synth_root, t
     assert gc.open(catalog).latest_version() == 1
 
 
+def test_a_build_with_nothing_to_run_or_write_starts_no_prefect(warm, synth_root, tmp_path,
+                                                                monkeypatch):
+    """No API server, no flow run: the record in builds.jsonl and the report page as any
+    build without a version writes them; ``flow_when_idle`` makes the flow run all the same."""
+    import graspcap.flows.build as build
+    from graspcap.flows.workarea import BUILDS_LOG
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+
+    def no_prefect(*_, **__):
+        raise AssertionError("Prefect started for a build with nothing to do")
+
+    with monkeypatch.context() as m:
+        m.setattr(build, "worker_api", no_prefect)
+        m.setattr(build, "prune_flow_runs", no_prefect)
+        m.setattr(build, "_qa_artifact", no_prefect)
+        events = []
+        report = build_dataset([synth_root], catalog, PRESET, build_id="quiet",
+                               progress=events.append)
+    assert report.catalog_version is None and sorted(report.unchanged) == sorted(
+        _ids(synth_root))
+    from graspcap.tasks.pipeline import STAGES
+
+    assert len(events) == len(STAGES) * 2 and events[-1].sessions_done == 2
+    assert all(e.state == "Cached" for e in events)
+    records = [json.loads(line) for line in
+               (catalog / "work" / BUILDS_LOG).read_text().splitlines()]
+    quiet = [r for r in records if r["build_id"] == "quiet"]
+    assert len(quiet) == 1 and quiet[0]["catalog_version"] is None
+    assert "flow_run_id" not in quiet[0]["parameters"] and quiet[0]["keys"]
+    assert report.report_page and Path(report.report_page).exists()
+    assert build._HANDOFF == {}
+    flowed = build_dataset([synth_root], catalog, PRESET, build_id="flowed",
+                           flow_when_idle=True)
+    assert flowed.parameters.get("flow_run_id") and flowed.catalog_version is None
+    assert flowed.unchanged == report.unchanged and build._HANDOFF == {}
+
+
 def test_rows_from_before_the_keypoint_columns_are_rewritten_from_cached_results(
         warm, synth_root, tmp_path):
     """Rows of a migrated catalog have null keypoint columns; the next build fills them in
@@ -410,7 +448,7 @@ def test_progress_reports_every_task_and_the_qa_artifact_is_made(warm, synth_roo
 
     with console:
         report = build_dataset([synth_root], catalog, PRESET, build_id="progress",
-                               progress=sink)
+                               progress=sink, flow_when_idle=True)  # a flow run: the artifact
     assert _SINK.get() is None  # scoped to the call
     ids = _ids(synth_root)
     assert sorted((e.session_id, e.stage) for e in events) == sorted(

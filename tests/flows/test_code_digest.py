@@ -127,3 +127,58 @@ def test_glue_counts_for_its_own_stage_and_a_shared_helper_for_its_users(monkeyp
         b'up.get("refine_grasp"), up["estimate_adjustment"].T_w_o * 1)', 1))
     assert users == {"propagate_poses", "qa_metrics", "pictures"} == shared_changed
     assert changed(lambda src: src.replace(b"# --- the DAG", b"# --- the graph", 1)) == set()
+
+
+def test_a_memo_across_processes_is_used_only_while_every_module_file_is_as_recorded(
+        tmp_path, monkeypatch, restore_overrides):
+    """``stage_code(stage, memo_dir)``: a new process (``forget``) takes the memo without
+    parsing a module while the files' (path, size, mtime_ns) and folders are as recorded; a
+    changed file, a file of another checkout, or a file modified within ``RACY_S`` is not
+    trusted."""
+    stage = STAGES["register_object"]
+    truth = stage_code(stage)
+    code_digest.forget()
+    assert stage_code(stage, tmp_path) == truth  # computed, then remembered
+    memo = tmp_path / "code-register_object.json"
+    record = json.loads(memo.read_text())
+    assert {f[0] for f in record["files"]} >= {HELPER}
+
+    parsed = []
+    real = code_digest._source
+    monkeypatch.setattr(code_digest, "_source", lambda n: parsed.append(n) or real(n))
+
+    def fresh(memo_dir=tmp_path):
+        code_digest.forget()  # as in a new process
+        return stage_code(stage, memo_dir)
+
+    assert fresh() == truth and parsed == []  # from the memo, nothing parsed
+    # a memo with other digests is what a process takes while the stats match ...
+    fake = {**record, "modules": [[m, "x" * 64] for m, _ in record["modules"]]}
+    memo.write_text(json.dumps(fake))
+    assert dict(fresh().modules)[HELPER] == "x" * 64
+    # ... and never once one file's size (or mtime) differs: a changed module is parsed again
+    for field, index in (("size", 2), ("mtime", 3)):
+        files = [list(f) for f in fake["files"]]
+        files[0][index] += 1
+        memo.write_text(json.dumps({**fake, "files": files}))
+        parsed.clear()
+        assert fresh() == truth and parsed, field
+    # a module listed under another checkout's path: not this process's code
+    files = [list(f) for f in fake["files"]]
+    files[0][1] = "/elsewhere/" + files[0][1].lstrip("/")
+    memo.write_text(json.dumps({**fake, "files": files}))
+    assert fresh() == truth
+    # a folder whose mtime changed (a module added or removed)
+    memo.write_text(json.dumps({**fake, "folders": [[p, m + 1] for p, m in fake["folders"]]}))
+    assert fresh() == truth
+    # racy: a module file modified within RACY_S of the recording is not remembered
+    memo.unlink()
+    monkeypatch.setattr(code_digest, "RACY_S", 1e12)
+    assert fresh() == truth and not memo.exists()
+    # read-only (``--plan``) and overrides neither write nor read it
+    monkeypatch.setattr(code_digest, "RACY_S", 2.0)
+    code_digest.forget()
+    assert stage_code(stage, tmp_path, write=False) == truth and not memo.exists()
+    assert fresh() == truth and memo.exists()
+    code_digest.override(HELPER, "changed")
+    assert dict(stage_code(stage, tmp_path).modules)[HELPER] == "changed"

@@ -128,25 +128,46 @@ def test_file_digests_are_remembered_until_the_file_changes(tmp_path, monkeypatc
     d1 = work.file_digest(f)
     assert d1 == sha256_file(f) and work.file_digest(f) == d1 and len(hashed) == 1
     assert WorkArea(tmp_path / "work").file_digest(f) == d1 and len(hashed) == 1
-    big = tmp_path / "big.bin"  # a big file's digest is remembered on disk for other processes
-    big.write_bytes(bytes(workarea.MEMO_MIN_BYTES))
+    big = tmp_path / "big.bin"  # every file's digest is remembered on disk for other processes
+    big.write_bytes(bytes(1 << 20))
     os.utime(big, ns=(old, old))
     db = work.file_digest(big)
     WorkArea._memo.clear()  # as in a new process
+    WorkArea._folders.clear()
     assert WorkArea(tmp_path / "work").file_digest(big) == db and len(hashed) == 2
-    assert work.file_digest(f) == d1 and len(hashed) == 3  # a small one is hashed again
+    assert work.file_digest(f) == d1 and len(hashed) == 2  # a small one too: no hash
+    assert list((tmp_path / "work" / "digests").glob("dir-*.json"))  # one memo per folder
+    WorkArea._memo.clear()
+    WorkArea._folders.clear()
+    assert WorkArea.reader(tmp_path / "work").file_digest(f) == d1 and len(hashed) == 2
     f.write_bytes(b"two")  # same size, new bytes: a new mtime
     os.utime(f, ns=(old + 1, old + 1))
-    assert work.file_digest(f) == sha256_file(f) != d1 and len(hashed) == 4
+    assert work.file_digest(f) == sha256_file(f) != d1 and len(hashed) == 3
+    WorkArea._memo.clear()  # a new process sees the new digest in the folder memo
+    WorkArea._folders.clear()
+    assert WorkArea(tmp_path / "work").file_digest(f) == sha256_file(f) and len(hashed) == 3
     g = tmp_path / "b.bin"  # same size and mtime, replaced by a rename: a new inode
     g.write_bytes(b"one")
     os.utime(g, ns=(old + 1, old + 1))
     os.replace(g, f)
-    assert work.file_digest(f) == d1 and len(hashed) == 5
+    assert work.file_digest(f) == d1 and len(hashed) == 4
     f.write_bytes(b"new")  # modified just now: may change again in the same mtime tick
     for _ in range(2):
         assert work.file_digest(f) == sha256_file(f)
-    assert len(hashed) == 7
+    assert len(hashed) == 6
+    WorkArea._memo.clear()  # and the racy digest is not in the folder memo either
+    WorkArea._folders.clear()
+    assert WorkArea(tmp_path / "work").file_digest(f) == sha256_file(f) and len(hashed) == 7
+    # the known risk, documented: same size, mtime_ns and inode, new bytes (written in place
+    # and the mtime set back) keeps the remembered digest
+    with open(f, "r+b") as out:
+        out.write(b"NEW")
+    os.utime(f, ns=(old + 2, old + 2))
+    d_new = work.file_digest(f)
+    with open(f, "r+b") as out:
+        out.write(b"nEW")
+    os.utime(f, ns=(old + 2, old + 2))
+    assert work.file_digest(f) == d_new != sha256_file(f)
 
 
 def test_results_in_memory_are_keyed_by_their_content_digest(tmp_path):
@@ -335,3 +356,38 @@ def test_a_stage_in_a_session_task_retries_transient_faults_only(warm, synth_roo
         fs.run_retrying("register_scan", session, "s0", pipeline.configs_for(PRESET)[
             "register_scan"], work, "b-det", True, {"load_session": up})
     assert len(calls) == 4 and len(work.executions("b-det")) == 1
+
+
+def test_load_session_file_lists_are_remembered_by_the_result_digest(tmp_path, monkeypatch):
+    """A new process reads a ``load_session`` result's file list from the work area's memo
+    (named by the result's content digest) instead of unpickling it; ``--plan`` writes none."""
+    from graspcap.flows import cached
+    from graspcap.flows.workarea import ResultRef
+
+    listing = {"manifest": [tmp_path / "s" / "session.json"],
+               "grasp_rgb": [tmp_path / "s" / f"{i}.png" for i in range(3)]}
+    loads = []
+
+    class Loaded:
+        def input_files(self):
+            return {k: list(v) for k, v in listing.items()}
+
+    monkeypatch.setattr(WorkArea, "load", classmethod(lambda cls, ref: loads.append(ref)
+                                                      or Loaded()))
+    ref = ResultRef("load_session", "k1", str(tmp_path / "r.pkl"), "d" * 64, "b")
+
+    def fresh(work):
+        cached._FILES.clear()  # as in a new process
+        return cached.loaded_session_files(ref, work)
+
+    assert fresh(WorkArea.reader(tmp_path / "work")) == listing and len(loads) == 1
+    assert not (tmp_path / "work").exists()  # a read-only work area writes nothing
+    work = WorkArea(tmp_path / "work")
+    assert fresh(work) == listing and len(loads) == 2
+    assert (tmp_path / "work" / "digests" / f"files-{'d' * 64}.json").exists()
+    assert fresh(work) == listing and len(loads) == 2  # from the memo: nothing unpickled
+    assert fresh(WorkArea.reader(tmp_path / "work")) == listing and len(loads) == 2
+    other = ResultRef("load_session", "k2", str(tmp_path / "r2.pkl"), "e" * 64, "b")
+    cached._FILES.clear()
+    cached.loaded_session_files(other, work)
+    assert len(loads) == 3  # another result: its own list
