@@ -40,13 +40,23 @@ _PERMANENT_OS_ERRORS = (FileNotFoundError, NotADirectoryError, PermissionError,
                         IsADirectoryError)
 
 
+AST_THREAD_RACE = "AST constructor recursion depth mismatch"
+"""CPython 3.11's ``ast`` keeps its recursion depth in module state shared by all threads, so
+two threads building ASTs at once (the code digests, Prefect, a library's own parsing) can
+raise ``SystemError`` with this message (python/cpython#106905; seen once in a cold build
+here, a second attempt of the stage ran through)."""
+
+
 def is_transient(exc: BaseException | None) -> bool:
     """True for faults worth retrying: an ``OSError`` of the storage other than a missing or
-    forbidden path, or a lost Dask worker / closed connection."""
+    forbidden path, a lost Dask worker / closed connection, or CPython 3.11's ``ast`` thread
+    race (``AST_THREAD_RACE``)."""
     if exc is None:
         return False
     names = {cls.__name__ for cls in type(exc).__mro__}
     if names & {"KilledWorker", "CommClosedError"}:
+        return True
+    if isinstance(exc, SystemError) and AST_THREAD_RACE in str(exc):
         return True
     return isinstance(exc, OSError) and not isinstance(exc, _PERMANENT_OS_ERRORS)
 

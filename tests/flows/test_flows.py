@@ -54,6 +54,10 @@ def test_transient_faults_are_retried_and_deterministic_ones_are_not():
     assert is_transient(TimeoutError())  # an OSError subclass
     assert not is_transient(FileNotFoundError("gone"))
     assert not is_transient(PermissionError("no"))
+    # CPython 3.11's ast thread race (python/cpython#106905) is retried, other SystemErrors not
+    assert is_transient(SystemError("AST constructor recursion depth mismatch (before=57, "
+                                    "after=65)"))
+    assert not is_transient(SystemError("something else"))
     assert not is_transient(StageError("fit_hand", "did not converge"))
     assert not is_transient(ValueError("bad"))
     from distributed.comm.core import CommClosedError
