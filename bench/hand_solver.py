@@ -88,7 +88,8 @@ def run(profile: str, seed: int, sessions: int, frames: list[int], root: Path,
         row = {"session": f"{seed},{i}", "onset_error": results["select_steady"].steady_from
                - int(truth["steady_from"]),
                "bad_frames": None if events is None else sum(e not in ("ok", "missing")
-                                                             for e in events)}
+                                                             for e in events),
+               "onset_uncertain": bool(getattr(results["select_steady"], "uncertain", ""))}
         for name, joint in (("staged", False), ("joint", True)):
             row[name] = _path(results, configs, d, joint)
             print(profile, row["session"], row["onset_error"], row["bad_frames"], name,
@@ -100,6 +101,10 @@ def run(profile: str, seed: int, sessions: int, frames: list[int], root: Path,
 def summary(rows: list[dict]) -> None:
     onset = [r["onset_error"] for r in rows if "onset_error" in r]
     print(f"onset within 3: {sum(abs(e) <= 3 for e in onset)}/{len(rows)}; errors {onset}")
+    silent = [r["onset_error"] for r in rows
+              if "onset_error" in r and abs(r["onset_error"]) > 3 and not r["onset_uncertain"]]
+    print(f"onset marked uncertain (QA flag): {sum(r.get('onset_uncertain', False) for r in rows)}"
+          f"/{len(rows)}; silently > 3 frames off: {len(silent)} {silent}")
     for name in ("staged", "joint"):
         done = [r[name] for r in rows if name in r]
         built = [r for r in done if not r["failed"]]
