@@ -178,7 +178,8 @@ def _smooth_triples(proj: np.ndarray, t: np.ndarray, gate_px: float, max_gap: in
     puts it (median over the keypoints), is within ``gate_px`` or ``motion_share`` times the
     hand's motion over that step at its mean speed from a to c. A wrong frame (or a run of
     them) at a chain's end or inside it is as far from its neighbours' motion as it is from
-    them (a lone one inside twice: it jumps out and back), whatever frames were skipped."""
+    them (a lone one inside twice: it jumps out and back), whatever frames were skipped. A
+    step longer than ``max_gap`` frames (a hole in the detections) is not judged."""
     n = len(t)
     out: dict[tuple[int, int], list[int]] = {}
     for a in range(n):
@@ -196,7 +197,9 @@ def _smooth_triples(proj: np.ndarray, t: np.ndarray, gate_px: float, max_gap: in
                 speed = np.nanmedian(np.linalg.norm(proj[c] - proj[a], axis=2), axis=1) / (
                     t[c] - t[a])
                 limit = np.maximum(gate_px, motion_share * speed * step)
-                out[(a, b)] = [int(k) for k in c[off <= limit]]
+                # across a hole of more than max_gap frames without a detection the motion
+                # is not predicted: such a step is not judged (the next triple judges b)
+                out[(a, b)] = [int(k) for k in c[(off <= limit) | (step > max_gap)]]
     return out
 
 

@@ -188,3 +188,14 @@ def test_every_other_frame_mirrored_leaves_one_chain():
     cost = np.where(np.arange(20) % 2 == 0, 9.0, 3.0)  # the mirrored frames fit worse
     np.testing.assert_array_equal(smooth_chain(mirrored, t, 10.0, cost=cost),
                                   np.arange(1, 20, 2))
+
+
+def test_a_hole_in_the_detections_does_not_split_the_chain():
+    """Ten frames without a detection: the motion across the hole is not predicted, so the
+    frames after it are not 'another hand' (wild [9700, 0] lost its last 10 frames so)."""
+    uv, t = _sweep(40)
+    uv[25:] += [0.0, 150.0]  # the hand went elsewhere while it was not seen
+    ok = np.ones(uv.shape[:2], bool)
+    ok[15:25] = False
+    assert screen_jumps(uv, ok, jump_share=0.35, size_ratio=1.5, half_window=6,
+                        min_points=6) == {}  # fmt: skip
