@@ -60,7 +60,7 @@ def _path(results: dict, configs: dict, d: Path, joint: bool) -> dict:
 
 
 def run(profile: str, seed: int, sessions: int, frames: list[int], root: Path,
-        true_onset: bool = False) -> list[dict]:
+        true_onset: bool = False, paths: tuple[str, ...] = ("staged", "joint")) -> list[dict]:
     configs = configs_for()
     rows = []
     for i in range(sessions):
@@ -91,6 +91,8 @@ def run(profile: str, seed: int, sessions: int, frames: list[int], root: Path,
                                                              for e in events),
                "onset_uncertain": bool(getattr(results["select_steady"], "uncertain", ""))}
         for name, joint in (("staged", False), ("joint", True)):
+            if name not in paths:
+                continue
             row[name] = _path(results, configs, d, joint)
             print(profile, row["session"], row["onset_error"], row["bad_frames"], name,
                   row[name], flush=True)
@@ -126,12 +128,14 @@ def main() -> None:
     parser.add_argument("--true-onset", action="store_true",
                         help="give both paths the true steady frame (the solvers alone)")
     parser.add_argument("--json", type=Path, help="write the rows here")
+    parser.add_argument("--paths", nargs="+", default=["staged", "joint"],
+                        choices=["staged", "joint"], help="which paths to run")
     parser.add_argument("--root", type=Path,
                         help="keep the sessions here and reuse them (one --frames value)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         rows = run(args.profile, args.seed, args.sessions, args.frames, args.root or Path(tmp),
-                   args.true_onset)
+                   args.true_onset, tuple(args.paths))
     summary(rows)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1, default=str))

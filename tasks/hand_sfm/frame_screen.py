@@ -54,7 +54,7 @@ def hand_size_px(uv: np.ndarray, ok: np.ndarray, min_points: int = 6) -> np.ndar
 
 def screen_jumps(
     uv: np.ndarray, ok: np.ndarray, *, jump_share: float, size_ratio: float, half_window: int,
-    min_points: int, first_frame: int = 0, max_gap: int = 4, motion_share: float = 0.5,
+    min_points: int, first_frame: int = 0, max_gap: int = 8, motion_share: float = 0.5,
 ) -> dict[int, str]:
     """Frames whose detection jumps off the motion of the others' -> reason (keys: rows of
     ``uv``).
@@ -203,7 +203,7 @@ def _smooth_triples(proj: np.ndarray, t: np.ndarray, gate_px: float, max_gap: in
     return out
 
 
-def smooth_chain(proj: np.ndarray, t: np.ndarray, gate_px: float, *, max_gap: int = 4,
+def smooth_chain(proj: np.ndarray, t: np.ndarray, gate_px: float, *, max_gap: int = 8,
                  motion_share: float = 0.5, cost: np.ndarray | None = None) -> np.ndarray:
     """Rows of the longest chain of frames (``proj`` (n, j, 2) projections of the hand, NaN
     where missing, at frame times ``t`` (n,), increasing) along which the hand moves
@@ -260,7 +260,7 @@ def off_motion_px(pts: np.ndarray, t: np.ndarray, on: np.ndarray, n: int) -> flo
 
 def jumping_poses(
     T_c_w: np.ndarray, X: np.ndarray, K: np.ndarray, candidates: np.ndarray, gate_px: float,
-    *, first_frame: int = 0, max_gap: int = 4, motion_share: float = 0.5,
+    *, first_frame: int = 0, max_gap: int = 8, motion_share: float = 0.5,
     residual_px: np.ndarray | None = None,
 ) -> dict[int, str]:
     """Posed frames among ``candidates`` (m,) bool whose camera jumps off the smooth motion

@@ -102,9 +102,11 @@ class ReconstructConfig(StageConfig):
     """...or whose hand's image size differs from its neighbours' by more than this factor."""
     jump_half_window: int = 6
     """Frames either side whose median size a frame's is compared with."""
-    jump_max_gap: int = 4
+    jump_max_gap: int = 8
     """Consecutive frames of the smooth chains (``jump_share``, ``pose_jump_gates``) are at
-    most this many frames with detections apart: runs of up to 3 wrong frames are skipped."""
+    most this many frames with detections apart: runs of up to 7 wrong frames are skipped
+    (at 4, wild [9700, 3]'s run of 4 other-hand frames cut the chain and every good frame
+    after it was rejected with the run)."""
     jump_motion_share: float = 0.5
     """Along the smooth chains a frame may also lie this share of the hand's own motion over
     the step (at its mean speed) from where its neighbours' motion puts it: a fast hand
