@@ -8,7 +8,8 @@ then each path: ``staged`` (``reconstruct_hand`` then ``fit_hand``, the default 
 ``joint`` (``joint_solve`` with ``mode = always``: from the staged solution where it exists,
 else from the depth). Scored against the truth by ``graspcap.synth.evaluate``: built or why
 not, cameras (median deg / mm), SfM joints and fitted joints (mm), wall time of the path.
-Prints one row per session and path, then the medians per path.
+Prints one row per session and path, then the medians per path (``solved_share``: the share
+of the steady frames whose camera the path solved) and the onsets within 3 frames.
 """
 
 from __future__ import annotations
@@ -49,7 +50,8 @@ def _path(results: dict, configs: dict, d: Path, joint: bool) -> dict:
     est = {"steady_from": res["select_steady"].steady_from, "joints_w": rec.joints_w,
            "T_w_c": rec.T_w_c, "camera_solved": rec.pose_valid,
            "joints_fit_w": res["fit_hand"].joints_fit_w}
-    out = {"failed": None, "time_s": wall, **{k: evaluate(d, est).get(k) for k in KEYS}}
+    out = {"failed": None, "time_s": wall, **{k: evaluate(d, est).get(k) for k in KEYS},
+           "solved_share": float(np.mean(rec.pose_valid))}
     js = res["joint_solve"]
     if js is not None:
         out |= {"start": js.start, "dropped": int(js.frame_rejected.sum()),
@@ -58,13 +60,16 @@ def _path(results: dict, configs: dict, d: Path, joint: bool) -> dict:
 
 
 def run(profile: str, seed: int, sessions: int, frames: list[int], root: Path,
-        true_onset: bool = False) -> list[dict]:
+        true_onset: bool = False, paths: tuple[str, ...] = ("staged", "joint")) -> list[dict]:
     configs = configs_for()
     rows = []
     for i in range(sessions):
-        try:
-            d = generate_session(root / profile, [seed, i],
-                                 config_for(profile, frames[i % len(frames)]), None)
+        n = frames[i % len(frames)]
+        found = [p for p in sorted((root / profile).glob(f"synth-s{seed}-{i:03d}-*"))
+                 if (p / "ground_truth").exists() and len(frames) == 1]
+        try:  # reused when written (``--root``, one frame count), else generated
+            d = found[0] if found else generate_session(root / profile, [seed, i],
+                                                        config_for(profile, n), None)
         except StageError:
             continue
         results: dict = {}
@@ -83,8 +88,11 @@ def run(profile: str, seed: int, sessions: int, frames: list[int], root: Path,
         row = {"session": f"{seed},{i}", "onset_error": results["select_steady"].steady_from
                - int(truth["steady_from"]),
                "bad_frames": None if events is None else sum(e not in ("ok", "missing")
-                                                             for e in events)}
+                                                             for e in events),
+               "onset_uncertain": bool(getattr(results["select_steady"], "uncertain", ""))}
         for name, joint in (("staged", False), ("joint", True)):
+            if name not in paths:
+                continue
             row[name] = _path(results, configs, d, joint)
             print(profile, row["session"], row["onset_error"], row["bad_frames"], name,
                   row[name], flush=True)
@@ -93,11 +101,17 @@ def run(profile: str, seed: int, sessions: int, frames: list[int], root: Path,
 
 
 def summary(rows: list[dict]) -> None:
+    onset = [r["onset_error"] for r in rows if "onset_error" in r]
+    print(f"onset within 3: {sum(abs(e) <= 3 for e in onset)}/{len(rows)}; errors {onset}")
+    silent = [r["onset_error"] for r in rows
+              if "onset_error" in r and abs(r["onset_error"]) > 3 and not r["onset_uncertain"]]
+    print(f"onset marked uncertain (QA flag): {sum(r.get('onset_uncertain', False) for r in rows)}"
+          f"/{len(rows)}; silently > 3 frames off: {len(silent)} {silent}")
     for name in ("staged", "joint"):
         done = [r[name] for r in rows if name in r]
         built = [r for r in done if not r["failed"]]
         med = {k: np.median([r[k] for r in built if r.get(k) is not None]) if built else np.nan
-               for k in (*KEYS, "time_s")}
+               for k in (*KEYS, "solved_share", "time_s")}
         print(f"{name}: built {len(built)}/{len(done)}  " + "  ".join(
             f"{k} {v:.2f}" for k, v in med.items()))
         for r in done:
@@ -114,10 +128,14 @@ def main() -> None:
     parser.add_argument("--true-onset", action="store_true",
                         help="give both paths the true steady frame (the solvers alone)")
     parser.add_argument("--json", type=Path, help="write the rows here")
+    parser.add_argument("--paths", nargs="+", default=["staged", "joint"],
+                        choices=["staged", "joint"], help="which paths to run")
+    parser.add_argument("--root", type=Path,
+                        help="keep the sessions here and reuse them (one --frames value)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        rows = run(args.profile, args.seed, args.sessions, args.frames, Path(tmp),
-                   args.true_onset)
+        rows = run(args.profile, args.seed, args.sessions, args.frames, args.root or Path(tmp),
+                   args.true_onset, tuple(args.paths))
     summary(rows)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1, default=str))

@@ -53,7 +53,7 @@ from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame, surface_reader
 from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 
 STAGE = "joint_solve"
-STAGE_VERSION = "joint_solve/2"
+STAGE_VERSION = "joint_solve/3"
 
 
 class HandPath(StrEnum):

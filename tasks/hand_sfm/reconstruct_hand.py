@@ -53,7 +53,7 @@ from graspcap.tasks.hand_sfm.two_view_init import Initialisation, check_frames, 
 __all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",
            "STAGE_VERSION", "reconstruct_hand"]  # the result types live in sfm_result
 
-STAGE_VERSION = "reconstruct_hand/13"
+STAGE_VERSION = "reconstruct_hand/14"
 
 
 class ReconstructConfig(StageConfig):
@@ -92,21 +92,33 @@ class ReconstructConfig(StageConfig):
     stage of reconstruct_hand/12."""
     jump_share: float = 0.35
     """A frame whose detected hand (median keypoint) lies further than this share of the
-    hand's size from the median of its neighbours' (``jump_half_window`` frames either side)
-    is rejected before the solve (the camera moves smoothly; the rig's worst wrong frame
-    jumps 60 % of the hand's size, its fastest motion a few per cent per frame)."""
+    hand's size from where its neighbours' motion puts it is rejected before the solve
+    (``hand_sfm.frame_screen.screen_jumps``: off the longest chain of frames along which the
+    hand moves smoothly; the camera moves smoothly, the rig's worst wrong frame jumps 60 %
+    of the hand's size; a hand crossing the image at 90 px per frame is not a jump). Until
+    reconstruct_hand/13 the reference was the median of the neighbours' positions, which
+    rejected the start of every fast sweep."""
     jump_size_ratio: float = 1.5
     """...or whose hand's image size differs from its neighbours' by more than this factor."""
     jump_half_window: int = 6
-    """Frames either side that a frame's detection is compared with (a median: runs of up to
-    3 wrong frames)."""
+    """Frames either side whose median size a frame's is compared with."""
+    jump_max_gap: int = 8
+    """Consecutive frames of the smooth chains (``jump_share``, ``pose_jump_gates``) are at
+    most this many frames with detections apart: runs of up to 7 wrong frames are skipped
+    (at 4, wild [9700, 3]'s run of 4 other-hand frames cut the chain and every good frame
+    after it was rejected with the run)."""
+    jump_motion_share: float = 0.5
+    """Along the smooth chains a frame may also lie this share of the hand's own motion over
+    the step (at its mean speed) from where its neighbours' motion puts it: a fast hand
+    changes its velocity by more pixels than a slow one."""
     frame_min_inlier_share: float = 0.5
     """A posed frame with fewer of its detections within the gate is rejected whole (a
     mirrored hand, another hand the solve half explains)."""
     pose_jump_gates: float = 2.0
-    """A posed frame whose camera moves the hand's projection further than this many inlier
-    gates from where its neighbouring frames' cameras put it is rejected whole
-    (``hand_sfm.frame_screen.jumping_poses``)."""
+    """A posed frame whose camera puts the hand's projection further than this many inlier
+    gates from where the motion of its neighbouring frames' cameras puts it is rejected
+    whole (``hand_sfm.frame_screen.jumping_poses``: off the longest chain of frames along
+    which the projected hand moves smoothly)."""
     swap_gain: float = 1.5
     """Two neighbouring fingers' detections count as label-swapped when exchanging their
     labels lowers their (gate-capped) residual sum by more than this factor."""
@@ -294,7 +306,8 @@ def reconstruct_hand(
         prescreen = screen_jumps(
             kp[..., :2], ok, jump_share=cfg.jump_share, size_ratio=cfg.jump_size_ratio,
             half_window=cfg.jump_half_window, min_points=cfg.min_points_per_frame,
-            first_frame=steady_from,
+            first_frame=steady_from, max_gap=cfg.jump_max_gap,
+            motion_share=cfg.jump_motion_share,
         )  # fmt: skip
         sizes = hand_size_px(kp[..., :2], ok, cfg.min_points_per_frame)
         sizes[list(prescreen)] = np.nan

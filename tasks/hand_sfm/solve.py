@@ -140,7 +140,9 @@ def _measure(cfg, uv, ok, sigma, K, T_c_w, X, res, rejected, first_frame):
         accepted = ok.any(1)
         accepted[list(rejected | found)] = False
         found |= jumping_poses(T_c_w, X, K, accepted, cfg.pose_jump_gates * gate,
-                               first_frame=first_frame)  # fmt: skip
+                               first_frame=first_frame, max_gap=cfg.jump_max_gap,
+                               motion_share=cfg.jump_motion_share,
+                               residual_px=np.where(keep, res, np.nan))  # fmt: skip
         if not found:
             break
         rejected |= found

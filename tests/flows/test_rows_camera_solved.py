@@ -14,7 +14,6 @@ import shutil
 
 import numpy as np
 import pandas as pd
-import pytest
 
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
@@ -48,11 +47,6 @@ def _session_frames(frames: pd.DataFrame, sid: str) -> pd.DataFrame:
     return frames[frames.session_id == sid].sort_values("frame")
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "known defect of reconstruct_hand/13's frame screening (issue 19): on the second easy "
-    "session (seed [7, 1]) the hand crosses the image fast at the start of the steady window "
-    "(86-98 px per frame, then ~5), and frames 7-12 are rejected whole as 'another hand' "
-    "(screen_jumps, jumping_poses), so their hands are not used and cameras interpolated"))
 def test_a_frame_without_detections_is_written_as_interpolated(warm, synth_root, tmp_path):
     catalog = copy_catalog(warm[0], tmp_path / "catalog")
     src = sorted(p for p in synth_root.iterdir() if (p / "session.json").exists())[0]

@@ -15,6 +15,7 @@ from graspcap.tasks.hand_sfm.frame_screen import (
     FINGERS,
     robust_sigma,
     screen_jumps,
+    smooth_chain,
     swapped_fingers,
     unexplained_frames,
 )
@@ -68,7 +69,7 @@ def test_rejects_exactly_the_corrupted_frames(corrupted):
     assert rejected == set(WRONG_PLACE + OTHER_HAND + MIRRORED)
     reasons = rec.diagnostics.frame_rejected
     for f in WRONG_PLACE + OTHER_HAND:
-        assert "from where the neighbouring frames' are" in reasons[f - STEADY]
+        assert "from where the neighbouring frames' motion puts it" in reasons[f - STEADY]
         assert reasons[f - STEADY].startswith(f"frame {f}:")
     assert "not this hand (mirrored, another hand)" in reasons[MIRRORED[0] - STEADY]
     assert not rec.pose_valid[[f - STEADY for f in WRONG_PLACE + OTHER_HAND + MIRRORED]].any()
@@ -128,7 +129,7 @@ def test_screen_jumps_exact_rows():
     out = screen_jumps(uv, ok, jump_share=0.35, size_ratio=1.5, half_window=4, min_points=6,
                        first_frame=100)  # fmt: skip
     assert sorted(out) == [7, 8, 15]
-    assert out[7].startswith("frame 107: the detected hand is 69 px")
+    assert out[7].startswith("frame 107: the detected hand is 70 px")  # 70: the shift itself
     assert "2.00 x the size" in out[15]
 
 
@@ -148,3 +149,53 @@ def test_robust_sigma_unexplained_and_swaps():
     uv[1, ring + little] = proj[1, little + ring]
     marked = swapped_fingers(uv, np.ones((2, 21), bool), proj, 20.0, gain=2.0)
     assert not marked[0].any() and sorted(np.flatnonzero(marked[1])) == sorted(ring + little)
+
+
+def _sweep(n: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """A 100 px hand's keypoints (n, 21, 2) crossing the image fast then slowing down (the
+    flow tests' easy session [7, 1]: 86-98 px from the median of its neighbours at the start
+    of the steady window, then ~5 px per frame), and its frame times."""
+    t = np.arange(n, dtype=float)
+    path = np.stack([250 + 6.0 * t, 80 + 400 * (1 - np.exp(-t / 5.0))], axis=1)  # 73 px/frame
+    shape = np.stack([np.linspace(0, 100, 21), np.linspace(0, 60, 21) ** 1.1], axis=1)
+    return path[:, None] + shape[None], t
+
+
+def test_a_fast_consistent_hand_is_not_another_hand():
+    uv, t = _sweep()
+    ok = np.ones(uv.shape[:2], bool)
+    jumps = np.linalg.norm(np.diff(uv.mean(1), axis=0), axis=1)
+    assert jumps[0] > 60 and jumps[-1] < 8  # fast at the start, slow at the end
+    assert screen_jumps(uv, ok, jump_share=0.35, size_ratio=1.5, half_window=6,
+                        min_points=6) == {}  # fmt: skip
+    np.testing.assert_array_equal(smooth_chain(uv, t, 10.0), np.arange(len(t)))
+    # the same sweep with a wrong frame at its start and a run of two in its middle
+    bad = uv.copy()
+    bad[0] += [0.0, 120.0]
+    bad[[9, 10]] += [-70.0, 40.0]
+    assert sorted(screen_jumps(bad, ok, jump_share=0.35, size_ratio=1.5, half_window=6,
+                               min_points=6)) == [0, 9, 10]  # fmt: skip
+    assert sorted(set(range(len(t))) - set(smooth_chain(bad, t, 10.0))) == [0, 9, 10]
+
+
+def test_every_other_frame_mirrored_leaves_one_chain():
+    """Two interleaved smooth chains (the hand, and its mirror image every other frame):
+    the one explained better is kept whole, the other rejected whole."""
+    uv, t = _sweep(20)
+    mirrored = uv.copy()
+    c = np.median(uv[:, :, 0], axis=1, keepdims=True)
+    mirrored[::2, :, 0] = 2 * c[::2] - uv[::2, :, 0]
+    cost = np.where(np.arange(20) % 2 == 0, 9.0, 3.0)  # the mirrored frames fit worse
+    np.testing.assert_array_equal(smooth_chain(mirrored, t, 10.0, cost=cost),
+                                  np.arange(1, 20, 2))
+
+
+def test_a_hole_in_the_detections_does_not_split_the_chain():
+    """Ten frames without a detection: the motion across the hole is not predicted, so the
+    frames after it are not 'another hand' (wild [9700, 0] lost its last 10 frames so)."""
+    uv, t = _sweep(40)
+    uv[25:] += [0.0, 150.0]  # the hand went elsewhere while it was not seen
+    ok = np.ones(uv.shape[:2], bool)
+    ok[15:25] = False
+    assert screen_jumps(uv, ok, jump_share=0.35, size_ratio=1.5, half_window=6,
+                        min_points=6) == {}  # fmt: skip
