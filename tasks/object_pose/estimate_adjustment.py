@@ -22,7 +22,10 @@ pose turned about the rotation the depth leaves free, to the rotation nearest re
 or is ambiguous (axes ill-defined), their points, carried into the first frame by
 ``reconstruct_hand``'s virtual cameras, are registered together with it, every pose is scored
 against all their depth images and the better pose is kept (one frame alone is sharper when it
-is right).
+is right). When the first frame alone fails (a 10-15 cm object mostly inside the hand at
+0.8-1.0 m: fewer than ``min_points`` depth points beside the hand, or no pose), up to
+``occluded_views`` steady frames are fused the same way and the object is registered in them
+together, every frame's hand surface free space in the depth agreement.
 """
 
 from __future__ import annotations
@@ -58,7 +61,7 @@ from graspcap.tasks.object_pose.registration.point_clouds import (
 from graspcap.tasks.object_pose.registration.symmetry import axes_ill_defined
 from graspcap.tasks.object_pose.registration.twin_search import search_twins
 
-STAGE_VERSION = "estimate_adjustment/16"
+STAGE_VERSION = "estimate_adjustment/17"
 STAGE = "estimate_adjustment"
 
 
@@ -138,6 +141,12 @@ class EstimateAdjustmentConfig(StageConfig):
     other_views: int = 6
     """Other steady frames (evenly spread) the pipeline offers as ``other_views`` (rig seed
     9000 #5, a mug from an onset 2 frames early: 3 views 4.7 deg, 6 views 0.9 deg)."""
+    occluded_views: int = 12
+    """Other steady frames fused when the first frame alone fails: fewer than ``min_points``
+    depth points outside the hand mask or near the hand, or no pose found (a 10-15 cm object
+    mostly inside the hand at 0.8-1.0 m: wild [9893, i] "only 9 depth points outside the hand
+    mask"). Every view's depth points, carried into the first frame by ``reconstruct_hand``'s
+    cameras, form one scene; each frame's hand is free space in the depth agreement."""
     views_below_fitness: float = 0.97
     """The other views are used when the first frame's pose fits below this (measured on rig
     sessions: right poses 0.99-1.00; a flipped mug 0.92, a mug 7.5 deg off 0.64)..."""
@@ -246,7 +255,7 @@ def estimate_adjustment(
     hand_mask: np.ndarray,
     config: EstimateAdjustmentConfig = PRESETS["default"],
     T_w_o_stage1_alt: np.ndarray | None = None,
-    other_views: Callable[[], Sequence[SteadyView]] | None = None,
+    other_views: Callable[[int], Sequence[SteadyView]] | None = None,
 ) -> Adjustment:
     """Estimate ``T_adj`` from the depth of the first steady frame.
 
@@ -268,9 +277,10 @@ def estimate_adjustment(
         register_object was ``ambiguous``): the stage runs from both and keeps the pose whose
         rendering the depth agrees with more (ties: ``T_w_o_stage1``);
         ``Adjustment.stage1_hypothesis`` says which. ``T_adj`` stays relative to ``T_w_o_stage1``.
-    other_views : ``() -> [SteadyView, ...]``, other steady frames (same intrinsics ``K``),
-        asked for only when the first frame alone fits below ``views_below_fitness`` or is
-        ``ambiguous``.
+    other_views : ``count -> [SteadyView, ...]``, up to ``count`` other steady frames (same
+        intrinsics ``K``), asked for only when the first frame alone fits below
+        ``views_below_fitness`` or is ``ambiguous`` (``config.other_views`` of them), or fails
+        (too few depth points beside the hand, no pose: ``config.occluded_views``).
     """
     cfg = config.registration
     depth = _depth(depth_m, K, config)
@@ -281,7 +291,8 @@ def estimate_adjustment(
         raise StageError(STAGE, f"hand mask has shape {hand.shape}, depth {depth.shape}")
     views = [(depth, ~grow_mask(hand, config.mask_dilate_px), np.eye(4))]
     n = len(cloud_from_depth(depth, K, views[0][1]))
-    if n < config.min_points:
+    short = n < config.min_points
+    if short and (other_views is None or config.occluded_views <= 0):
         raise StageError(STAGE, f"only {n} depth points outside the hand mask")
     model = prepare_model(mesh_vertices, mesh_faces, cfg)
     mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
@@ -312,17 +323,21 @@ def estimate_adjustment(
         # T_adj @ T_w_o_stage1 is the object's pose in the steady frame.
         return replace(best, T_adj=best.T_w_o @ inv_T(T_w_o1), views=len(views))
 
-    try:
-        single: Adjustment | None = solve(views)
-    except StageError as e:
-        single, failed = None, e
+    single: Adjustment | None = None
+    failed = StageError(STAGE, f"only {n} depth points outside the hand mask")
+    if not short:
+        try:
+            single = solve(views)
+        except StageError as e:
+            failed = e
     ask = config.views_if_ambiguous and axes_ill_defined(model, config.ill_defined_ratio)
     sure = single is not None and not (ask and single.ambiguous)
     if other_views is None or (sure and single.fitness >= config.views_below_fitness):
         if single is None:
             raise failed
         return single
-    for v in other_views():  # carried into this frame by the virtual cameras
+    count = config.other_views if single is not None else config.occluded_views
+    for v in other_views(count):  # carried into this frame by the virtual cameras
         hands.append(np.asarray(v.hand_mask, bool))
         d = _depth(v.depth_m, K, config)
         keep = ~grow_mask(hands[-1], config.mask_dilate_px)
@@ -333,9 +348,10 @@ def estimate_adjustment(
         return single
     try:
         multi = solve(views)
-    except StageError:
+    except StageError as e:
         if single is None:
-            raise failed from None
+            raise StageError(STAGE, f"{failed.reason}; fused with {len(views) - 1} other steady "
+                             f"frames: {e.reason}") from None
         return single
     margin = config.views_margin if sure else 0.0  # an ambiguous frame is not sharper
     if single is None or multi.fitness > margin + _agreement(
@@ -427,9 +443,9 @@ def estimate_adjustment_steady(
     def attempt(k: int) -> Adjustment:
         depth, mask = view(k)
 
-        def others() -> list[SteadyView]:
+        def others(count: int) -> list[SteadyView]:
             return [SteadyView(*view(j), inv_T(T_w_c[k]) @ T_w_c[j])
-                    for j in spread_frames(pose_valid, k, config.other_views)]
+                    for j in spread_frames(pose_valid, k, count)]
 
         adj = estimate_adjustment(
             depth, K, mesh_vertices, mesh_faces, T_w_o_stage1, mask, config,

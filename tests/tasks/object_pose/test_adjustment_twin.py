@@ -27,7 +27,7 @@ def test_lifted_carton_is_not_its_twin(seed, angle_deg, ambiguous):
     mesh, T_w_o1, depth, mask, T_true = lifted_procedural("carton", seed, angle_deg)
     asked: list[int] = []
     r = estimate_adjustment(
-        depth, K, *mesh, T_w_o1, mask, other_views=lambda: asked.append(1) or []
+        depth, K, *mesh, T_w_o1, mask, other_views=lambda *_: asked.append(1) or []
     )
     assert r.path is AdjustmentPath.NEAR_HAND_GLOBAL
     rot, trans = pose_error(r.T_w_o, T_true)
