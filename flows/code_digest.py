@@ -38,6 +38,10 @@ from functools import cache
 from pathlib import Path
 from types import ModuleType
 
+# RACY_S: a module file modified this recently is not trusted in a memo (git's "racily
+# clean" rule), the same bound as for the input files
+from graspcap.flows.workarea import RACY_S
+
 ROOT_PACKAGE = "graspcap"
 COMPUTING_LIBRARIES: dict[str, str] = {
     "open3d": "open3d", "gtsam": "gtsam", "pycolmap": "pycolmap", "numpy": "numpy",
@@ -263,9 +267,6 @@ CODE_MEMO_FORMAT = 1
 MEMO_ENABLED = True
 """False: never read or write the cross-process memo (tests that hand the digest an edited
 source in memory, which the files' stats cannot show)."""
-RACY_S = 2.0
-"""A module file modified less than this long ago is not trusted in a memo (git's "racily
-clean" rule; the same as ``flows.workarea.RACY_S``)."""
 
 
 def stage_code(stage, memo_dir: Path | None = None, write: bool = True) -> StageCode:
