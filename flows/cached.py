@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Annotated
 
 from graspcap.flows.code_digest import stage_code
-from graspcap.flows.workarea import RACY_S, ResultRef, WorkArea, _atomic_write
+from graspcap.flows.workarea import ResultRef, WorkArea, _atomic_write, is_racy
 from graspcap.schemas.session import DEFAULT_LIMITS, SESSION_ID_RE, SessionManifest
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
@@ -220,7 +220,7 @@ def manifest_digest(work: WorkArea, path: Path) -> str:
         return work.file_digest(path)
     digest = hashlib.sha256(("json:" + json.dumps(
         raw, sort_keys=True, separators=(",", ":"), ensure_ascii=False)).encode()).hexdigest()
-    if time.time_ns() - st.st_mtime_ns < RACY_S * 1e9:
+    if is_racy(st.st_mtime_ns):
         return digest  # may change again within the same mtime tick: not remembered
     with _FILES_LOCK:
         _MANIFEST_DIGESTS[ident] = digest
@@ -270,7 +270,7 @@ def _parsed_manifest(session_dir: Path) -> dict | None:
             found = _MANIFESTS[ident]
             return found if isinstance(found, dict) else None
     raw = _manifest(Path(session_dir))
-    if time.time_ns() - st.st_mtime_ns >= RACY_S * 1e9:
+    if not is_racy(st.st_mtime_ns):
         with _FILES_LOCK:
             _MANIFESTS[ident] = raw
             while len(_MANIFESTS) > _FILES_MAX:

@@ -59,6 +59,13 @@ RACY_S = 2.0
 """A file modified less than this long before it is hashed may change again within the same
 mtime tick (a coarse file-system clock): its digest is used but not remembered (git's
 "racily clean" rule)."""
+
+
+def is_racy(mtime_ns: int) -> bool:
+    """True for a file modified less than ``RACY_S`` ago: use its digest, do not remember it."""
+    return time.time_ns() - mtime_ns < RACY_S * 1e9
+
+
 STALE_TEMP_S = 6 * 3600.0
 """A temporary file this old is a killed writer's, whatever host wrote it."""
 TEMP_PREFIX = ".tmp-"
@@ -207,7 +214,7 @@ class WorkArea:
             digest = found[3]
         else:
             digest = sha256_file(Path(path))
-            if time.time_ns() - st.st_mtime_ns < RACY_S * 1e9:
+            if is_racy(st.st_mtime_ns):
                 return digest  # may change again within the same mtime tick: not remembered
             with self._memo_lock:
                 memo[name] = [*stamp, digest]
