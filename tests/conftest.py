@@ -16,3 +16,9 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip("../shared/data is not beside the repository")
     return SHARED_DATA
+
+
+# The flow tests' session fixtures (one Prefect harness, the synthetic sessions, the warm
+# catalog), registered here once: imported into each test module instead, pytest would build
+# one instance per module, a 40-65 s build each.
+from tests.flow_fixtures import prefect_harness, synth_root, warm  # noqa: E402, F401

@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """The training path with images (issue 20 item 4): frame items with decoded colour and depth,
 their files and intrinsics from the session folder the build recorded; ``collate_fn`` over
 items of different objects; the ContactPose-style ``Catalog.session`` view; a torch
@@ -20,7 +19,6 @@ import pytest
 import graspcap.catalog as gc
 from graspcap.catalog.collate import SESSION_ARRAYS
 from tests.catalog_factory import OBJECT_VERTICES, make_build
-from tests.flow_fixtures import prefect_harness, synth_root, warm  # noqa: F401
 
 IDS = ["p01-mug-use-00", "p01-drill-handoff-00", "p02-bowl-use-00", "p02-mug-handoff-00"]
 FRAMES = 20

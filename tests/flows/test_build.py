@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """Dataset builds: re-run only what changed, isolate failures, retry transient faults."""
 
 from __future__ import annotations
@@ -23,15 +22,12 @@ import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
 from graspcap.tasks.core.errors import StageError
 from tests.conftest import REPO
-from tests.flow_fixtures import (  # noqa: F401
+from tests.flow_fixtures import (
     PRESET,
     copy_catalog,
     executions,
     fit_hand_failing_for,
-    prefect_harness,
     require_pipeline_passes,
-    synth_root,
-    warm,
 )
 from tests.report_html import check_page
 

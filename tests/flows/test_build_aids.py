@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """A failing aid stage (pictures) leaves the session committed with a note, never failed."""
 
 from __future__ import annotations
@@ -11,15 +10,7 @@ from pathlib import Path
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
 from graspcap.tasks.core.errors import StageError
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    executions,
-    prefect_harness,
-    require_pipeline_passes,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog
 from tests.report_html import check_page
 
 

@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """Chaos: SIGKILL a real build process at seeded random moments, through the stages and
 through the commit; after each kill every earlier catalog version reads back identically and
 the next build completes without running again a stage whose result was stored."""
@@ -24,12 +23,7 @@ import graspcap.catalog as gc
 from graspcap.catalog.commit import PAUSE_ENV, PAUSE_POINTS, PAUSE_SIGNAL_ENV
 from graspcap.flows.build import build_dataset
 from tests.conftest import REPO
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    prefect_harness,
-    require_pipeline_passes,
-    synth_root,
-)
+from tests.flow_fixtures import PRESET, require_pipeline_passes
 
 CHAOS_SEED = 15
 CHAOS_KILLS = 20

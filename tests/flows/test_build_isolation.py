@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """Nothing that happens to one session loses the others: rows, the commit's checks, pictures,
 duplicated and path-like session ids; a build-level failure keeps the work for the next build;
 ``graspcap build``'s exit codes."""
@@ -20,14 +19,7 @@ from graspcap.flows import build as build_module
 from graspcap.flows.build import build_dataset
 from graspcap.flows.report import BuildFailed, BuildReport, Outcome, SessionReport
 from graspcap.flows.workarea import WorkArea
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    executions,
-    prefect_harness,
-    require_pipeline_passes,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, executions
 from tests.report_html import check_page
 from tests.session_factory import write_session
 

@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """A real build of sessions that share an object_id but bring different meshes (the session
 contract allows it): all commit, each with its own mesh and contact map (before format 5 the
 commit checked every contact map against one mesh per object_id and the whole build was lost).
@@ -16,14 +15,7 @@ import trimesh
 
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    prefect_harness,
-    require_pipeline_passes,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog, require_pipeline_passes
 
 
 def _sessions(root: Path) -> list[Path]:

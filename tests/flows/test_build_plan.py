@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """Code in the cache key and ``graspcap build --plan``, with real Prefect builds and counted
 stage executions (not timing).
 
@@ -21,15 +20,7 @@ from graspcap.flows import code_digest
 from graspcap.flows.build import build_dataset
 from graspcap.flows.plan import plan_build
 from graspcap.tasks import pipeline
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    executions,
-    fit_hand_failing_for,
-    prefect_harness,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog, executions, fit_hand_failing_for
 
 HELPER = "graspcap.tasks.object_pose.registration.engine"
 

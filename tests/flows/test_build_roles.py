@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """A stage's key covers only what it reads (its file roles and its manifest fields), with real
 Prefect builds and counted stage executions (not timing).
 
@@ -18,14 +17,7 @@ import pytest
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
 from graspcap.flows.plan import plan_build
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    executions,
-    prefect_harness,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog, executions
 
 
 @pytest.fixture

@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """Write-audit-publish in a real build: a build whose audit fails commits a staged version,
 readers stay on the published one, status and the report say why; publish moves readers."""
 
@@ -11,13 +10,7 @@ from pathlib import Path
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
 from graspcap.flows.commands import status_text
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    prefect_harness,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog
 
 STRICT = {"tolerated_sessions": 0}
 """Default gates without the small-catalog allowance: one failed session of three fails."""

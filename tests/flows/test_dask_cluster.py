@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """``--dask ADDRESS`` across processes that share nothing but a folder: a ``dask scheduler``
 and two ``dask worker`` processes started on their own, each in its own temporary working
 folder, the sessions, work area and catalog on a path all of them reach (here one machine's
@@ -22,7 +21,7 @@ import pytest
 
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
-from tests.flow_fixtures import PRESET, prefect_harness, synth_root  # noqa: F401
+from tests.flow_fixtures import PRESET
 
 HOOK = Path(__file__).with_name("dask_kill_hook.py")
 KILL_STAGE = "fit_hand"

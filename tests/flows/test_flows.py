@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """The session DAG as Prefect tasks: cache keys, retry policy, upstream failures."""
 
 from __future__ import annotations
@@ -13,7 +12,7 @@ from graspcap.flows.cached import reads_digest, stage_key
 from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.session.load_session import LoadSessionConfig
-from tests.flow_fixtures import PRESET, executions, prefect_harness, synth_root, warm  # noqa: F401
+from tests.flow_fixtures import PRESET, executions
 
 
 def _ref(digest: str) -> ResultRef:

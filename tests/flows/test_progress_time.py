@@ -1,7 +1,6 @@
 """What `graspcap build` shows while and after it runs: the ETA, the wall time since the
 process started, and no Prefect telemetry notice across the bars."""
 
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 from __future__ import annotations
 
 import io
@@ -15,13 +14,7 @@ import pytest
 
 from graspcap.flows.progress import ConsoleProgress, StageEvent
 from graspcap.flows.report import BuildReport
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    prefect_harness,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog
 
 
 def test_progress_lines_carry_sessions_done_total_and_an_eta():

@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """The QA gate in a build: qa_metrics decides each row's status, the pictures are stored by
 content under ``<catalog>/pictures/`` and shown on the build's report page
 (``<catalog>/reports/<build_id>/index.html``), a QA-failed session is a failed row with its
@@ -18,14 +17,7 @@ from graspcap.flows.build import build_dataset
 from graspcap.flows.rows import QA_COLUMNS
 from graspcap.schemas.qa import qa_columns
 from graspcap.tasks.outputs.drawing import decode_png
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    executions,
-    prefect_harness,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog, executions
 from tests.report_html import check_page
 
 PICTURES = ["contact.ply", "contact.png", "keypoints.png", "reprojection.png", "strip.png"]

@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """Issue 15's "done when": every kind of the reliability corpus, each one session among four
 good ones, in ONE real build: one version, every good session committed, a reason for every
 bad one (a failed row naming file and field for the invalid kinds), nothing written outside
@@ -14,7 +13,7 @@ import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
 from graspcap.flows.report import Outcome
 from graspcap.tasks.session.discover import NOT_A_SESSION
-from tests.flow_fixtures import PRESET, prefect_harness, synth_root  # noqa: F401
+from tests.flow_fixtures import PRESET
 from tests.reliability_corpus import DUPLICATE_ID, KINDS, Builds, Fails, Invalid, prepare
 
 GOOD = 4

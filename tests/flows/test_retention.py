@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """Prefect flow-run retention: however many runs, the database keeps the newest N."""
 
 from __future__ import annotations
@@ -6,7 +5,6 @@ from __future__ import annotations
 import pytest
 
 from graspcap.flows.retention import RunRetention, prune_flow_runs
-from tests.flow_fixtures import prefect_harness  # noqa: F401
 
 
 def test_retention_bounds_the_flow_and_task_runs(prefect_harness):

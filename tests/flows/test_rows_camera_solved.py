@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """``frames.camera_solved`` (format 4): a real build writes True where stage 2 solved the frame's
 camera from its own keypoints and False where it interpolated it (a frame whose detection was
 removed); ``estimate_from_catalog`` carries the column. The same build's per-frame validity
@@ -19,14 +18,7 @@ import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
 from graspcap.synth.evaluate import estimate_from_catalog
 from graspcap.synth.sensors import openpose_json
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    prefect_harness,
-    require_pipeline_passes,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog, require_pipeline_passes
 
 DROP_AFTER = 6
 """The dropped detection is this many frames after the first steady frame (not the first

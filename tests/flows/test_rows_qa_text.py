@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """``sessions.qa_flags`` and ``qa_notes`` (format 4): a real build writes each session's
 ``QaReport.flags`` and ``notes`` (a flag forced by a zero reprojection limit; a note from a
 refinement that finds no contact and keeps the stage-3 fit), and a row without them (written
@@ -12,14 +11,7 @@ import pyarrow as pa
 
 import graspcap.catalog as gc
 from graspcap.flows.build import build_dataset
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    executions,
-    prefect_harness,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog, executions
 
 OVERRIDES = {
     # every session crosses this flag limit, none the fail limit

@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """``graspcap serve`` as a user meets it: its UI in a real headless browser lists the builds'
 flow runs and their logs, its printed command starts a build from another shell, and it
 prints one line per finished run."""
@@ -21,13 +20,7 @@ import pytest
 from graspcap.flows.commands import run_line, serve_banner
 from graspcap.flows.runtime import server_env
 from tests.browser import HeadlessChromium, find_chromium
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    prefect_harness,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog
 
 API_ERROR = "Can't connect to Server API"
 

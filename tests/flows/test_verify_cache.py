@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """``graspcap build --verify N``: cached stages re-run and compared with their stored results."""
 
 from __future__ import annotations
@@ -9,13 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from graspcap.flows.verify_cache import difference, verify_build
-from tests.flow_fixtures import (  # noqa: F401
-    PRESET,
-    copy_catalog,
-    prefect_harness,
-    synth_root,
-    warm,
-)
+from tests.flow_fixtures import PRESET, copy_catalog
 
 CHEAP = ("select_steady", "crosscheck_sfm", "fit_hand", "propagate_poses")
 

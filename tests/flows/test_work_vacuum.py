@@ -12,7 +12,7 @@ from pathlib import Path
 import graspcap.catalog as gc
 from graspcap.cli import main
 from graspcap.flows.work_vacuum import vacuum_work
-from tests.flow_fixtures import copy_catalog, prefect_harness, synth_root, warm  # noqa: F401
+from tests.flow_fixtures import copy_catalog
 
 HOUR = 3600.0
 

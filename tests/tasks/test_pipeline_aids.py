@@ -1,4 +1,3 @@
-# ruff: noqa: F811  (fixtures imported from tests.flow_fixtures)
 """The bare pipeline (``run_session``) treats a failing aid stage as the build does: a note
 in its results, the session's results standing; any other stage's failure still raises."""
 
@@ -10,7 +9,7 @@ import pytest
 
 from graspcap.tasks import pipeline
 from graspcap.tasks.core.errors import StageError
-from tests.flow_fixtures import PRESET, synth_root  # noqa: F401
+from tests.flow_fixtures import PRESET
 
 
 def _first(root):
