@@ -24,6 +24,7 @@ import graspcap.catalog as gc
 from graspcap.catalog.commit import ObjectMesh, SessionArrays, mesh_group
 from graspcap.catalog.layout import CatalogLayout
 from graspcap.catalog.validate import check_commit
+from graspcap.flows.build_log import session_keys
 from graspcap.flows.cached import reads_digest, session_files
 from graspcap.flows.report import Outcome, SessionReport
 from graspcap.flows.rows import (
@@ -33,21 +34,18 @@ from graspcap.flows.rows import (
     predates_columns,
     session_rows,
 )
-from graspcap.flows.workarea import BUILDS_LOG, ResultRef, WorkArea
+from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.schemas.tables import Status
 
 
 def last_build_failures(cat: gc.Catalog, work: WorkArea) -> set[str]:
     """Sessions that failed in the last build (the work area's log, else the catalog); after a
     build that failed as a whole (nothing committed), every session of it."""
-    log = work.root / BUILDS_LOG
-    if log.exists():
-        lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
-        if lines:
-            last = json.loads(lines[-1])
-            if last.get("error"):
-                return {s["session_id"] for s in last["sessions"]}
-            return set(last["summary"]["failed"])
+    _, last = session_keys(work.root)  # the log's newest record, read from its snapshot on
+    if last is not None:
+        if last.get("error"):
+            return {s["session_id"] for s in last["sessions"]}
+        return set(last["summary"]["failed"])
     last = _last_build_row(cat)
     if last is None:
         return set()

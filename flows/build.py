@@ -50,6 +50,7 @@ from prefect.futures import as_completed
 import graspcap
 import graspcap.catalog as gc
 from graspcap.flows.assemble import assemble, last_build_failures, recorded_failures
+from graspcap.flows.build_log import append_build
 from graspcap.flows.cached import session_id_of
 from graspcap.flows.progress import ProgressFn, Tracker, reporting_to
 from graspcap.flows.report import BuildFailed, BuildReport, Outcome
@@ -342,7 +343,7 @@ def _build(prep: _Prepared, roots: list[str], preset: str, retry_failed: bool, b
                 f"build {build_id} committed nothing: {type(exc).__name__}: {exc}. The "
                 f"{kept} completed stage result(s) stay in the work area {work.root}; the next "
                 "build commits them without running those stages again")
-            _log_build(work, {**draft.record(), "error": str(failed), "keys": used})
+            _log_build(work, {**draft.record(), "error": str(failed)}, used)
             raise failed from exc
     seconds["commit"] = time.perf_counter() - t_rows
     publication = _publication(cat, new_version)
@@ -355,7 +356,7 @@ def _build(prep: _Prepared, roots: list[str], preset: str, retry_failed: bool, b
     report = BuildReport(build_id, new_version, previous, tuple(reports), seconds, params,
                          publication=publication)
     report = dataclasses.replace(report, report_page=_report_page(cat, report))
-    _log_build(work, {**report.record(), "keys": used})
+    _log_build(work, report.record(), used)
     if not quiet:
         _qa_artifact(cat, report)
     if log is not None:
@@ -409,12 +410,12 @@ def _session_id(session_dir: Path) -> str:
         return session_dir.name
 
 
-def _log_build(work: WorkArea, record: dict) -> None:
-    """Append a build's record to the work area's ``builds.jsonl`` (``graspcap status``); a
-    record that cannot be written (disk full) is a warning: the catalog has the build."""
+def _log_build(work: WorkArea, record: dict, used: dict[str, dict[str, str]]) -> None:
+    """Append a build's record to the work area's ``builds.jsonl`` (``graspcap status``) with
+    the keys of the sessions whose ``used`` keys changed (``flows/build_log.py``); a record
+    that cannot be written (disk full) is a warning: the catalog has the build."""
     try:
-        with open(work.root / BUILDS_LOG, "a") as log:
-            log.write(json.dumps(record, sort_keys=True) + "\n")
+        append_build(work.root, record, used)
     except OSError as exc:
         logging.getLogger(__name__).warning("build record not written to %s: %s",
                                             work.root / BUILDS_LOG, exc)

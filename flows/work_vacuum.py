@@ -3,9 +3,9 @@
 A stored result (``results/<stage>/<key>.pkl`` and its ``<key>.json`` record) is kept when
 
 * the newest build of a session used it (``builds.jsonl``: each build records in ``keys`` the
-  result every stage of every session it built used, run or cached): what an unchanged
-  rebuild looks up (a ``--retry-failed`` build records only its few sessions, so each
-  session's newest record counts, not only the newest record);
+  result every stage used, run or cached, for the sessions whose keys changed; folded oldest
+  to newest, from the ``builds-keys.json`` snapshot on, they give each session's keys as its
+  newest build used them, ``flows/build_log.py``): what an unchanged rebuild looks up;
 * it is the latest run of a stage for a session (the key manifests under
   ``results/<stage>/latest/``): the results a build that failed as a whole left for the next
   one, and what ``--plan`` diffs against;
@@ -26,6 +26,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from graspcap.flows.build_log import session_keys
 from graspcap.flows.workarea import BUILDS_LOG, TEMP_PREFIX
 
 MIN_AGE_S = 3600.0
@@ -60,44 +61,19 @@ class WorkVacuumReport:
                 + prefect)
 
 
-def _records(work: Path) -> list[dict]:
-    """The build records of ``builds.jsonl``, newest first (torn lines skipped)."""
-    try:
-        lines = (work / BUILDS_LOG).read_text(errors="replace").splitlines()
-    except FileNotFoundError:
-        return []
-    out = []
-    for line in reversed(lines):
-        try:
-            record = json.loads(line)
-        except (ValueError, RecursionError):
-            continue
-        if isinstance(record, dict) and "build_id" in record:
-            out.append(record)
-    return out
-
-
 def needed_keys(work: Path) -> dict[str, set[str]]:
     """``{stage: keys}`` to keep (module docstring); raises :class:`WorkVacuumRefused` when
     the newest build's record does not say which results it used."""
     needed: dict[str, set[str]] = {}
-    records = _records(work)
-    if records and not isinstance(records[0].get("keys"), dict):
+    sessions, newest = session_keys(work)
+    if newest is not None and not isinstance(newest.get("keys"), dict):
         raise WorkVacuumRefused(
-            f"{work / BUILDS_LOG}: the newest build ({records[0].get('build_id')}) did not "
+            f"{work / BUILDS_LOG}: the newest build ({newest.get('build_id')}) did not "
             "record which stage results it used (written by an older graspcap), so nothing is "
             "removed; run `graspcap build` once, then vacuum --work again")
-    seen: set[str] = set()
-    for record in records:  # each session's newest build (a --retry-failed build has a few)
-        keys = record.get("keys")
-        if not isinstance(keys, dict):
-            break  # older records say nothing; the key manifests below still count
-        for session_id, stages in keys.items():
-            if session_id in seen:
-                continue
-            seen.add(session_id)
-            for stage, key in (stages or {}).items():
-                needed.setdefault(str(stage), set()).add(str(key))
+    for stages in sessions.values():
+        for stage, key in stages.items():
+            needed.setdefault(stage, set()).add(key)
     for manifest in (work / "results").glob("*/latest/*.json"):
         try:
             key = json.loads(manifest.read_text()).get("key")

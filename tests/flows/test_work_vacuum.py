@@ -11,6 +11,7 @@ from pathlib import Path
 
 import graspcap.catalog as gc
 from graspcap.cli import main
+from graspcap.flows.build_log import session_keys
 from graspcap.flows.work_vacuum import vacuum_work
 from tests.flow_fixtures import copy_catalog
 
@@ -105,3 +106,65 @@ def test_a_build_records_the_result_every_stage_used(warm, tmp_path):  # noqa: F
     assert (report.removed_results, report.removed_by_stage) == (1, {stage: 1})
     assert not (work / "results" / stage / f"{'0' * 64}.pkl").exists()
     assert (work / "results" / stage / f"{key}.pkl").exists()
+    assert session_keys(work)[0] == record["keys"]
+
+
+def test_after_one_session_changed_its_replaced_results_go_and_the_others_stay(
+        warm, synth_root, tmp_path):
+    """Build, rebuild unchanged, change one session (a scan depth pixel), rebuild, vacuum:
+    the unchanged rebuild's record lists no keys, the next one that session's keys only; the
+    results of the unchanged session and the changed session's new ones stay, the ones its
+    new keys replaced go."""
+    import cv2
+    import numpy as np
+
+    from graspcap.flows.build import build_dataset
+    from graspcap.tasks.pipeline import STAGES
+    from tests.flow_fixtures import PRESET, executions
+
+    catalog = copy_catalog(warm[0], tmp_path / "catalog")
+    work = catalog / "work"
+    root = tmp_path / "sessions"
+    dirs = sorted(p for p in Path(synth_root).iterdir() if (p / "session.json").exists())
+    for d in dirs:
+        shutil.copytree(d, root / d.name)
+    warm_keys, _ = session_keys(work)
+    build_dataset([root], catalog, PRESET, build_id="first")  # the copies' paths: some run
+    before, _ = session_keys(work)
+    same = build_dataset([root], catalog, PRESET, build_id="same")
+    assert executions(catalog, "same") == [] and same.catalog_version is None
+    target = root / dirs[0].name
+    sid = json.loads((target / "session.json").read_text())["session_id"]
+    depth_png = target / json.loads((target / "session.json").read_text()
+                                    )["scan"]["views"][0]["depth"]
+    depth = cv2.imread(str(depth_png), cv2.IMREAD_UNCHANGED)
+    ys, xs = np.nonzero(depth)
+    depth[ys[0], xs[0]] += 1
+    assert cv2.imwrite(str(depth_png), depth)
+    changed = build_dataset([root], catalog, PRESET, build_id="changed")
+    assert changed.changed == [sid] and changed.failed == {}
+    records = {r["build_id"]: r for r in map(json.loads, (work / "builds.jsonl").read_text()
+                                             .splitlines())}
+    assert records["same"]["keys"] == {}
+    after, newest = session_keys(work)
+    assert newest["build_id"] == "changed" and list(records["changed"]["keys"]) == [sid]
+    assert records["changed"]["keys"][sid] == after[sid] != before[sid]
+    replaced = {(st, k) for st, k in before[sid].items() if after[sid][st] != k}
+    assert replaced and {st for st, _ in replaced} >= {st for s, st in
+                                                       executions(catalog, "changed")}
+    # what the copies' first build and the change replaced: no build uses it any more
+    gone = {(st, k) for keys in (*warm_keys.values(), *before.values())
+            for st, k in keys.items()} - {(st, k) for keys in after.values()
+                                          for st, k in keys.items()}
+    assert replaced <= gone
+    report = vacuum_work(work, min_age_s=0)
+    assert report.removed_results == len(gone)
+    for session, keys in after.items():  # the unchanged session's and the new ones stay
+        assert set(keys) == set(STAGES)
+        for stage, key in keys.items():
+            assert (work / "results" / stage / f"{key}.pkl").is_file(), (session, stage)
+    for stage, key in gone:
+        assert not (work / "results" / stage / f"{key}.pkl").exists()
+        assert not (work / "results" / stage / f"{key}.json").exists()
+    again = build_dataset([root], catalog, PRESET, build_id="again")  # nothing to run
+    assert executions(catalog, "again") == [] and again.catalog_version is None
