@@ -30,7 +30,6 @@ from enum import StrEnum
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
@@ -44,6 +43,8 @@ from graspcap.tasks.hand.model import (
     HandSide,
 )
 from graspcap.tasks.hand.shape import MARGINAL_SD, ShapeCheck, check_shape, prior_residuals_log
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 STAGE_VERSION = "fit_hand/2"
 STAGE = "fit_hand"
@@ -378,6 +379,8 @@ def fit_hand(
         Non-finite joints with positive weight, fewer than 3 usable rigid palm points,
         coincident or collinear palm points, or a scale outside [min_scale, max_scale].
     """
+    from scipy.stats import chi2
+
     model = HandModel(side)
     joints, w = _check_inputs(joints_w, weights)
     used = w > 0

@@ -23,11 +23,12 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-import open3d as o3d
 from scipy.ndimage import map_coordinates
 from scipy.spatial import ConvexHull, cKDTree
 
 from graspcap.tasks.hand.model import PART_BONES, SURFACE_OFFSET_M, HandModel, HandSide
+
+# open3d: imported where used, so that importing the stage table stays cheap
 
 BONES = np.array(PART_BONES)  # (15, 2) keypoints at the ends of each phalanx
 _PALM_GRID_MARGIN_M = 0.02
@@ -103,6 +104,8 @@ def penetration_mm(
 ) -> tuple[float, float]:
     """How deep ``points`` (k, 3) lie inside a closed mesh, by Open3D's signed distance with a
     3-ray vote on the sign: (deepest, mean over the points inside; 0 when none is), in mm."""
+    import open3d as o3d
+
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(np.asarray(object_vertices, np.float32),
                         np.asarray(object_faces, np.uint32))
@@ -160,6 +163,8 @@ def contact_agreement(
     touch_contacted_share : float
         Touched observed vertices that are contacted (NaN when the hand touches none).
     """
+    import open3d as o3d
+
     V = np.asarray(object_vertices, float)
     observed = np.asarray(observed, bool)
     contacted = observed & (np.asarray(contact, float) >= contact_threshold)
@@ -194,6 +199,8 @@ def object_sdf_grid(
 
     Exact (Open3D) within ``band_m`` of the surface, the nearest-vertex distance beyond.
     """
+    import open3d as o3d
+
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(vertices.astype(np.float32), faces.astype(np.uint32))
     pts, shape = _grid_points(np.asarray(lo, float), np.asarray(hi, float), step_m)

@@ -9,11 +9,12 @@ Poses are ``T_c_w`` (world into camera); cameras are OpenCV pinholes without dis
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.geometry import make_T
+
+# cv2: imported where used, so that importing the stage table stays cheap
 
 
 def ransac_poses(
@@ -25,6 +26,8 @@ def ransac_poses(
     points_w : (21, 3) float, NaN where unknown; uv : (n, 21, 2) pixels; use : (n, 21) bool.
     Returns T_c_w (n, 4, 4) (NaN where no pose was found) and inliers (n, 21) bool.
     """
+    import cv2
+
     n, nj = use.shape
     T = np.full((n, 4, 4), np.nan)
     inliers = np.zeros((n, nj), bool)

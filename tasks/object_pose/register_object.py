@@ -24,7 +24,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from pydantic import Field
 from scipy.spatial.transform import Rotation
 
@@ -57,6 +56,8 @@ from graspcap.tasks.object_pose.registration.symmetry import (
     distinct_from,
     probe_symmetry,
 )
+
+# open3d: imported where used, so that importing the stage table stays cheap
 
 STAGE_VERSION = "register_object/10"
 STAGE = "register_object"
@@ -397,6 +398,8 @@ def _free_rotation(
     ``points_s`` (n, 3) moved by ``T_o_s`` (those within ``distance_m`` of it, with the mesh's
     own normals: the depth's noisy normals blur a label's millimetres); None with fewer than
     six such points."""
+    import open3d as o3d
+
     p_o = transform_points(T_o_s, points_s)
     closest = model.surface.compute_closest_points(o3d.core.Tensor(p_o.astype(np.float32)))
     q = closest["points"].numpy().astype(float)

@@ -16,9 +16,9 @@ level.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.geometry import inv_T, make_T, rotation_error_deg
@@ -31,6 +31,10 @@ from graspcap.tasks.object_pose.registration.engine import (
     strided,
 )
 from graspcap.tasks.object_pose.registration.open3d_threads import single_threaded
+
+# open3d: imported where used, so that importing the stage table stays cheap
+if TYPE_CHECKING:
+    import open3d as o3d
 
 
 def rotation_grid(group: str, turns: int = 1) -> np.ndarray:
