@@ -28,8 +28,6 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
@@ -250,6 +248,8 @@ def _solve_angles(
     model: HandModel, targets_p: np.ndarray, w: np.ndarray, scale: float, config: FitHandConfig
 ) -> np.ndarray:
     """IK with the palm fixed: angles (20,) in the limits for palm-frame targets at scale 1."""
+    from scipy.optimize import least_squares
+
     lo, hi = model.lower_rad, model.upper_rad
     prior = model.rest_angles()
     usable = w > 0
@@ -306,6 +306,9 @@ def _refine(
     """Palm turn (3, rad), shift (3, mm), log scale, angles and (with ``estimate_shape``) the
     20 log bone factors together; bounded and robust. Returns (T_w_p, scale, angles,
     bone_scale)."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
     R0, t0 = T0[:3, :3], T0[:3, 3]
     used = w > 0
     target = np.where(used[:, None], joints, 0.0)

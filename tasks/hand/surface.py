@@ -23,12 +23,10 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.ndimage import map_coordinates
-from scipy.spatial import ConvexHull, cKDTree
 
 from graspcap.tasks.hand.model import PART_BONES, SURFACE_OFFSET_M, HandModel, HandSide
 
-# open3d: imported where used, so that importing the stage table stays cheap
+# open3d, scipy: imported where used, so that importing the stage table stays cheap
 
 BONES = np.array(PART_BONES)  # (15, 2) keypoints at the ends of each phalanx
 _PALM_GRID_MARGIN_M = 0.02
@@ -46,6 +44,8 @@ class Grid:
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """Trilinear lookup (...,) at ``points`` (..., 3); outside the box: boundary value plus
         the distance to the box."""
+        from scipy.ndimage import map_coordinates
+
         p = np.asarray(points, dtype=float)
         shape = p.shape[:-1]
         p = p.reshape(-1, 3)
@@ -72,6 +72,8 @@ def palm_grid(side: HandSide, bone_scale: np.ndarray | None = None) -> Grid:
 
 @lru_cache(maxsize=16)
 def _palm_grid(side: HandSide, palm: tuple[float, ...] | None) -> Grid:
+    from scipy.spatial import ConvexHull
+
     model = HandModel(side)
     bone_scale = None
     if palm is not None:
@@ -200,6 +202,7 @@ def object_sdf_grid(
     Exact (Open3D) within ``band_m`` of the surface, the nearest-vertex distance beyond.
     """
     import open3d as o3d
+    from scipy.spatial import cKDTree
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(vertices.astype(np.float32), faces.astype(np.uint32))

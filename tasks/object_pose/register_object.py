@@ -25,7 +25,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import Field
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError, check_mesh
@@ -57,7 +56,7 @@ from graspcap.tasks.object_pose.registration.symmetry import (
     probe_symmetry,
 )
 
-# open3d: imported where used, so that importing the stage table stays cheap
+# open3d, scipy: imported where used, so that importing the stage table stays cheap
 
 STAGE_VERSION = "register_object/10"
 STAGE = "register_object"
@@ -257,6 +256,8 @@ def register_object(
     depth_name, mesh_name : str
         The depth file and the mesh file, for messages.
     """
+    from scipy.spatial.transform import Rotation
+
     cfg = config.registration
     check_mesh(STAGE, mesh_vertices, mesh_faces, name=mesh_name)
     proxy = mesh_proxy(mesh_vertices, mesh_faces, config.proxy_faces)
