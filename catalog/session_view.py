@@ -25,12 +25,13 @@ from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 import pyarrow.compute as pc
 
 from graspcap.catalog.errors import CatalogError
 from graspcap.schemas.session import SessionManifest
+
+# cv2: imported where used, so that importing the catalog (a build's start) stays cheap
 
 if TYPE_CHECKING:
     from graspcap.catalog.store import Catalog
@@ -126,6 +127,8 @@ class SessionSource:
 
     def color(self, frame: int) -> np.ndarray:
         """``(h, w, 3) uint8`` RGB of grasp frame ``frame`` (ideal pinhole image of ``K``)."""
+        import cv2
+
         path, _ = self.image_filenames(frame)
         if path is None:
             raise CatalogError(f"session {self.session_id!r}: {self.root / MANIFEST} has no "
@@ -136,12 +139,16 @@ class SessionSource:
     def depth(self, frame: int) -> np.ndarray:
         """``(h, w) float32`` metres of grasp frame ``frame`` (0: no reading), in the ideal
         pinhole image of ``K``."""
+        import cv2
+
         _, path = self.image_filenames(frame)
         raw = self._read(path, cv2.IMREAD_UNCHANGED, np.uint16)
         depth = raw.astype(np.float32) * np.float32(self.manifest.depth_scale_m)
         return self._ideal(depth, nearest=True)
 
     def _read(self, path: Path, flags: int, dtype: type) -> np.ndarray:
+        import cv2
+
         image = cv2.imread(str(path), flags) if path.is_file() else None
         if image is None or image.dtype != dtype:
             what = "missing or unreadable" if image is None else f"{image.dtype}, not {dtype}"
@@ -153,6 +160,8 @@ class SessionSource:
         pipeline's stages read it (``tasks/core/camera.py``, which the catalog does not
         import: the same ``cv2.initUndistortRectifyMap`` with ``newCameraMatrix = K``); as is
         when ``dist`` is zero. ``nearest`` for depth (no values blended across an edge)."""
+        import cv2
+
         dist = self.dist
         if not np.any(dist):
             return image

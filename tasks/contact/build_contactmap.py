@@ -43,7 +43,6 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
-import open3d as o3d
 from pydantic import Field
 
 from graspcap.tasks.core.camera import Camera
@@ -51,6 +50,8 @@ from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError, check_mesh
 from graspcap.tasks.core.geometry import inv_T, rot_z, transform_points
 from graspcap.tasks.core.mesh_proxy import PROXY_FACES, mesh_proxy
+
+# open3d: imported where used, so that importing the stage table stays cheap
 
 STAGE_VERSION = "build_contactmap/2"
 STAGE = "build_contactmap"
@@ -329,6 +330,8 @@ def build_contactmap(
         Malformed mesh, a view of the wrong size, no view with a thermal image, or no view
         that sees the object.
     """
+    import open3d as o3d
+
     vertices = np.asarray(mesh_vertices, dtype=np.float64)
     faces = np.asarray(mesh_faces, dtype=np.int64)
     K = np.asarray(K_thermal, dtype=np.float64)

@@ -18,12 +18,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import lru_cache
 
-import cv2
 import numpy as np
 
 from graspcap.tasks.core.geometry import project as pinhole_project
 
-UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+# cv2: imported where used, so that importing the stage table stays cheap
+
+UNDISTORT_CRITERIA = (3, 50, 1e-12)  # 3: cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS
 """``cv2.undistortPoints`` iterations: OpenCV's default (5 iterations) leaves a tenth of a
 pixel at a webcam's corners; 50 reach 1e-6 px on any lens the contract accepts."""
 
@@ -77,6 +78,8 @@ class Camera:
     def distort_px(self, ideal_px: np.ndarray) -> np.ndarray:
         """Ideal (pinhole) pixels (n, 2) -> raw image pixels (n, 2); NaN rows stay NaN, and
         pixels outside the lens's field become NaN. The identity when ``dist`` is zero."""
+        import cv2
+
         ideal_px = np.asarray(ideal_px, dtype=float).reshape(-1, 2)
         if not self.distorted:
             return ideal_px.copy()
@@ -92,6 +95,8 @@ class Camera:
     def undistort_px(self, px: np.ndarray) -> np.ndarray:
         """Raw image pixels (n, 2) -> ideal pinhole pixels (n, 2) (``cv2.undistortPoints``
         with ``P = K``); NaN rows stay NaN. The identity (a copy) when ``dist`` is zero."""
+        import cv2
+
         px = np.asarray(px, dtype=float).reshape(-1, 2)
         if not self.distorted:
             return px.copy()
@@ -122,6 +127,8 @@ class Camera:
         lands, so depth values are never blended across an edge (a ray is then off by at most
         half a raw pixel); else bilinear. Returned as is when ``dist`` is zero.
         """
+        import cv2
+
         if not self.distorted:
             return image
         h, w = image.shape[:2]
@@ -161,6 +168,8 @@ def _undistort_maps(K: bytes, dist: bytes, width: int, height: int
                     ) -> tuple[np.ndarray, np.ndarray]:
     """``cv2.initUndistortRectifyMap`` with ``newCameraMatrix = K``: for every ideal pixel,
     where its ray lands in the raw image (two (h, w) float32 maps)."""
+    import cv2
+
     K_ = np.frombuffer(K).reshape(3, 3)
     return cv2.initUndistortRectifyMap(K_, np.frombuffer(dist), None, K_, (width, height),
                                        cv2.CV_32FC1)

@@ -8,7 +8,8 @@ metres and radians; OpenCV cameras (x right, y down, z forward).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -35,6 +36,8 @@ def rot_z(angle_rad: float) -> np.ndarray:
 
 def from_rotvec(rotvec: np.ndarray, t: np.ndarray) -> np.ndarray:
     """4x4 transform from an axis-angle vector (3,) in radians and a translation (3,)."""
+    from scipy.spatial.transform import Rotation
+
     return make_T(Rotation.from_rotvec(rotvec).as_matrix(), t)
 
 

@@ -9,9 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from graspcap.tasks.core.geometry import transform_points
+
+# open3d: imported where used, so that importing the stage table stays cheap
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,8 @@ def cast_rays(
 ) -> RayHits:
     """Cast rays from the camera centre along unit ``dirs`` (h, w, 3) float32 against meshes
     (vertices (n, 3), faces (m, 3)) posed in the camera frame by ``T_c_m``."""
+    import open3d as o3d
+
     scene = o3d.t.geometry.RaycastingScene()
     ids = []
     for (vertices, faces), T in zip(meshes, T_c_m, strict=True):

@@ -28,9 +28,6 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
@@ -44,6 +41,8 @@ from graspcap.tasks.hand.model import (
     HandSide,
 )
 from graspcap.tasks.hand.shape import MARGINAL_SD, ShapeCheck, check_shape, prior_residuals_log
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 STAGE_VERSION = "fit_hand/2"
 STAGE = "fit_hand"
@@ -249,6 +248,8 @@ def _solve_angles(
     model: HandModel, targets_p: np.ndarray, w: np.ndarray, scale: float, config: FitHandConfig
 ) -> np.ndarray:
     """IK with the palm fixed: angles (20,) in the limits for palm-frame targets at scale 1."""
+    from scipy.optimize import least_squares
+
     lo, hi = model.lower_rad, model.upper_rad
     prior = model.rest_angles()
     usable = w > 0
@@ -305,6 +306,9 @@ def _refine(
     """Palm turn (3, rad), shift (3, mm), log scale, angles and (with ``estimate_shape``) the
     20 log bone factors together; bounded and robust. Returns (T_w_p, scale, angles,
     bone_scale)."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
     R0, t0 = T0[:3, :3], T0[:3, 3]
     used = w > 0
     target = np.where(used[:, None], joints, 0.0)
@@ -378,6 +382,8 @@ def fit_hand(
         Non-finite joints with positive weight, fewer than 3 usable rigid palm points,
         coincident or collinear palm points, or a scale outside [min_scale, max_scale].
     """
+    from scipy.stats import chi2
+
     model = HandModel(side)
     joints, w = _check_inputs(joints_w, weights)
     used = w > 0

@@ -3,14 +3,17 @@ validity leave the hand's pixels out of the object's)."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from graspcap.tasks.hand.model import RIGID_PALM_POINTS, SKELETON
 
+# cv2: imported where used, so that importing the stage table stays cheap
+
 
 def grow_mask(mask: np.ndarray, dilate_px: int) -> np.ndarray:
     """The boolean image ``mask`` (h, w) grown by ``dilate_px`` pixels."""
+    import cv2
+
     if dilate_px <= 0:
         return mask
     k = 2 * dilate_px + 1
@@ -40,6 +43,8 @@ def hand_mask_from_keypoints(
     conf : (21,) float
         Detection confidence; points below ``min_conf`` are ignored.
     """
+    import cv2
+
     kp = np.asarray(keypoints_2d, dtype=float)
     ok = np.asarray(conf, dtype=float) >= min_conf
     ok &= np.all(np.isfinite(kp), axis=1)

@@ -11,7 +11,8 @@ in the part's own frame; posing a hand only transforms them.
 from __future__ import annotations
 
 import numpy as np
-import trimesh
+
+# trimesh: imported where used, so that importing the stage table stays cheap
 
 
 def _unit_sphere(subdivisions: int) -> np.ndarray:
@@ -21,6 +22,8 @@ def _unit_sphere(subdivisions: int) -> np.ndarray:
     sit at about the sphere's radius (at ``subdivisions=2`` the inscribed faces
     would lie up to 1% of the radius inside).
     """
+    import trimesh
+
     sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
     centres = sphere.triangles_center
     mean_face_radius = float(np.linalg.norm(centres, axis=1).mean())
@@ -47,6 +50,8 @@ def sphere_hull(
     faces : (m, 3) int
         Counter-clockwise seen from outside (positive volume).
     """
+    import trimesh
+
     centres = np.asarray(centres, dtype=float).reshape(-1, 3)
     radii = np.asarray(radii, dtype=float).reshape(-1)
     unit = _unit_sphere(subdivisions)

@@ -28,8 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
@@ -42,6 +40,8 @@ from graspcap.tasks.hand.surface import (
     object_sdf_grid,
     penetration_mm,
 )
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 STAGE_VERSION = "refine_grasp/3"
 STAGE = "refine_grasp"
@@ -229,6 +229,8 @@ class _Problem:
         return np.concatenate([np.zeros(_N_POSE), self.angles0])
 
     def pose(self, X: np.ndarray):
+        from scipy.spatial.transform import Rotation
+
         R = self.R0 @ Rotation.from_rotvec(X[:, :3]).as_matrix()
         t = self.t0 + 1e-3 * X[:, 3:6]
         kp_p = self.model.keypoints_batch(X[:, _N_POSE:], bone_scale=self.bone_scale)
@@ -335,6 +337,9 @@ def refine_grasp(
         Inconsistent inputs: lengths of ``contact``/``observed`` other than the vertex count,
         non-finite values, another side than the fit's, faces out of range.
     """
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
     T_w_o, V, F, contact, observed = _check(fit, side, T_w_o, object_vertices, object_faces,
                                             contact, observed)
     model = HandModel(fit.side)

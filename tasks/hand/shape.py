@@ -25,9 +25,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from graspcap.tasks.hand.model import FINGERS, TEMPLATE_BONE_LENGTHS_M, check_bone_scale
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 SHAPE_VERSION = "hand_shape/1"
 N_BONES = 20
@@ -146,6 +147,8 @@ def check_shape(bone_scale: np.ndarray, max_z: float = 4.0, p_max: float = 0.999
     """Check a shape against the prior: every bone and every adjacent-segment ratio within
     ``max_z`` SDs, and the whole shape within the prior's ``p_max`` quantile (chi-square, 20
     degrees of freedom)."""
+    from scipy.stats import chi2
+
     log_b = np.log(check_bone_scale(bone_scale))
     r = float(np.linalg.norm(PRIOR_SQRT_INFORMATION @ log_b))
     z_bone = log_b / MARGINAL_SD

@@ -23,11 +23,10 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-import open3d as o3d
-from scipy.ndimage import map_coordinates
-from scipy.spatial import ConvexHull, cKDTree
 
 from graspcap.tasks.hand.model import PART_BONES, SURFACE_OFFSET_M, HandModel, HandSide
+
+# open3d, scipy: imported where used, so that importing the stage table stays cheap
 
 BONES = np.array(PART_BONES)  # (15, 2) keypoints at the ends of each phalanx
 _PALM_GRID_MARGIN_M = 0.02
@@ -45,6 +44,8 @@ class Grid:
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """Trilinear lookup (...,) at ``points`` (..., 3); outside the box: boundary value plus
         the distance to the box."""
+        from scipy.ndimage import map_coordinates
+
         p = np.asarray(points, dtype=float)
         shape = p.shape[:-1]
         p = p.reshape(-1, 3)
@@ -71,6 +72,8 @@ def palm_grid(side: HandSide, bone_scale: np.ndarray | None = None) -> Grid:
 
 @lru_cache(maxsize=16)
 def _palm_grid(side: HandSide, palm: tuple[float, ...] | None) -> Grid:
+    from scipy.spatial import ConvexHull
+
     model = HandModel(side)
     bone_scale = None
     if palm is not None:
@@ -103,6 +106,8 @@ def penetration_mm(
 ) -> tuple[float, float]:
     """How deep ``points`` (k, 3) lie inside a closed mesh, by Open3D's signed distance with a
     3-ray vote on the sign: (deepest, mean over the points inside; 0 when none is), in mm."""
+    import open3d as o3d
+
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(np.asarray(object_vertices, np.float32),
                         np.asarray(object_faces, np.uint32))
@@ -160,6 +165,8 @@ def contact_agreement(
     touch_contacted_share : float
         Touched observed vertices that are contacted (NaN when the hand touches none).
     """
+    import open3d as o3d
+
     V = np.asarray(object_vertices, float)
     observed = np.asarray(observed, bool)
     contacted = observed & (np.asarray(contact, float) >= contact_threshold)
@@ -194,6 +201,9 @@ def object_sdf_grid(
 
     Exact (Open3D) within ``band_m`` of the surface, the nearest-vertex distance beyond.
     """
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(vertices.astype(np.float32), faces.astype(np.uint32))
     pts, shape = _grid_points(np.asarray(lo, float), np.asarray(hi, float), step_m)

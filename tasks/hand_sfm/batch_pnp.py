@@ -9,12 +9,11 @@ Poses are ``T_c_w`` (world into camera); cameras are OpenCV pinholes without dis
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.geometry import make_T
 
+# cv2, scipy: imported where used, so that importing the stage table stays cheap
 
 def ransac_poses(
     K: np.ndarray, points_w: np.ndarray, uv: np.ndarray, use: np.ndarray, ransac_px: float,
@@ -25,6 +24,8 @@ def ransac_poses(
     points_w : (21, 3) float, NaN where unknown; uv : (n, 21, 2) pixels; use : (n, 21) bool.
     Returns T_c_w (n, 4, 4) (NaN where no pose was found) and inliers (n, 21) bool.
     """
+    import cv2
+
     n, nj = use.shape
     T = np.full((n, 4, 4), np.nan)
     inliers = np.zeros((n, nj), bool)
@@ -64,6 +65,8 @@ def refine_poses(
     are re-judged every iteration); frames with fewer than 4 weighted observations keep their
     pose. T_c_w : (n, 4, 4) start (NaN rows stay NaN). Returns the refined (n, 4, 4).
     """
+    from scipy.spatial.transform import Rotation
+
     T = np.array(T_c_w, dtype=float)
     posed = np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)
     X = np.nan_to_num(points_w)

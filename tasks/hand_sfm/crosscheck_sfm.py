@@ -19,14 +19,14 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
-import pycolmap
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, make_T, rotation_error_deg, umeyama
 from graspcap.tasks.hand_sfm.graph import bundle_adjust, reprojection_residuals
 from graspcap.tasks.hand_sfm.reconstruct_hand import HandReconstruction
+
+# pycolmap, scipy: imported where used, so that importing the stage table stays cheap
 
 STAGE = "crosscheck_sfm"
 STAGE_VERSION = "crosscheck_sfm/3"
@@ -116,6 +116,8 @@ class SfmCrosscheck:
 
 
 def _start(rec: HandReconstruction, cfg: CrosscheckConfig) -> tuple[np.ndarray, np.ndarray]:
+    from scipy.spatial.transform import Rotation
+
     if cfg.start_from is StartFrom.INITIALISATION:
         return rec.diagnostics.T_w_c_init, rec.diagnostics.joints_w_init
     rng = np.random.default_rng(cfg.seed)
@@ -130,6 +132,8 @@ def _start(rec: HandReconstruction, cfg: CrosscheckConfig) -> tuple[np.ndarray, 
 
 def _colmap_solve(K, uv, use, T_w_c, X, cfg):
     """Build and bundle-adjust a pycolmap.Reconstruction -> (T_w_c, X, rmse), NaN where absent."""
+    import pycolmap
+
     m, nj = use.shape
     recon = pycolmap.Reconstruction()
     camera = pycolmap.Camera(

@@ -26,12 +26,13 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.geometry import inv_T
 from graspcap.tasks.core.threads import thread_budget
 from graspcap.tasks.hand_sfm.surface_clouds import SurfaceCloud
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 
 class DepthLinkConfig(StageConfig):
@@ -115,6 +116,8 @@ class DepthLink:
 
 def _exp_batch(step: np.ndarray) -> np.ndarray:
     """(k, 4, 4) transforms of (k, 6) steps (rotation vector, translation)."""
+    from scipy.spatial.transform import Rotation
+
     T = np.tile(np.eye(4), (len(step), 1, 1))
     T[:, :3, :3] = Rotation.from_rotvec(step[:, :3]).as_matrix()
     T[:, :3, 3] = step[:, 3:]
@@ -171,6 +174,8 @@ def icp_batch(
     rmse_m : (k,) RMS residual of the points within 3 Huber widths; overlap : (k,) share
     of source points with a correspondence.
     """
+    from scipy.spatial.transform import Rotation
+
     k = len(pairs)
     shape = np.array([c.index.shape for c in clouds])
     grid_base = np.concatenate([[0], np.cumsum(shape[:, 0] * shape[:, 1])])[:-1]

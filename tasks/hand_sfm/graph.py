@@ -10,13 +10,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
 
 from graspcap.tasks.core.geometry import inv_T, project
 from graspcap.tasks.hand_sfm.depth_links import DepthLink
+
+# gtsam: imported where used, so that importing the stage table stays cheap
+if TYPE_CHECKING:
+    import gtsam
 
 GAUGE_SIGMA = 1e-6
 """Sigma of the gauge priors (pose of the anchor camera, anchor-to-reference distance)."""
@@ -47,6 +50,8 @@ def lm_params(
     problems GTSAM's own defaults (lambda 1e-5, fixed factor 10) crawl along the weakly
     determined camera tilts: 100 and 64 iterations where these take 74 and 11, to a lower
     error."""
+    import gtsam
+
     params = gtsam.LevenbergMarquardtParams.CeresDefaults()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(relative_tol)
@@ -111,6 +116,9 @@ def bundle_adjust(
     relative_tol : Levenberg-Marquardt stops when an iteration lowers the error by less than
         this share.
     """
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
     m, nj = use.shape
     posed = np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)
     known = np.all(np.isfinite(points_w), axis=1)

@@ -28,21 +28,27 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
 
 from graspcap.tasks.hand.model import SKELETON, SURFACE_OFFSET_M, HandModel, HandSide
 from graspcap.tasks.hand.shape import PRIOR_SQRT_INFORMATION
 from graspcap.tasks.hand_sfm.graph import lm_params
 
-A_KEY, B_KEY, S_KEY = (gtsam.symbol("a", 0), gtsam.symbol("b", 0), gtsam.symbol("s", 0))
+# gtsam: imported where used, so that importing the stage table stays cheap
+if TYPE_CHECKING:
+    import gtsam
+
+A_KEY, B_KEY, S_KEY = (ord(c) << 56 for c in "abs")  # gtsam.symbol(c, 0): c in the top byte
 N_HAND = 41
 """Hand parameters: 20 angles, 20 log bone factors, 1 log scale."""
 
 
 def camera_key(i: int) -> int:
     """Key of frame ``i``'s camera ``T_c_p``."""
+    import gtsam
+
     return gtsam.symbol("c", int(i))
 
 
@@ -124,6 +130,8 @@ def _camera_point(T: gtsam.Pose3, p: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def reprojection_factor(kin: HandKinematics, K: np.ndarray, i: int, j: int, uv: np.ndarray,
                         noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
     """Pixel residual (2,) of keypoint ``j`` seen at ``uv`` in frame ``i``."""
+    import gtsam
+
     fx, fy, skew, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
     uv = np.asarray(uv, float)
 
@@ -150,6 +158,8 @@ def range_factor(kin: HandKinematics, i: int, j: int, depth_m: float, offset_m: 
     """Depth residual (1,): the joint's camera z minus the reading plus the skin offset
     (``offset_m`` at unit scale, scaled with the hand)."""
 
+    import gtsam
+
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
         T = values.atPose3(this.keys()[0])
         angles, log_bone, log_scale = _hand_params(values)
@@ -168,6 +178,8 @@ def range_factor(kin: HandKinematics, i: int, j: int, depth_m: float, offset_m: 
 
 def limit_factor(lower: np.ndarray, upper: np.ndarray, sigma_rad: float) -> gtsam.CustomFactor:
     """One-sided priors (20,) keeping the angles inside the joint limits: zero inside."""
+    import gtsam
+
     lo, hi = np.asarray(lower, float), np.asarray(upper, float)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
@@ -203,6 +215,8 @@ def motion_factor(a: int, b: int, c: int, noise: gtsam.noiseModel.Base,
     relative motion ``Log(T_a T_b^-1) / (b - a)`` minus ``Log(T_b T_c^-1) / (c - b)`` (the
     hand turns smoothly in front of the camera; a turn-around costs little under a robust
     loss). Jacobians by central differences along each camera's retraction."""
+    import gtsam
+
     ga, gb = float(b - a), float(c - b)
 
     def residual(Ta: gtsam.Pose3, Tb: gtsam.Pose3, Tc: gtsam.Pose3) -> np.ndarray:
@@ -221,6 +235,8 @@ def link_factor(a: int, b: int, T_a_b: np.ndarray, noise: gtsam.noiseModel.Base,
     ``T_a_b``; residual (6,) ``Log(T_a_b^-1 T_ca_p T_cb_p^-1)``, the error of GTSAM's
     ``BetweenFactorPose3`` on camera poses, so the link's information applies as it is.
     Jacobians by central differences along each camera's retraction."""
+    import gtsam
+
     meas_inv = gtsam.Pose3(np.asarray(T_a_b, float)).inverse()
 
     def residual(Ta: gtsam.Pose3, Tb: gtsam.Pose3) -> np.ndarray:
@@ -285,6 +301,8 @@ def solve_graph(
     velocity priors between consecutive solved frames (None: none); links : dense depth links
     (``hand_sfm.depth_links.DepthLink``, frames of ``uv``) under a Huber loss.
     """
+    import gtsam
+
     m = len(uv)
     frames = np.flatnonzero(use.any(1))
     graph = gtsam.NonlinearFactorGraph()

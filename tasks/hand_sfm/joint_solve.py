@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
-import gtsam
 import numpy as np
 
 from graspcap.tasks.core.config import StageConfig
@@ -51,6 +50,8 @@ from graspcap.tasks.hand_sfm.result import HandReconstruction, SfmDiagnostics
 from graspcap.tasks.hand_sfm.solve import fill_poses, rotation_span_deg
 from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame, surface_reader
 from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
+
+# gtsam: imported where used, so that importing the stage table stays cheap
 
 STAGE = "joint_solve"
 STAGE_VERSION = "joint_solve/3"
@@ -397,6 +398,8 @@ def solve_from_start(
     depth; whole-frame rejection rounds; the result in the staged path's types.
     ``surface_at(i, uv, depth) -> SurfaceCloud | None`` gives solve frame i's surface for the
     dense depth links (None: no links)."""
+    import gtsam
+
     kp = np.asarray(keypoints, dtype=float)[steady_from:]
     m = len(kp)
     uv, conf = kp[..., :2], kp[..., 2]

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T
@@ -24,6 +23,8 @@ from graspcap.tasks.hand_sfm.frame_screen import (
 from graspcap.tasks.hand_sfm.graph import bundle_adjust, reprojection_residuals
 from graspcap.tasks.hand_sfm.metric_scale import ratio_mode
 from graspcap.tasks.hand_sfm.two_view_init import normalise
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 STAGE = "reconstruct_hand"
 
@@ -41,6 +42,8 @@ class DepthUse(StrEnum):
 
 def fill_poses(T_c_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Interpolate missing poses (NaN) from their neighbours (slerp); hold at the ends."""
+    from scipy.spatial.transform import Rotation, Slerp
+
     m = len(T_c_w)
     valid = np.all(np.isfinite(T_c_w.reshape(m, -1)), axis=1)
     if valid.all():

@@ -12,10 +12,11 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from graspcap.tasks.core.geometry import inv_T, make_T, project
+
+# cv2: imported where used, so that importing the stage table stays cheap
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,8 @@ def triangulate_pair(
     K: np.ndarray, T_a_w: np.ndarray, T_b_w: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray
 ) -> np.ndarray:
     """Linear triangulation (cv2.triangulatePoints) of matching pixels (n, 2) -> (n, 3) world."""
+    import cv2
+
     P_a = K @ T_a_w[:3]
     P_b = K @ T_b_w[:3]
     X = cv2.triangulatePoints(P_a, P_b, uv_a.T.astype(float), uv_b.T.astype(float))
@@ -79,6 +82,8 @@ def triangulate_pair(
 
 def _pair_hypotheses(K, uv_a, uv_b, ransac_px):
     """Every (T_b_a, parallax_deg, inlier mask) an essential matrix of the pair allows."""
+    import cv2
+
     na, nb = normalise(K, uv_a), normalise(K, uv_b)
     thr = ransac_px / float(np.mean(np.diag(K)[:2]))
     E, mask = cv2.findEssentialMat(
@@ -148,6 +153,8 @@ def pnp(
 
     points_w : (n, 3); uv : (n, 2) pixels, matching rows.
     """
+    import cv2
+
     if len(points_w) < max(min_points, 6):
         return None
     ok, rvec, tvec, inl = cv2.solvePnPRansac(

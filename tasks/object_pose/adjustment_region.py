@@ -10,11 +10,12 @@ from __future__ import annotations
 from typing import Protocol
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from graspcap.tasks.core.render import render
 from graspcap.tasks.hand.image_masks import hand_mask_from_keypoints
 from graspcap.tasks.object_pose.registration.point_clouds import to_pcd
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 
 class RegionConfig(Protocol):
@@ -47,6 +48,8 @@ def near_hand(
     within ``radius_m`` + margin of the hand (the hand splits the object into pieces, so
     several; the table and platter are wider or further), else the cluster nearest the hand.
     Pieces of the hand the mask missed are kept too: registration treats them as outliers."""
+    from scipy.spatial import cKDTree
+
     if len(hand_pts) < cfg.min_hand_points:
         return points
     hand = hand_cluster(hand_pts, cfg.cluster_voxel_m, cfg.cluster_eps_m)

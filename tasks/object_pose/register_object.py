@@ -24,9 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from pydantic import Field
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError, check_mesh
@@ -57,6 +55,8 @@ from graspcap.tasks.object_pose.registration.symmetry import (
     distinct_from,
     probe_symmetry,
 )
+
+# open3d, scipy: imported where used, so that importing the stage table stays cheap
 
 STAGE_VERSION = "register_object/10"
 STAGE = "register_object"
@@ -256,6 +256,8 @@ def register_object(
     depth_name, mesh_name : str
         The depth file and the mesh file, for messages.
     """
+    from scipy.spatial.transform import Rotation
+
     cfg = config.registration
     check_mesh(STAGE, mesh_vertices, mesh_faces, name=mesh_name)
     proxy = mesh_proxy(mesh_vertices, mesh_faces, config.proxy_faces)
@@ -397,6 +399,8 @@ def _free_rotation(
     ``points_s`` (n, 3) moved by ``T_o_s`` (those within ``distance_m`` of it, with the mesh's
     own normals: the depth's noisy normals blur a label's millimetres); None with fewer than
     six such points."""
+    import open3d as o3d
+
     p_o = transform_points(T_o_s, points_s)
     closest = model.surface.compute_closest_points(o3d.core.Tensor(p_o.astype(np.float32)))
     q = closest["points"].numpy().astype(float)

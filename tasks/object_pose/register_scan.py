@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import Field
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError, check_mesh
@@ -53,6 +52,8 @@ from graspcap.tasks.object_pose.registration.point_clouds import (
 )
 from graspcap.tasks.object_pose.registration.symmetry import distinct_from, probe_symmetry
 from graspcap.tasks.object_pose.scan_free_space import free_space_violation, prepare_views
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 STAGE_VERSION = "register_scan/5"
 STAGE = "register_scan"
@@ -365,6 +366,8 @@ def _score(c: Candidate, violation) -> float:
 def _grid(config: RegisterScanConfig) -> np.ndarray:
     """The point group's rotations (k, 3, 3) but the identity, half turns first, without the
     turns about single principal axes that the symmetry probes already tried."""
+    from scipy.spatial.transform import Rotation
+
     group = Rotation.create_group(config.probe_grid)
     angles = group.magnitude()
     keep = angles > 1e-6

@@ -3,8 +3,11 @@ depth colourisation and PNG encoding. RGB ``uint8`` images throughout."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
+
+from graspcap.tasks.core.geometry import project, transform_points
+
+# cv2: imported where used, so that importing the stage table stays cheap
 
 BACKGROUND_RGB = (245, 245, 245)
 UNOBSERVED_RGB = (150, 150, 150)
@@ -17,6 +20,8 @@ CONTACT_STOPS = np.array([[40, 90, 220], [250, 215, 50], [200, 20, 20]], dtype=f
 
 def encode_png(image_rgb: np.ndarray) -> bytes:
     """PNG bytes of an RGB ``(h, w, 3) uint8`` image."""
+    import cv2
+
     ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(image_rgb),
                                                 cv2.COLOR_RGB2BGR))
     if not ok:
@@ -26,6 +31,8 @@ def encode_png(image_rgb: np.ndarray) -> bytes:
 
 def decode_png(data: bytes) -> np.ndarray:
     """RGB ``(h, w, 3) uint8`` image from PNG bytes (the inverse of :func:`encode_png`)."""
+    import cv2
+
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
@@ -35,6 +42,8 @@ def colorize_depth(depth_m: np.ndarray, range_m: tuple[float, float] | None = No
     """Depth ``(h, w)`` metres as RGB ``(h, w, 3) uint8``: near bright, far dark over
     ``range_m`` (default: 2nd to 98th percentile of the measured depth; depth outside it is
     clipped), no measurement black."""
+    import cv2
+
     depth = np.asarray(depth_m, dtype=float)
     valid = np.isfinite(depth) & (depth > 0)
     out = np.zeros((*depth.shape, 3), np.uint8)
@@ -67,6 +76,8 @@ def hand_depth_range(depth_m: np.ndarray, detected: np.ndarray, min_conf: float 
 
 def confidence_rgb(conf: float) -> tuple[int, int, int]:
     """Red (0) through yellow to green (1)."""
+    import cv2
+
     hue = int(round(60 * float(np.clip(conf, 0.0, 1.0))))
     rgb = cv2.cvtColor(np.array([[[hue, 255, 255]]], np.uint8), cv2.COLOR_HSV2RGB)[0, 0]
     return tuple(int(c) for c in rgb)
@@ -75,6 +86,8 @@ def confidence_rgb(conf: float) -> tuple[int, int, int]:
 def label(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.45,
           color: tuple[int, int, int] = (255, 255, 255), box: bool = True) -> None:
     """``text`` with its baseline at ``org``; on a dark box unless ``box`` is False."""
+    import cv2
+
     if not text:
         return
     if box:
@@ -91,3 +104,39 @@ def contact_rgb(contact: np.ndarray) -> np.ndarray:
     i = np.minimum(t.astype(int), len(CONTACT_STOPS) - 2)
     f = (t - i)[..., None]
     return CONTACT_STOPS[i] * (1 - f) + CONTACT_STOPS[i + 1] * f
+
+
+def silhouette(shape: tuple[int, int], V: np.ndarray, F: np.ndarray, T_c_o: np.ndarray,
+               K: np.ndarray) -> np.ndarray:
+    """Mask (h, w) bool of the mesh ``(V, F)`` (object frame) projected by ``T_c_o`` and
+    ``K``; triangles with a vertex at or behind the camera plane are left out."""
+    import cv2
+
+    h, w = shape
+    pts_c = transform_points(np.asarray(T_c_o, float), V)
+    mask = np.zeros((h, w), np.uint8)
+    front = pts_c[:, 2] > 1e-6
+    if not front.any():
+        return mask.astype(bool)
+    uv = np.full((len(V), 2), np.nan)
+    uv[front] = project(K, pts_c[front])
+    tris = F[np.all(front[F], axis=1)]
+    if len(tris):
+        poly = np.rint(uv[tris] * 8).astype(np.int64)  # 3 bits of sub-pixel precision
+        lo, hi = poly.min(axis=1), poly.max(axis=1)
+        keep = (np.all(np.abs(poly) < (1 << 28), axis=(1, 2)) & (hi[:, 0] >= 0)
+                & (hi[:, 1] >= 0) & (lo[:, 0] < w * 8) & (lo[:, 1] < h * 8))
+        # one call per triangle: fillPoly on many polygons fills their even-odd union
+        for tri in poly[keep].astype(np.int32):
+            cv2.fillConvexPoly(mask, tri, 1, cv2.LINE_8, shift=3)
+    return mask.astype(bool)
+
+
+def outline(img: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int],
+            thickness: int = 1) -> None:
+    """Draw the outer contours of ``mask`` (h, w) on ``img`` in place."""
+    import cv2
+
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                   cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(img, contours, -1, colour, thickness, cv2.LINE_AA)

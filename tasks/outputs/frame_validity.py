@@ -28,14 +28,18 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.geometry import inv_T, transform_points
 from graspcap.tasks.hand.image_masks import grow_mask, hand_mask_from_keypoints
 from graspcap.tasks.object_pose.registration.depth_agreement import image_box
+
+# open3d: imported where used, so that importing the stage table stays cheap
+if TYPE_CHECKING:
+    import open3d as o3d
 
 OUTSIDE_WINDOW = "outside the steady window"
 
@@ -119,6 +123,8 @@ class SupportScene:
 
     @staticmethod
     def _scene(mesh: tuple[np.ndarray, np.ndarray]) -> o3d.t.geometry.RaycastingScene:
+        import open3d as o3d
+
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(np.ascontiguousarray(mesh[0], dtype=np.float32),
                             np.ascontiguousarray(mesh[1], dtype=np.uint32))
@@ -129,6 +135,8 @@ class SupportScene:
         """Of a pinhole camera ``K`` at ``T_c_o``: the object's depth (h, w), 0 where it is
         not hit (as if nothing covered it); where it is hit (h, w) bool; where the hand is the
         nearer surface (h, w) bool (in front of the object, or where it is not)."""
+        import open3d as o3d
+
         u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
         d_c = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
         d_c /= np.linalg.norm(d_c, axis=-1, keepdims=True)

@@ -27,7 +27,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import StrEnum
 
-import cv2
 import numpy as np
 
 from graspcap.tasks.core.config import StageConfig
@@ -46,7 +45,11 @@ from graspcap.tasks.outputs.drawing import (
     encode_png,
     hand_depth_range,
     label,
+    outline,
+    silhouette,
 )
+
+# cv2: imported where used, so that importing the stage table stays cheap
 
 STAGE_VERSION = "pictures/2"
 STAGE = "pictures"
@@ -133,6 +136,8 @@ def _draw_hand(img: np.ndarray, detected: np.ndarray, model_px: np.ndarray | Non
                min_conf: float) -> None:
     """Skeleton, confidence dots and model crosses, in image coordinates ``(p - offset) *
     scale``."""
+    import cv2
+
     r = max(2, int(round(2 + scale)))
 
     def pt(p: np.ndarray) -> tuple[int, int]:
@@ -189,6 +194,8 @@ def keypoints_picture(image_rgb: np.ndarray, detected: np.ndarray,
     (h, w + h, 3) uint8
         The frame on the left, an ``h`` x ``h`` zoom around the keypoints on the right.
     """
+    import cv2
+
     frame = np.ascontiguousarray(image_rgb, dtype=np.uint8).copy()
     h, w = frame.shape[:2]
     detected = np.asarray(detected, dtype=float)
@@ -348,6 +355,8 @@ def with_reasons(image_rgb: np.ndarray, reasons: tuple[str, ...] | list[str],
     """``image_rgb`` with a dark band below it listing the QA ``reasons`` (failures and
     flags, amber) and ``notes`` (grey), one per line, cut to the width; the image itself when
     there are none."""
+    import cv2
+
     lines = [(f"QA: {r}", REASON_RGB) for r in reasons] + [(f"note: {n}", (200, 200, 200))
                                                           for n in notes]
     if not lines:
@@ -361,37 +370,6 @@ def with_reasons(image_rgb: np.ndarray, reasons: tuple[str, ...] | list[str],
         text = text if len(text) <= chars else text[:chars - 3] + "..."
         label(band, text, (8, 22 + 18 * i), scale, colour, box=False)
     return np.concatenate([image_rgb, band], axis=0)
-
-
-def _silhouette(shape: tuple[int, int], V: np.ndarray, F: np.ndarray, T_c_o: np.ndarray,
-                K: np.ndarray) -> np.ndarray:
-    """Mask (h, w) bool of the mesh ``(V, F)`` (object frame) projected by ``T_c_o`` and
-    ``K``; triangles with a vertex at or behind the camera plane are left out."""
-    h, w = shape
-    pts_c = transform_points(np.asarray(T_c_o, float), V)
-    mask = np.zeros((h, w), np.uint8)
-    front = pts_c[:, 2] > 1e-6
-    if not front.any():
-        return mask.astype(bool)
-    uv = np.full((len(V), 2), np.nan)
-    uv[front] = project(K, pts_c[front])
-    tris = F[np.all(front[F], axis=1)]
-    if len(tris):
-        poly = np.rint(uv[tris] * 8).astype(np.int64)  # 3 bits of sub-pixel precision
-        lo, hi = poly.min(axis=1), poly.max(axis=1)
-        keep = (np.all(np.abs(poly) < (1 << 28), axis=(1, 2)) & (hi[:, 0] >= 0)
-                & (hi[:, 1] >= 0) & (lo[:, 0] < w * 8) & (lo[:, 1] < h * 8))
-        # one call per triangle: fillPoly on many polygons fills their even-odd union
-        for tri in poly[keep].astype(np.int32):
-            cv2.fillConvexPoly(mask, tri, 1, cv2.LINE_8, shift=3)
-    return mask.astype(bool)
-
-
-def _outline(img: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int],
-             thickness: int = 1) -> None:
-    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
-                                   cv2.CHAIN_APPROX_SIMPLE)
-    cv2.drawContours(img, contours, -1, colour, thickness, cv2.LINE_AA)
 
 
 def reprojection_picture(image_rgb: np.ndarray, object_vertices: np.ndarray,
@@ -417,13 +395,15 @@ def reprojection_picture(image_rgb: np.ndarray, object_vertices: np.ndarray,
     -------
     (h, w, 3) uint8
     """
+    import cv2
+
     V = np.asarray(object_vertices, float)
     F = np.asarray(object_faces, np.int64)
     out = np.ascontiguousarray(image_rgb, dtype=np.uint8).copy()
-    mask = _silhouette(out.shape[:2], V, F, T_c_o, K)
+    mask = silhouette(out.shape[:2], V, F, T_c_o, K)
     tint = np.array(MODEL_RGB, float)
     out[mask] = (out[mask] * 0.55 + tint * 0.45).astype(np.uint8)
-    _outline(out, mask, MODEL_RGB, 2)
+    outline(out, mask, MODEL_RGB, 2)
     size = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0))) / 3 if len(V) else 0.0
     axes_o = np.array([[0, 0, 0], [size, 0, 0], [0, size, 0], [0, 0, size]], float)
     axes_c = transform_points(np.asarray(T_c_o, float), axes_o)
@@ -451,6 +431,8 @@ def strip_picture(frames: list[tuple[int, np.ndarray, np.ndarray | None, np.ndar
     or None)`` in video order; ``K`` the intrinsics of the full-size frames. Returns
     ``(height_px + 22, sum of widths, 3) uint8``.
     """
+    import cv2
+
     tiles = []
     for index, image, detected, T_c_o in frames:
         h, w = image.shape[:2]
@@ -460,7 +442,7 @@ def strip_picture(frames: list[tuple[int, np.ndarray, np.ndarray | None, np.ndar
                           interpolation=cv2.INTER_AREA)
         if T_c_o is not None and object_mesh is not None:
             Ks = np.diag([s, s, 1.0]) @ np.asarray(K, float)
-            _outline(tile, _silhouette(tile.shape[:2], *object_mesh, T_c_o, Ks), MODEL_RGB)
+            outline(tile, silhouette(tile.shape[:2], *object_mesh, T_c_o, Ks), MODEL_RGB)
         if detected is not None:
             for x, y, c in np.asarray(detected, float):
                 if c > min_confidence and np.isfinite(x) and np.isfinite(y):
@@ -503,6 +485,8 @@ def read_frame(session, frame: int) -> tuple[np.ndarray, Background]:
     """Grasp frame ``frame`` of a :class:`~graspcap.tasks.session.load_session.Session` to draw on:
     the colour frame as RGB ``(h, w, 3) uint8`` when the session has colour video, else the
     depth frame in metres ``(h, w)`` (colourised by :func:`pictures`)."""
+    import cv2
+
     path = session.grasp_path("color", frame)
     if path is not None:
         return cv2.cvtColor(session.read_color(path), cv2.COLOR_BGR2RGB), Background.COLOR

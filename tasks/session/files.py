@@ -25,11 +25,11 @@ from dataclasses import dataclass
 from enum import StrEnum
 from pathlib import Path
 
-import cv2
 import numpy as np
-import trimesh
 
 from graspcap.schemas.session import DEFAULT_LIMITS, SessionLimits
+
+# cv2, trimesh: imported where used, so that importing the stage table stays cheap
 
 N_KEYPOINTS = 21
 """Hand keypoints in the OpenPose / MediaPipe layout."""
@@ -246,6 +246,8 @@ def size_problem(data: bytes, size: tuple[int, int] | None, max_pixels: int) -> 
 def decode(data: bytes, flags: int) -> np.ndarray | None:
     """``cv2.imdecode`` of ``data``, None for an empty or undecodable buffer (never
     OpenCV's assertion error)."""
+    import cv2
+
     if not data:
         return None
     try:
@@ -265,6 +267,8 @@ def image_problems(
     take size and channels from their frame header and are decoded at 1/8 scale; other
     formats, and interlaced PNGs, are decoded with ``cv2.imdecode(..., IMREAD_UNCHANGED)``.
     """
+    import cv2
+
     data = read_regular(path)
     if isinstance(data, Unreadable):
         return [data.message]
@@ -331,6 +335,8 @@ def mesh_problems(path: Path, limits: SessionLimits = DEFAULT_LIMITS) -> list[st
     """Why the mesh at ``path`` is not a non-empty, finite triangle mesh within the limits
     whose faces index its vertices. Sizes are checked from the file before trimesh parses it;
     a loader error is reported with what it means for the file."""
+    import trimesh
+
     data = read_regular(path, limits.max_mesh_bytes)
     if isinstance(data, Unreadable):
         return [data.message + (" (SessionLimits.max_mesh_bytes)" * ("limit" in data.message))]

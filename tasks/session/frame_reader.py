@@ -15,7 +15,6 @@ from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from graspcap.schemas.session import DEFAULT_LIMITS
@@ -26,6 +25,8 @@ from graspcap.tasks.session.files import (
     read_regular,
     size_problem,
 )
+
+# cv2: imported where used, so that importing the stage table stays cheap
 
 Frame = tuple[np.ndarray | None, str]
 """An ``(h, w, 3) uint8`` read-only RGB image and "", or None and why it could not be read."""
@@ -38,6 +39,8 @@ def read_rgb(path: Path | str, size: tuple[int, int] | None) -> Frame:
     keypoints would not be in that camera's pixels. JPEG and PNG decode straight to RGB
     (``cv2.IMREAD_COLOR_RGB``: the same pixels as BGR then ``cvtColor``, without the pass).
     """
+    import cv2
+
     data = read_regular(path)  # never opens a FIFO or device, never reads a directory
     if isinstance(data, Unreadable):
         return None, data.message

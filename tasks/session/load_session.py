@@ -28,9 +28,7 @@ from functools import lru_cache
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
-import cv2
 import numpy as np
-import trimesh
 from pydantic import BaseModel, ValidationError
 
 from graspcap.schemas.session import (
@@ -64,6 +62,8 @@ from graspcap.tasks.session.files import (
     read_regular,
     size_problem,
 )
+
+# cv2, trimesh: imported where used, so that importing the stage table stays cheap
 
 STAGE_VERSION = "load_session/1"
 
@@ -217,6 +217,8 @@ class Session:
         (:meth:`Camera.undistort_image`, nearest raw pixel), the frame every stage's geometry
         works in; untouched when ``color_camera.dist`` is zero. ``ideal=False``: the raw image.
         """
+        import cv2
+
         raw = self._read(rel_or_path, ImageKind.DEPTH, cv2.IMREAD_UNCHANGED)
         if ideal:
             raw = self.color_camera.undistort_image(raw, nearest=True)
@@ -224,11 +226,15 @@ class Session:
 
     def read_thermal_k(self, rel_or_path: str | Path) -> np.ndarray:
         """Thermal PNG (centi-kelvin) as ``(h, w) float32`` kelvin."""
+        import cv2
+
         raw = self._read(rel_or_path, ImageKind.THERMAL, cv2.IMREAD_UNCHANGED)
         return raw.astype(np.float32) * np.float32(0.01)
 
     def read_color(self, rel_or_path: str | Path) -> np.ndarray:
         """Colour image as ``(h, w, 3) uint8`` BGR."""
+        import cv2
+
         return self._read(rel_or_path, ImageKind.COLOR, cv2.IMREAD_COLOR)
 
     @property
@@ -260,6 +266,8 @@ class Session:
 
     def read_mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """The object mesh as (vertices (n, 3) float, faces (m, 3) int), in file vertex order."""
+        import trimesh
+
         mesh = trimesh.load(self.path(self.manifest.object_mesh), force="mesh", process=False)
         return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64)
 

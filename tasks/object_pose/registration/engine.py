@@ -21,10 +21,9 @@ import threading
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
-import trimesh
 from pydantic import model_validator
 
 from graspcap.tasks.core.config import StageConfig
@@ -33,7 +32,10 @@ from graspcap.tasks.object_pose.registration.open3d_threads import single_thread
 from graspcap.tasks.object_pose.registration.point_clouds import estimate_normals, to_pcd
 from graspcap.tasks.object_pose.registration.ransac import ransac_restarts
 
-reg = o3d.pipelines.registration
+# open3d, trimesh: imported where used, so that importing the stage table stays cheap
+if TYPE_CHECKING:
+    import open3d as o3d
+    from open3d.pipelines import registration as reg
 
 
 class RegistrationConfig(StageConfig):
@@ -164,6 +166,9 @@ class Model:
 
 def fpfh(pcd: o3d.geometry.PointCloud, cfg: RegistrationConfig) -> reg.Feature:
     """FPFH features of a cloud that already has normals."""
+    import open3d as o3d
+    from open3d.pipelines import registration as reg
+
     radius = cfg.feature_radius_factor * cfg.voxel_m
     search = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=100)
     return reg.compute_fpfh_feature(pcd, search)
@@ -201,6 +206,9 @@ def prepare_model(vertices: np.ndarray, faces: np.ndarray, cfg: RegistrationConf
 
 
 def _prepare_model(vertices: np.ndarray, faces: np.ndarray, cfg: RegistrationConfig) -> Model:
+    import open3d as o3d
+    import trimesh
+
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     good = mesh.area_faces > 0
     if not good.any():
@@ -234,6 +242,8 @@ def prepare_scene(
     ``normals`` (n, 3), when given, are kept (already oriented); otherwise they are
     estimated and turned towards ``viewpoint`` (3,).
     """
+    import open3d as o3d
+
     full = to_pcd(points, normals)
     finest = min(cfg.icp_voxels_m)
     if finest > 0:  # every ICP level and every score works at or above this resolution
@@ -250,6 +260,8 @@ def prepare_scene(
 
 def surface_distance(model: Model, points_o: np.ndarray) -> np.ndarray:
     """Distance (n,) from object-frame ``points_o`` (n, 3) to the mesh surface."""
+    import open3d as o3d
+
     q = o3d.core.Tensor(np.asarray(points_o, dtype=np.float32))
     return model.surface.compute_distance(q).numpy().astype(float)
 
@@ -296,6 +308,8 @@ def refine(
     ``first`` to ``stop`` (all by default), scored on at most ``eval_points`` scene points
     (``cfg.eval_max_points`` by default); the first level against ``model.coarse`` when
     ``coarse_target``."""
+    from open3d.pipelines import registration as reg
+
     T = np.asarray(T_o_s, dtype=float)
     criteria = reg.ICPConvergenceCriteria(1e-7, 1e-7, cfg.icp_max_iterations)
     levels = list(enumerate(zip(cfg.icp_voxels_m, cfg.icp_max_distance_m, strict=True)))

@@ -17,9 +17,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.geometry import make_T
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,8 @@ def free_axis(points: np.ndarray, normals: np.ndarray) -> FreeAxis:
 
 def turned(T_w_o: np.ndarray, axis: np.ndarray, point: np.ndarray, angle_rad: float) -> np.ndarray:
     """``T_w_o`` (4, 4) turned by ``angle_rad`` about the world axis ``axis`` through ``point``."""
+    from scipy.spatial.transform import Rotation
+
     R = Rotation.from_rotvec(np.asarray(axis, float) * angle_rad).as_matrix()
     return make_T(R, point - R @ point) @ T_w_o
 

@@ -16,10 +16,9 @@ level.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.geometry import inv_T, make_T, rotation_error_deg
 from graspcap.tasks.object_pose.registration.engine import (
@@ -32,12 +31,18 @@ from graspcap.tasks.object_pose.registration.engine import (
 )
 from graspcap.tasks.object_pose.registration.open3d_threads import single_threaded
 
+# open3d, scipy: imported where used, so that importing the stage table stays cheap
+if TYPE_CHECKING:
+    import open3d as o3d
+
 
 def rotation_grid(group: str, turns: int = 1) -> np.ndarray:
     """(k, 3, 3) rotations: scipy's point ``group`` (``"I"`` 60, ``"O"`` 24), and with
     ``turns`` > 1 each of them also composed with ``turns - 1`` further turns about the
     group's 5-fold (or 4-fold) axis by fractions of the spacing, so that the grid is denser
     than the group (``"I"`` alone leaves a rotation up to ~37 deg from its nearest member)."""
+    from scipy.spatial.transform import Rotation
+
     base = Rotation.create_group(group)
     if turns <= 1:
         return base.as_matrix()

@@ -15,7 +15,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-import open3d as o3d
+# open3d: imported where used, so that importing the stage table stays cheap
 
 _lock = threading.Lock()
 _inside = 0
@@ -25,6 +25,8 @@ _saved = 0
 @contextmanager
 def single_threaded() -> Iterator[None]:
     """Limit Open3D to one thread for the duration of the ``with`` block."""
+    import open3d as o3d
+
     global _inside, _saved
     with _lock:
         if _inside == 0:

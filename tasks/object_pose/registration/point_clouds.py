@@ -6,11 +6,16 @@ Shared by the registration stages (:mod:`registration`, :mod:`register_object`,
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import open3d as o3d
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.geometry import depth_to_points, inv_T, transform_points
+
+# open3d: imported where used, so that importing the stage table stays cheap
+if TYPE_CHECKING:
+    import open3d as o3d
 
 
 class PlatterCrop(StageConfig):
@@ -33,6 +38,8 @@ class PlatterCrop(StageConfig):
 
 def to_pcd(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
     """Open3D cloud from ``points`` (n, 3) and optional ``normals`` (n, 3)."""
+    import open3d as o3d
+
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=float)))
     if normals is not None:
         pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=float))
@@ -127,5 +134,7 @@ def crop_platter(
 
 def estimate_normals(pcd: o3d.geometry.PointCloud, radius_m: float, viewpoint: np.ndarray) -> None:
     """Normals by local PCA (in place), oriented towards ``viewpoint`` (3,)."""
+    import open3d as o3d
+
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=30))
     pcd.orient_normals_towards_camera_location(np.asarray(viewpoint, dtype=float))

@@ -15,13 +15,16 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 
 from graspcap.tasks.object_pose.registration.open3d_threads import single_threaded
 
-reg = o3d.pipelines.registration
+# open3d: imported where used, so that importing the stage table stays cheap
+if TYPE_CHECKING:
+    import open3d as o3d
+    from open3d.pipelines import registration as reg
 
 _OPEN3D_LOCK = threading.Lock()
 """Open3D's RANSAC draws from one process-wide generator: seeding and drawing are serialised
@@ -41,6 +44,9 @@ def ransac_restarts(
 ) -> Iterator[np.ndarray]:
     """Scene-into-model transforms (4, 4) of restarts 0, 1, ... (seed ``seed + k``) of Open3D's
     FPFH + RANSAC, scene (source) against model (target), each on one thread."""
+    import open3d as o3d
+    from open3d.pipelines import registration as reg
+
     checkers = [
         reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
         reg.CorrespondenceCheckerBasedOnDistance(distance_m),

@@ -10,10 +10,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
-import trimesh
 
 from graspcap.tasks.core.geometry import inv_T, make_T, rotation_error_deg, transform_points
 from graspcap.tasks.object_pose.registration.engine import (
@@ -27,9 +26,15 @@ from graspcap.tasks.object_pose.registration.engine import (
 )
 from graspcap.tasks.object_pose.registration.open3d_threads import single_threaded
 
+# open3d, trimesh: imported where used, so that importing the stage table stays cheap
+if TYPE_CHECKING:
+    import open3d as o3d
+
 
 def about_axis(model: Model, axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """Object-frame rotation (4, 4) by ``angle_rad`` about ``axis`` through the model centroid."""
+    import trimesh
+
     R = trimesh.transformations.rotation_matrix(angle_rad, axis)[:3, :3]
     return make_T(R, model.centroid - R @ model.centroid)
 

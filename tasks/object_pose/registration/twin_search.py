@@ -16,10 +16,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import replace
 from functools import partial
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-import open3d as o3d
 
 from graspcap.tasks.core.geometry import inv_T, rotation_error_deg
 from graspcap.tasks.object_pose.registration.engine import (
@@ -38,6 +37,10 @@ from graspcap.tasks.object_pose.registration.symmetry import (
     probe_symmetry,
     self_flip_axes,
 )
+
+# open3d: imported where used, so that importing the stage table stays cheap
+if TYPE_CHECKING:
+    import open3d as o3d
 
 
 class TwinSearchConfig(Protocol):
