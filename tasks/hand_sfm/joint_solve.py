@@ -268,8 +268,9 @@ def joint_solve(
         return solve_from_start(keypoints, K, steady_from, depth_at, side, cfg,
                                 staged_error=found, surface_at=surface_at)
     rec, fit = found
-    if cfg.mode is HandPath.FALLBACK or (cfg.mode is HandPath.AUTO and
-                                         not noisy(rec.diagnostics, cfg.auto_noise_share)):
+    diag = rec.diagnostics
+    if cfg.mode is HandPath.FALLBACK or (cfg.mode is HandPath.AUTO and not noisy(
+            diag.noise_sigma_px, diag.hand_size_px, cfg.auto_noise_share)):
         m = len(rec.frames)
         return JointSolve(rec, fit, "staged", "", "", np.ones(20), np.zeros(m, bool),
                           np.full(m, np.nan), 0, 0)
@@ -277,11 +278,11 @@ def joint_solve(
                             surface_at=surface_at)
 
 
-def noisy(diagnostics: SfmDiagnostics, share: float) -> bool:
-    """Whether the staged solve measured detection noise above ``share`` of the hand's image
-    size (unmeasured noise counts as clean: the staged result stands)."""
-    sigma, hand = diagnostics.noise_sigma_px, diagnostics.hand_size_px
-    return bool(np.isfinite(sigma) and np.isfinite(hand) and hand > 0 and sigma > share * hand)
+def noisy(sigma_px: float, hand_px: float, share: float) -> bool:
+    """Whether a measured detection noise ``sigma_px`` exceeds ``share`` of the hand's image
+    size ``hand_px`` (unmeasured noise or size counts as clean: the staged result stands)."""
+    return bool(np.isfinite(sigma_px) and np.isfinite(hand_px) and hand_px > 0
+                and sigma_px > share * hand_px)
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ import pytest
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import evaluate
 from graspcap.tasks.hand.fit_hand import HandFit
-from graspcap.tasks.hand_sfm.joint_solve import HandPath, JointSolve
+from graspcap.tasks.hand_sfm.joint_solve import HandPath, JointSolve, noisy
 from graspcap.tasks.hand_sfm.result import HandReconstruction
 from graspcap.tasks.pipeline import STAGES, configs_for, preset_stages, run_stage
 
@@ -26,9 +26,9 @@ def upstream(tmp_path_factory):
     return session, results
 
 
-def _path(session, upstream, mode: HandPath) -> dict:
+def _path(session, upstream, mode: HandPath, **update) -> dict:
     results = dict(upstream)
-    config = CONFIGS["joint_solve"].model_copy(update={"mode": mode})
+    config = CONFIGS["joint_solve"].model_copy(update={"mode": mode, **update})
     results["joint_solve"] = run_stage(STAGES["joint_solve"], session, config, results)
     for name in ("reconstruct_hand", "fit_hand"):
         results[name] = run_stage(STAGES[name], session, CONFIGS[name], results)
@@ -52,6 +52,7 @@ def test_the_dag_and_presets():
     assert CONFIGS["joint_solve"].mode is HandPath.OFF
     assert configs_for("joint")["joint_solve"].mode is HandPath.ALWAYS
     assert configs_for("joint_fallback")["joint_solve"].mode is HandPath.FALLBACK
+    assert configs_for("joint_auto")["joint_solve"].mode is HandPath.AUTO
     assert preset_stages("joint") == ("joint_solve",)
 
 
@@ -83,3 +84,26 @@ def test_modes_pick_the_path(upstream):
     # downstream stages take the joint result as they take the staged one
     cross = run_stage(STAGES["crosscheck_sfm"], session, CONFIGS["crosscheck_sfm"], joint)
     assert np.isfinite(cross.max_joint_discrepancy_m)
+
+
+def test_auto_takes_the_staged_result_on_clean_detections_and_the_joint_solve_on_noisy(upstream):
+    """``auto`` decides by the noise the staged solve measured: the easy session's detections
+    are clean (well under 2.5 % of the hand), so the staged result stands; with a limit below
+    any measured noise the same session goes to the joint solve, from the staged start."""
+    session, results = upstream
+    clean = _path(session, results, HandPath.AUTO)["joint_solve"]
+    diag = clean.reconstruction.diagnostics
+    assert diag.noise_sigma_px < 0.025 * diag.hand_size_px
+    assert clean.path == "staged" and clean.staged_error == ""
+    strict = _path(session, results, HandPath.AUTO, auto_noise_share=0.0)["joint_solve"]
+    assert strict.path == "joint" and strict.start == "staged"
+
+
+@pytest.mark.parametrize(("sigma", "hand", "share", "expected"), [
+    (3.0, 100.0, 0.025, True), (2.0, 100.0, 0.025, False), (2.5, 100.0, 0.025, False),
+    (float("nan"), 100.0, 0.025, False), (3.0, float("nan"), 0.025, False),
+    (3.0, 0.0, 0.025, False),
+])  # fmt: skip
+def test_noisy_compares_the_measured_noise_with_the_hand(sigma, hand, share, expected):
+    """Unmeasured noise (or hand size) counts as clean: the staged result stands."""
+    assert noisy(sigma, hand, share) is expected
