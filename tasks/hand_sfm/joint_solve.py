@@ -55,7 +55,7 @@ from graspcap.tasks.hand_sfm.surface_clouds import DepthFrame, surface_reader
 from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 
 STAGE = "joint_solve"
-STAGE_VERSION = "joint_solve/3"
+STAGE_VERSION = "joint_solve/4"
 
 
 class HandPath(StrEnum):
@@ -74,7 +74,7 @@ class HandPath(StrEnum):
 
 
 class JointSolveConfig(StageConfig):
-    mode: HandPath = HandPath.OFF
+    mode: HandPath = HandPath.AUTO
     """Which path the build uses (see :class:`HandPath`; ``docs/hand_solver.md`` says why)."""
     auto_noise_share: float = 0.025
     """``auto``: the staged result stands when the detection noise it measured
@@ -83,9 +83,11 @@ class JointSolveConfig(StageConfig):
     ``max_noise_share`` draws the same line); there the joint solve's kinematic structure and
     whole-frame rejection are what hold (``docs/hand_solver.md``)."""
     staged: ReconstructConfig = reconstruct_stage.PRESETS["default"]
-    """The staged reconstruction run first (its result starts the joint solve)."""
+    """The staged reconstruction run first (its result starts the joint solve). A build sets
+    it to its ``reconstruct_hand`` config (``pipeline.tie_configs``): set that one."""
     fit: FitHandConfig = fit_hand_stage.PRESETS["default"]
-    """The staged hand fit (and the fit of the depth initialisation's joints)."""
+    """The staged hand fit (and the fit of the depth initialisation's joints); a build sets it
+    to its ``fit_hand`` config."""
     min_confidence: float = 0.2
     """Detections with a lower confidence are treated as missing."""
     sigma_px: float = 4.0
@@ -176,9 +178,10 @@ class JointSolveConfig(StageConfig):
 
 PRESETS: dict[str, JointSolveConfig] = {
     "default": JointSolveConfig(),
+    "staged": JointSolveConfig(mode=HandPath.OFF),
+    "paper": JointSolveConfig(mode=HandPath.OFF),
     "joint": JointSolveConfig(mode=HandPath.ALWAYS),
     "joint_fallback": JointSolveConfig(mode=HandPath.FALLBACK),
-    "joint_auto": JointSolveConfig(mode=HandPath.AUTO),
 }
 
 

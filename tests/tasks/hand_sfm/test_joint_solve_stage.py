@@ -49,10 +49,11 @@ def test_the_dag_and_presets():
                                               "select_steady")
     assert "joint_solve" in STAGES["reconstruct_hand"].upstream
     assert "joint_solve" in STAGES["fit_hand"].upstream
-    assert CONFIGS["joint_solve"].mode is HandPath.OFF
+    assert CONFIGS["joint_solve"].mode is HandPath.AUTO
+    assert configs_for("staged")["joint_solve"].mode is HandPath.OFF
+    assert configs_for("paper")["joint_solve"].mode is HandPath.OFF
     assert configs_for("joint")["joint_solve"].mode is HandPath.ALWAYS
     assert configs_for("joint_fallback")["joint_solve"].mode is HandPath.FALLBACK
-    assert configs_for("joint_auto")["joint_solve"].mode is HandPath.AUTO
     assert preset_stages("joint") == ("joint_solve",)
 
 
@@ -107,3 +108,21 @@ def test_auto_takes_the_staged_result_on_clean_detections_and_the_joint_solve_on
 def test_noisy_compares_the_measured_noise_with_the_hand(sigma, hand, share, expected):
     """Unmeasured noise (or hand size) counts as clean: the staged result stands."""
     assert noisy(sigma, hand, share) is expected
+
+
+def test_the_staged_start_is_the_builds_reconstruct_and_fit_config():
+    """joint_solve runs the staged path itself (reconstruct_hand and fit_hand pass its result
+    on), so the preset's and ``--set``'s reconstruct_hand and fit_hand configs must be the ones
+    it runs, and be in its cache key."""
+    from graspcap.flows.build import resolve_configs
+    from graspcap.tasks.pipeline import settings_overrides
+
+    openpose = configs_for("openpose")
+    assert openpose["reconstruct_hand"] != CONFIGS["reconstruct_hand"]  # else this proves nothing
+    assert openpose["joint_solve"].staged == openpose["reconstruct_hand"]
+    assert openpose["joint_solve"].fit == openpose["fit_hand"]
+    overrides = settings_overrides(["reconstruct_hand.sigma_px=3.5"], "openpose")
+    configs = resolve_configs("openpose", overrides)
+    assert configs["reconstruct_hand"].sigma_px == 3.5
+    assert configs["joint_solve"].staged == configs["reconstruct_hand"]
+    assert configs["joint_solve"].canonical_json() != openpose["joint_solve"].canonical_json()
