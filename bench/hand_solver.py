@@ -9,7 +9,10 @@ then each path: ``staged`` (``reconstruct_hand`` then ``fit_hand``, the default 
 else from the depth). Scored against the truth by ``graspcap.synth.evaluate``: built or why
 not, cameras (median deg / mm), SfM joints and fitted joints (mm), wall time of the path.
 Prints one row per session and path, then the medians per path (``solved_share``: the share
-of the steady frames whose camera the path solved) and the onsets within 3 frames.
+of the steady frames whose camera the path solved) and the onsets within 3 frames. ``auto``
+(with both paths run) is what ``joint_solve``'s ``mode = auto`` returns: the staged row where
+the staged path built and measured its detection noise (``noise_share`` of the hand's image
+size) at most ``auto_noise_share``, else the joint row.
 """
 
 from __future__ import annotations
@@ -26,11 +29,12 @@ import numpy as np
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import evaluate
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.hand_sfm.joint_solve import HandPath
+from graspcap.tasks.hand_sfm.joint_solve import HandPath, JointSolveConfig
 from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
 
 UPSTREAM = ("load_session", "detect_keypoints", "select_steady")
 KEYS = ("camera_rot_deg", "camera_trans_mm", "joints_mpjpe_mm", "fit_joints_mm")
+AUTO_SHARE = JointSolveConfig().auto_noise_share
 
 
 def _path(results: dict, configs: dict, d: Path, joint: bool) -> dict:
@@ -50,8 +54,10 @@ def _path(results: dict, configs: dict, d: Path, joint: bool) -> dict:
     est = {"steady_from": res["select_steady"].steady_from, "joints_w": rec.joints_w,
            "T_w_c": rec.T_w_c, "camera_solved": rec.pose_valid,
            "joints_fit_w": res["fit_hand"].joints_fit_w}
+    diag = rec.diagnostics
     out = {"failed": None, "time_s": wall, **{k: evaluate(d, est).get(k) for k in KEYS},
-           "solved_share": float(np.mean(rec.pose_valid))}
+           "solved_share": float(np.mean(rec.pose_valid)),
+           "noise_share": diag.noise_sigma_px / diag.hand_size_px if diag.hand_size_px else None}
     js = res["joint_solve"]
     if js is not None:
         out |= {"start": js.start, "dropped": int(js.frame_rejected.sum()),
@@ -107,7 +113,12 @@ def summary(rows: list[dict]) -> None:
               if "onset_error" in r and abs(r["onset_error"]) > 3 and not r["onset_uncertain"]]
     print(f"onset marked uncertain (QA flag): {sum(r.get('onset_uncertain', False) for r in rows)}"
           f"/{len(rows)}; silently > 3 frames off: {len(silent)} {silent}")
-    for name in ("staged", "joint"):
+    for r in rows:  # what ``mode = auto`` returns: the staged row on clean detections
+        if "staged" in r and "joint" in r:
+            share = r["staged"].get("noise_share")
+            clean = not r["staged"]["failed"] and not (share is not None and share > AUTO_SHARE)
+            r["auto"] = r["staged"] if clean else r["joint"]
+    for name in ("staged", "joint", "auto"):
         done = [r[name] for r in rows if name in r]
         built = [r for r in done if not r["failed"]]
         med = {k: np.median([r[k] for r in built if r.get(k) is not None]) if built else np.nan

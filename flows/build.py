@@ -84,7 +84,7 @@ def code_version() -> str:
 def resolve_configs(preset: str, overrides: Mapping[str, Any] | None) -> dict[str, StageConfig]:
     """Every stage's config for ``preset``; ``overrides`` per stage: a config, or a dict of
     fields applied over the preset (validated: unknown fields are rejected)."""
-    from graspcap.tasks.pipeline import STAGES, configs_for
+    from graspcap.tasks.pipeline import STAGES, configs_for, tie_configs
 
     base = configs_for(preset)
     out = dict(base)
@@ -93,7 +93,7 @@ def resolve_configs(preset: str, overrides: Mapping[str, Any] | None) -> dict[st
             raise KeyError(f"no such stage {name!r}; stages are {list(STAGES)}")
         out[name] = value if isinstance(value, StageConfig) else STAGES[name].config_type(
             **{**base[name].model_dump(), **dict(value)})
-    return out
+    return tie_configs(out)
 
 
 def configs_digest(configs: Mapping[str, StageConfig]) -> str:

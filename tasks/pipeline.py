@@ -398,10 +398,22 @@ def configs_for(preset: str = "default", **overrides: StageConfig) -> dict[str, 
     unknown = set(overrides) - set(STAGES)
     if unknown:
         raise KeyError(f"no such stage(s): {sorted(unknown)}; stages are {list(STAGES)}")
-    return {
+    return tie_configs({
         name: overrides.get(name) or stage.presets.get(preset, stage.presets["default"])
         for name, stage in STAGES.items()
-    }
+    })
+
+
+def tie_configs(configs: Mapping[str, StageConfig]) -> dict[str, StageConfig]:
+    """``configs`` with ``joint_solve``'s staged start set to the ``reconstruct_hand`` and
+    ``fit_hand`` configs beside it: where ``joint_solve`` runs, it runs the staged path itself
+    and the two stages pass its result on, so a preset or ``--set`` of either must reach it
+    (and its cache key)."""
+    out = dict(configs)
+    if {"joint_solve", "reconstruct_hand", "fit_hand"} <= set(out):
+        out["joint_solve"] = out["joint_solve"].model_copy(
+            update={"staged": out["reconstruct_hand"], "fit": out["fit_hand"]})
+    return out
 
 
 def settings_overrides(settings: list[str] | tuple[str, ...],

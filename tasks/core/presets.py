@@ -36,6 +36,7 @@ PIPELINE_PRESETS: dict[str, str] = {
     "large": "bigger QA pictures, more views",
     "joint": "the hand model inside the SfM (joint_solve) for cameras, joints and hand fit",
     "joint_fallback": "the staged hand SfM and fit, the joint solve where they fail",
+    "staged": "the staged hand SfM and fit on every session, never the joint solve",
 }
 
 

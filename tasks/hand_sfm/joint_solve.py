@@ -13,10 +13,12 @@ It starts from the staged solution when the staged path succeeds, else from the 
 (``hand_sfm.depth_init``, the hand fitted to its backprojected joints). ``mode`` says what the
 stage returns: ``off`` nothing (``reconstruct_hand`` and ``fit_hand`` run the staged path),
 ``fallback`` the staged result where it succeeds and the joint solve where it fails,
-``always`` the joint solve (from the staged start where there is one). With a result,
-``reconstruct_hand`` and ``fit_hand`` pass on its ``reconstruction`` and ``fit``, so every
-stage downstream (cross-check, adjustment, poses, QA, pictures, catalog rows) reads the same
-types as from the staged path.
+``auto`` the staged result where its detections are clean (measured noise at most
+``auto_noise_share`` of the hand's image size) and the joint solve where they are noisy or the
+staged path fails, ``always`` the joint solve (from the staged start where there is one).
+With a result, ``reconstruct_hand`` and ``fit_hand`` pass on its ``reconstruction`` and
+``fit``, so every stage downstream (cross-check, adjustment, poses, QA, pictures, catalog rows)
+reads the same types as from the staged path.
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 # gtsam: imported where used, so that importing the stage table stays cheap
 
 STAGE = "joint_solve"
-STAGE_VERSION = "joint_solve/3"
+STAGE_VERSION = "joint_solve/4"
 
 
 class HandPath(StrEnum):
@@ -64,17 +66,29 @@ class HandPath(StrEnum):
     """The staged path alone (``reconstruct_hand`` then ``fit_hand``); the stage returns None."""
     FALLBACK = "fallback"
     """The staged result where the staged path succeeds, the joint solve where it fails."""
+    AUTO = "auto"
+    """The staged result where its measured detection noise is at most ``auto_noise_share``
+    of the hand's image size; the joint solve where the noise is larger or the staged path
+    fails."""
     ALWAYS = "always"
     """The joint solve, from the staged solution where there is one, else from the depth."""
 
 
 class JointSolveConfig(StageConfig):
-    mode: HandPath = HandPath.OFF
+    mode: HandPath = HandPath.AUTO
     """Which path the build uses (see :class:`HandPath`; ``docs/hand_solver.md`` says why)."""
+    auto_noise_share: float = 0.025
+    """``auto``: the staged result stands when the detection noise it measured
+    (``SfmDiagnostics.noise_sigma_px``) is at most this share of the hand's image size
+    (``hand_size_px``). Clean detectors measure 1-2 %, real ones 2.5-5 % (select_steady's
+    ``max_noise_share`` draws the same line); there the joint solve's kinematic structure and
+    whole-frame rejection are what hold (``docs/hand_solver.md``)."""
     staged: ReconstructConfig = reconstruct_stage.PRESETS["default"]
-    """The staged reconstruction run first (its result starts the joint solve)."""
+    """The staged reconstruction run first (its result starts the joint solve). A build sets
+    it to its ``reconstruct_hand`` config (``pipeline.tie_configs``): set that one."""
     fit: FitHandConfig = fit_hand_stage.PRESETS["default"]
-    """The staged hand fit (and the fit of the depth initialisation's joints)."""
+    """The staged hand fit (and the fit of the depth initialisation's joints); a build sets it
+    to its ``fit_hand`` config."""
     min_confidence: float = 0.2
     """Detections with a lower confidence are treated as missing."""
     sigma_px: float = 4.0
@@ -165,6 +179,8 @@ class JointSolveConfig(StageConfig):
 
 PRESETS: dict[str, JointSolveConfig] = {
     "default": JointSolveConfig(),
+    "staged": JointSolveConfig(mode=HandPath.OFF),
+    "paper": JointSolveConfig(mode=HandPath.OFF),
     "joint": JointSolveConfig(mode=HandPath.ALWAYS),
     "joint_fallback": JointSolveConfig(mode=HandPath.FALLBACK),
 }
@@ -256,12 +272,21 @@ def joint_solve(
         return solve_from_start(keypoints, K, steady_from, depth_at, side, cfg,
                                 staged_error=found, surface_at=surface_at)
     rec, fit = found
-    if cfg.mode is HandPath.FALLBACK:
+    diag = rec.diagnostics
+    if cfg.mode is HandPath.FALLBACK or (cfg.mode is HandPath.AUTO and not noisy(
+            diag.noise_sigma_px, diag.hand_size_px, cfg.auto_noise_share)):
         m = len(rec.frames)
         return JointSolve(rec, fit, "staged", "", "", np.ones(20), np.zeros(m, bool),
                           np.full(m, np.nan), 0, 0)
     return solve_from_start(keypoints, K, steady_from, depth_at, side, cfg, rec, fit,
                             surface_at=surface_at)
+
+
+def noisy(sigma_px: float, hand_px: float, share: float) -> bool:
+    """Whether a measured detection noise ``sigma_px`` exceeds ``share`` of the hand's image
+    size ``hand_px`` (unmeasured noise or size counts as clean: the staged result stands)."""
+    return bool(np.isfinite(sigma_px) and np.isfinite(hand_px) and hand_px > 0
+                and sigma_px > share * hand_px)
 
 
 @dataclass(frozen=True)

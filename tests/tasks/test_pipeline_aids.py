@@ -30,10 +30,10 @@ def test_failing_pictures_is_a_note_in_run_sessions_results(synth_root, monkeypa
     assert calls == [str(results["qa_metrics"].verdict)]  # ran once, after the QA verdict
     assert "pictures" not in results
     assert set(results) == (set(pipeline.STAGES) - {"pictures"}) | {pipeline.NOTES}
-    # joint_solve's result is None when the joint solver is off (the default)
-    assert all(results[name] is not None for name in pipeline.STAGES
-               if name not in ("pictures", "joint_solve"))
-    assert results["joint_solve"] is None
+    assert all(results[name] is not None for name in pipeline.STAGES if name != "pictures")
+    # clean detections (the default mode, auto): the staged result, passed on
+    assert results["joint_solve"].path == "staged"
+    assert results["reconstruct_hand"] is results["joint_solve"].reconstruction
     (note,) = results[pipeline.NOTES]
     assert "pictures: offscreen renderer unavailable" in note and "a QA aid" in note
     assert set(timings) == set(pipeline.STAGES)

@@ -9,7 +9,7 @@ import pytest
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import evaluate
 from graspcap.tasks.hand.fit_hand import HandFit
-from graspcap.tasks.hand_sfm.joint_solve import HandPath, JointSolve
+from graspcap.tasks.hand_sfm.joint_solve import HandPath, JointSolve, noisy
 from graspcap.tasks.hand_sfm.result import HandReconstruction
 from graspcap.tasks.pipeline import STAGES, configs_for, preset_stages, run_stage
 
@@ -26,9 +26,9 @@ def upstream(tmp_path_factory):
     return session, results
 
 
-def _path(session, upstream, mode: HandPath) -> dict:
+def _path(session, upstream, mode: HandPath, **update) -> dict:
     results = dict(upstream)
-    config = CONFIGS["joint_solve"].model_copy(update={"mode": mode})
+    config = CONFIGS["joint_solve"].model_copy(update={"mode": mode, **update})
     results["joint_solve"] = run_stage(STAGES["joint_solve"], session, config, results)
     for name in ("reconstruct_hand", "fit_hand"):
         results[name] = run_stage(STAGES[name], session, CONFIGS[name], results)
@@ -49,7 +49,9 @@ def test_the_dag_and_presets():
                                               "select_steady")
     assert "joint_solve" in STAGES["reconstruct_hand"].upstream
     assert "joint_solve" in STAGES["fit_hand"].upstream
-    assert CONFIGS["joint_solve"].mode is HandPath.OFF
+    assert CONFIGS["joint_solve"].mode is HandPath.AUTO
+    assert configs_for("staged")["joint_solve"].mode is HandPath.OFF
+    assert configs_for("paper")["joint_solve"].mode is HandPath.OFF
     assert configs_for("joint")["joint_solve"].mode is HandPath.ALWAYS
     assert configs_for("joint_fallback")["joint_solve"].mode is HandPath.FALLBACK
     assert preset_stages("joint") == ("joint_solve",)
@@ -83,3 +85,44 @@ def test_modes_pick_the_path(upstream):
     # downstream stages take the joint result as they take the staged one
     cross = run_stage(STAGES["crosscheck_sfm"], session, CONFIGS["crosscheck_sfm"], joint)
     assert np.isfinite(cross.max_joint_discrepancy_m)
+
+
+def test_auto_takes_the_staged_result_on_clean_detections_and_the_joint_solve_on_noisy(upstream):
+    """``auto`` decides by the noise the staged solve measured: the easy session's detections
+    are clean (well under 2.5 % of the hand), so the staged result stands; with a limit below
+    any measured noise the same session goes to the joint solve, from the staged start."""
+    session, results = upstream
+    clean = _path(session, results, HandPath.AUTO)["joint_solve"]
+    diag = clean.reconstruction.diagnostics
+    assert diag.noise_sigma_px < 0.025 * diag.hand_size_px
+    assert clean.path == "staged" and clean.staged_error == ""
+    strict = _path(session, results, HandPath.AUTO, auto_noise_share=0.0)["joint_solve"]
+    assert strict.path == "joint" and strict.start == "staged"
+
+
+@pytest.mark.parametrize(("sigma", "hand", "share", "expected"), [
+    (3.0, 100.0, 0.025, True), (2.0, 100.0, 0.025, False), (2.5, 100.0, 0.025, False),
+    (float("nan"), 100.0, 0.025, False), (3.0, float("nan"), 0.025, False),
+    (3.0, 0.0, 0.025, False),
+])  # fmt: skip
+def test_noisy_compares_the_measured_noise_with_the_hand(sigma, hand, share, expected):
+    """Unmeasured noise (or hand size) counts as clean: the staged result stands."""
+    assert noisy(sigma, hand, share) is expected
+
+
+def test_the_staged_start_is_the_builds_reconstruct_and_fit_config():
+    """joint_solve runs the staged path itself (reconstruct_hand and fit_hand pass its result
+    on), so the preset's and ``--set``'s reconstruct_hand and fit_hand configs must be the ones
+    it runs, and be in its cache key."""
+    from graspcap.flows.build import resolve_configs
+    from graspcap.tasks.pipeline import settings_overrides
+
+    openpose = configs_for("openpose")
+    assert openpose["reconstruct_hand"] != CONFIGS["reconstruct_hand"]  # else this proves nothing
+    assert openpose["joint_solve"].staged == openpose["reconstruct_hand"]
+    assert openpose["joint_solve"].fit == openpose["fit_hand"]
+    overrides = settings_overrides(["reconstruct_hand.sigma_px=3.5"], "openpose")
+    configs = resolve_configs("openpose", overrides)
+    assert configs["reconstruct_hand"].sigma_px == 3.5
+    assert configs["joint_solve"].staged == configs["reconstruct_hand"]
+    assert configs["joint_solve"].canonical_json() != openpose["joint_solve"].canonical_json()
