@@ -134,8 +134,10 @@ def test_a_build_with_nothing_to_run_or_write_starts_no_prefect(warm, synth_root
     assert all(len(r.images) == 4 and "unchanged" in r.text for r in page.rows)
     from graspcap.flows.commands import status_text
 
+    status = status_text(catalog)
     assert ("build quiet (no new version): 0 added, 0 changed, 2 unchanged, 0 failed; 0 stage "
-            f"run(s), {2 * len(STAGES)} cache hit(s)") in status_text(catalog)
+            f"run(s), {2 * len(STAGES)} cache hit(s)") in status
+    assert "\n    2 more unchanged (every stage cached)" in status
     assert build._HANDOFF == {}
     flowed = build_dataset([synth_root], catalog, PRESET, build_id="flowed",
                            flow_when_idle=True)
