@@ -3,45 +3,52 @@
     .venv/bin/python bench/build_log.py <catalog>/work/builds.jsonl --sizes 16 100 1000
 
 Takes the last record of a real build log as the template (its first session's entry in
-``sessions`` and in ``keys``, its parameters), makes N sessions of it, and writes through
-``flows/build_log.append_build`` into a fresh work area: a cold build, an unchanged rebuild,
-a rebuild with one session's keys changed, then ``--incremental`` such one-session builds.
-Prints per N each record's bytes, what the old format (every session's keys) would have
-taken, the snapshot's bytes, and the time ``session_keys`` takes with and without it.
+``sessions`` and in ``keys``, its parameters, seconds and publication), makes N sessions of
+it, turns them into the record ``BuildReport.record()`` writes (so the bench measures the
+record format of the code it runs) and appends it through ``flows/build_log.append_build``
+into a fresh work area: a cold build (every session added), an unchanged rebuild, a rebuild
+with one session changed (its stages ran, its keys new), then ``--incremental`` such
+one-session builds. Prints per N each record's bytes, the log's, the snapshot's, and the time
+``session_keys`` takes with and without the snapshot.
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import tempfile
 import time
 from pathlib import Path
 
 from graspcap.flows.build_log import KEYS_SNAPSHOT, append_build, session_keys
+from graspcap.flows.report import BuildReport, Outcome, SessionReport
 from graspcap.flows.workarea import BUILDS_LOG
 
 
-def _record(template: dict, n: int, unchanged: bool) -> tuple[dict, dict]:
-    """A record of N sessions made of the template's first, and their keys."""
+def _session(entry: dict, i: int, outcome: Outcome) -> SessionReport:
+    """Session ``i`` made of the template's entry: every stage ran (added, changed) or hit
+    the cache (unchanged)."""
+    stages = tuple(entry["ran"]) + tuple(entry["cached"])
+    ran = () if outcome == Outcome.UNCHANGED else stages
+    return SessionReport(
+        session_id=f"{entry['session_id']}-{i:05d}",
+        session_dir=f"{entry['session_dir']}-{i:05d}", outcome=outcome,
+        status=entry["status"], ran=ran, cached=tuple(s for s in stages if s not in ran),
+        pictures=dict(entry.get("pictures") or {}))
+
+
+def _record(template: dict, n: int, build_id: str, outcome: Outcome,
+            changed: int | None = None) -> dict:
+    """The record of a build of N sessions made of the template's first, each ``outcome``
+    but session ``changed`` (changed)."""
     entry = template["sessions"][0]
-    keys0 = next(iter(template["keys"].values()))
-    sessions, keys = [], {}
-    for i in range(n):
-        sid = f"{entry['session_id']}-{i:05d}"
-        e = copy.deepcopy(entry) | {"session_id": sid, "session_dir": f"{entry['session_dir']}"
-                                    f"-{i:05d}"}
-        if unchanged:
-            e |= {"outcome": "unchanged", "cached": e["cached"] + e["ran"], "ran": []}
-        sessions.append(e)
-        keys[sid] = {st: f"{i:05d}{k[5:]}" for st, k in keys0.items()}
-    ids = [s["session_id"] for s in sessions]
-    summary = {"added": [], "changed": [], "failed": {}, "unchanged": ids} if unchanged \
-        else {"added": ids, "changed": [], "failed": {}, "unchanged": []}
-    rec = {k: v for k, v in template.items() if k != "keys"} | {
-        "sessions": sessions, "summary": summary}
-    return rec, keys
+    sessions = tuple(_session(entry, i, Outcome.CHANGED if i == changed else outcome)
+                     for i in range(n))
+    return BuildReport(build_id, template.get("catalog_version"),
+                       template.get("previous_version"), sessions,
+                       dict(template.get("seconds") or {}), dict(template["parameters"]),
+                       template.get("report_page"), dict(template.get("publication") or {})
+                       ).record()
 
 
 def main() -> int:
@@ -51,27 +58,28 @@ def main() -> int:
     ap.add_argument("--incremental", type=int, default=50)
     args = ap.parse_args()
     template = json.loads(args.template.read_text().splitlines()[-1])
-    print("N | cold | unchanged rebuild | one changed | old format unchanged | "
-          f"log after {args.incremental} one-session builds | old format | snapshot | "
+    keys0 = next(iter(template["keys"].values())) if template.get("keys") else {"x": "0" * 64}
+    print("N | cold | unchanged rebuild | one changed | "
+          f"log after cold, unchanged and {args.incremental} one-session builds | snapshot | "
           "read keys (snapshot / whole log), ms")
     for n in args.sizes:
         with tempfile.TemporaryDirectory() as tmp:
-            work = Path(tmp)
-            cold, keys = _record(template, n, unchanged=False)
-            append_build(work, {**cold, "build_id": "cold"}, keys)
-            same, _ = _record(template, n, unchanged=True)
-            old_unchanged = len(json.dumps({**same, "keys": keys}, sort_keys=True)) + 1
-            old_total = (log := work / BUILDS_LOG).stat().st_size
-            sizes = []
+            work, log = Path(tmp), Path(tmp) / BUILDS_LOG
+            entry = template["sessions"][0]
+            keys = {f"{entry['session_id']}-{i:05d}": {st: f"{i:05d}{k[5:]}"
+                                                      for st, k in keys0.items()}
+                    for i in range(n)}
+            append_build(work, _record(template, n, "cold", Outcome.ADDED), keys)
+            sizes = [log.stat().st_size]
             for b in range(args.incremental + 1):
                 if b:
                     first = next(iter(keys))
                     keys = {**keys, first: {st: f"{b:05d}{k[5:]}"
                                             for st, k in keys[first].items()}}
                 before = log.stat().st_size
-                append_build(work, {**same, "build_id": f"b{b}"}, keys)
+                append_build(work, _record(template, n, f"b{b}", Outcome.UNCHANGED,
+                                           changed=0 if b else None), keys)
                 sizes.append(log.stat().st_size - before)
-                old_total += old_unchanged
             snap_bytes = (work / KEYS_SNAPSHOT).stat().st_size
             t0 = time.perf_counter()
             got, _ = session_keys(work)
@@ -80,10 +88,8 @@ def main() -> int:
             t0 = time.perf_counter()
             assert session_keys(work)[0] == got == keys
             t_log = time.perf_counter() - t0
-            cold_bytes = old_total - old_unchanged * (args.incremental + 1)
-            print(f"{n} | {cold_bytes:,} | {sizes[0]:,} | {sizes[1]:,} | {old_unchanged:,} | "
-                  f"{log.stat().st_size:,} | {old_total:,} | "
-                  f"{snap_bytes:,} | "
+            print(f"{n} | {sizes[0]:,} | {sizes[1]:,} | {sizes[2]:,} | "
+                  f"{log.stat().st_size:,} | {snap_bytes:,} | "
                   f"{t_snap * 1e3:.0f} / {t_log * 1e3:.0f}")
     return 0
 

@@ -158,7 +158,7 @@ def after_build(catalog: Path, m: dict) -> dict:
     m.update({
         "version": rec.get("catalog_version"),
         "ran": sum(len(s.get("ran", ())) for s in rec["sessions"]),
-        "sessions": len(rec["sessions"]),
+        "sessions": len(rec["sessions"]) + (rec.get("unlisted") or {}).get("sessions", 0),
         "failed": len(rec["summary"]["failed"]),
         "flow_s": rec["seconds"].get("total"),
         "prefect_db_mb": sum(p.stat().st_size for p in prefect.glob("*.db*")) / 1e6

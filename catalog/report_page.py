@@ -75,6 +75,10 @@ class SessionEntry:
     """QA notes and the build's notes (pictures not written, ...)."""
     pictures: dict[str, str]
     """File name to path relative to the catalog root, only files that exist."""
+    unlisted: str = ""
+    """Without ``build``: what the record says of it ("unchanged", the build's record counts
+    such sessions without listing them; "unchanged, or not in this build" when it cannot
+    tell); empty: not in this build."""
 
     @property
     def failed_here(self) -> bool:
@@ -159,6 +163,28 @@ def _legacy_pictures(cat: Catalog, session_id: str) -> dict[str, str]:
                            for n in ("keypoints.png", "contact.png")}) if folder.is_dir() else {}
 
 
+def _unlisted(record: Mapping[str, Any], builds: Mapping[str, dict], bare: list[str]
+              ) -> dict[str, str]:
+    """What the record says of the sessions it does not list (``bare``): the unchanged ones
+    it counts (``unlisted``), by the builds row of the build when it made a version, else all
+    of them when there are as many as it counts."""
+    n = (record.get("unlisted") or {}).get("sessions") or 0
+    if not n:
+        return {}
+    row = builds.get(record.get("build_id") or "")
+    if row is not None:
+        same = set(row.get("sessions_unchanged") or ())
+        return {sid: "unchanged" for sid in bare if sid in same}
+    sure = len(bare) == n
+    return {sid: "unchanged" if sure else "unchanged, or not in this build" for sid in bare}
+
+
+def _count(ids: Any) -> int:
+    """A record's ``summary`` entry as a number: its count (a record's unchanged sessions),
+    else the length of its ids."""
+    return ids if isinstance(ids, int) else len(ids or ())
+
+
 def _limits(params: Mapping[str, Any]) -> dict[str, dict[str, float | None]]:
     config = (params.get("configs") or {}).get("qa_metrics") or {}
     return {name: {"flag": b.get("flag"), "fail": b.get("fail")}
@@ -208,6 +234,7 @@ def gather(cat: Catalog, version: int | str | None = None, record: dict | None =
         in_build.setdefault(s["session_id"], []).append(s)
     entries = []
     rows = {r["session_id"]: r for r in cat.table("sessions", v).to_pylist()}
+    unlisted = _unlisted(record, builds, [sid for sid in rows if sid not in in_build])
     for sid, row in rows.items():
         mine = in_build.get(sid, [])
         build = mine[0] if mine else None  # later folders with the id: duplicates (below)
@@ -225,7 +252,7 @@ def gather(cat: Catalog, version: int | str | None = None, record: dict | None =
         reasons += [f for f in row.get("qa_flags") or () if f not in reasons]
         notes = list(row.get("qa_notes") or ()) + list((build or {}).get("notes") or ())
         entries.append(SessionEntry(sid, row["status"], row, build, tuple(reasons),
-                                    tuple(notes), pictures))
+                                    tuple(notes), pictures, unlisted.get(sid, "")))
     for sid, mine in in_build.items():  # failures without a row of their own: folders
         for s in mine if sid not in rows else mine[1:]:  # reusing an id, or no row written
             if s.get("outcome") == "failed":
@@ -273,7 +300,7 @@ def _session_row(e: SessionEntry, limits: Mapping[str, Mapping[str, float | None
     b = e.build or {}
     outcome = (f"{_e(b.get('outcome'))}<br><span class=muted>{len(b.get('ran') or ())} ran, "
                f"{len(b.get('cached') or ())} cached</span>" if b else
-               '<span class=muted>not in this build</span>')
+               f'<span class=muted>{_e(e.unlisted or "not in this build")}</span>')
     items = [f'<li class="reason">{_e(r)}</li>' for r in e.reasons]
     items += [f'<li class="note">note: {_e(n)}</li>' for n in e.notes]
     reasons = f'<ul class="reasons">{"".join(items)}</ul>' if items else ""
@@ -341,12 +368,14 @@ def render(data: ReportData, href: Callable[[str], str],
     made = rec.get("catalog_version")
     statuses = [("failed" if e.failed_here else e.status) for e in data.sessions]
     summary = rec.get("summary") or {}
+    unlisted = rec.get("unlisted") or {}  # unchanged sessions counted, not listed
     seconds = rec.get("seconds") or {}
     cards = [("sessions", len({e.session_id for e in data.sessions})),
              ("ok", statuses.count("ok")), ("flagged", statuses.count("flagged")),
              ("failed", statuses.count("failed")),
              ("stage runs", sum(len(s.get("ran") or ()) for s in rec.get("sessions", []))),
-             ("cache hits", sum(len(s.get("cached") or ()) for s in rec.get("sessions", []))),
+             ("cache hits", sum(len(s.get("cached") or ()) for s in rec.get("sessions", []))
+              + sum((unlisted.get("cached") or {}).values())),
              ("build time", f"{seconds['total']:.1f} s" if "total" in seconds else "–")]
     head = (f"version {v}" if made == v else
             f"build {rec.get('build_id')}: no new version; version {v} shown")
@@ -375,7 +404,7 @@ def render(data: ReportData, href: Callable[[str], str],
         ("preset", _e(p.get("preset", "–"))),
         ("session roots", "<br>".join(_e(r) for r in p.get("roots", ())) or "–"),
         ("retry failed only", _e(p.get("retry_failed", "–"))),
-        ("outcome", _e(", ".join(f"{len(summary.get(k) or ())} {k}" for k in
+        ("outcome", _e(", ".join(f"{_count(summary.get(k))} {k}" for k in
                                  ("added", "changed", "unchanged", "failed")))),
         ("not sessions (skipped)", "<br>".join(_e(x) for x in p.get("not_sessions", ()))
          or "–"),
@@ -391,6 +420,8 @@ def render(data: ReportData, href: Callable[[str], str],
                 stages.setdefault(st, [0, 0, 0, 0])[i] += 1
         for st, n in (s.get("retries") or {}).items():
             stages.setdefault(st, [0, 0, 0, 0])[3] += n
+    for st, n in (unlisted.get("cached") or {}).items():
+        stages.setdefault(st, [0, 0, 0, 0])[1] += n
     if stages:
         out.append("<h3>Stages</h3><table><tr><th>stage</th><th>ran</th><th>cached</th>"
                    "<th>not run</th><th>retries</th></tr>" + "".join(

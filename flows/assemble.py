@@ -40,7 +40,9 @@ from graspcap.schemas.tables import Status
 
 def last_build_failures(cat: gc.Catalog, work: WorkArea) -> set[str]:
     """Sessions that failed in the last build (the work area's log, else the catalog); after a
-    build that failed as a whole (nothing committed), every session of it."""
+    build that failed as a whole (nothing committed), every session its record lists (all but
+    the unchanged ones with nothing else to say, ``BuildReport.record``: the catalog has their
+    rows as they are)."""
     _, last = session_keys(work.root)  # the log's newest record, read from its snapshot on
     if last is not None:
         if last.get("error"):

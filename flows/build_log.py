@@ -5,7 +5,8 @@ page) with ``keys``: ``{session_id: {stage: key}}``, the stored result each stag
 used, listed only for the sessions whose keys differ from what the log said before (new
 sessions, sessions that ran a stage or hit an older result, sessions that failed at another
 stage). An unchanged rebuild records ``"keys": {}``, so a record's keys grow with what a build
-changed, not with the number of sessions.
+changed, not with the number of sessions; so do its ``sessions`` and ``summary``, where the
+unchanged sessions with nothing else to say are counts (``BuildReport.record``).
 
 A session's current keys are those of the newest record that lists it: :func:`session_keys`
 folds the records oldest to newest. Records of a graspcap from before this listed every

@@ -171,10 +171,12 @@ def status_text(catalog: Path, limit: int = 5) -> str:
                  else "FAILED, nothing committed" if rec.get("error") else "no new version")
         if version is not None and version in states:
             where += f", {states[version]}"
+        unlisted = rec.get("unlisted") or {}  # unchanged sessions counted, not listed
         ran = sum(len(x["ran"]) for x in rec["sessions"])
-        hit = sum(len(x["cached"]) for x in rec["sessions"])
+        hit = sum(len(x["cached"]) for x in rec["sessions"]) \
+            + sum((unlisted.get("cached") or {}).values())
         out.append(f"build {rec['build_id']} ({where}): {len(s['added'])} added, "
-                   f"{len(s['changed'])} changed, {len(s['unchanged'])} unchanged, "
+                   f"{len(s['changed'])} changed, {_count(s['unchanged'])} unchanged, "
                    f"{len(s['failed'])} failed; {ran} stage run(s), {hit} cache hit(s), "
                    f"{rec['seconds'].get('total', 0):.1f} s")
         if rec.get("error"):
@@ -202,7 +204,25 @@ def status_text(catalog: Path, limit: int = 5) -> str:
             if x.get("status") in ("flagged", "failed") and page and Path(page).is_file():
                 line += f"\n{' ' * 46}{x['status']}; pictures and reasons: {page}"
             out.append(line)
+        if unlisted.get("sessions"):
+            out.append(f"    {unlisted['sessions']} more unchanged (every stage cached)"
+                       + _unlisted_status(unlisted.get("status") or {},
+                                          rec.get("report_page")))
     return "\n".join(out)
+
+
+def _count(ids: list | int) -> int:
+    """A record's number of unchanged sessions: a count, or (older records) their ids."""
+    return ids if isinstance(ids, int) else len(ids)
+
+
+def _unlisted_status(status: dict[str, int], page: str | None) -> str:
+    """``status``'s line's tail on the unlisted sessions' flagged and failed rows."""
+    bad = [f"{status[k]} {k}" for k in ("flagged", "failed") if status.get(k)]
+    if not bad:
+        return ""
+    where = f": pictures and reasons: {page}" if page and Path(page).is_file() else ""
+    return f", their rows {' and '.join(bad)}{where}"
 
 
 def _audit_lines(row: dict | None, version: int | None, states: dict) -> list[str]:
@@ -365,7 +385,7 @@ def run_line(run_name: str, state: str, message: str | None, record: dict | None
                      for sid, why in s["failed"].items())
     page = f"; report {record['report_page']}" if record.get("report_page") else ""
     return (f"{head}: build {record['build_id']}: {made}: {len(s['added'])} added, "
-            f"{len(s['changed'])} changed, {len(s['unchanged'])} unchanged, "
+            f"{len(s['changed'])} changed, {_count(s['unchanged'])} unchanged, "
             f"{len(s['failed'])} failed{failed}{page}")
 
 

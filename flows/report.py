@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from enum import StrEnum
 
 from graspcap.tasks.session.discover import NOT_A_SESSION
@@ -154,8 +154,32 @@ class BuildReport:
         return f"{self.seconds['wall']:.1f} s wall ({flow:.1f} s in the build flow)"
 
     def record(self) -> dict:
-        """The JSON-able record kept in the catalog's builds table and the work area."""
-        d = asdict(self)
+        """The JSON-able record kept in the catalog's builds table and the work area, its size
+        that of what the build did, not of the number of sessions: ``sessions`` has the entry
+        of every session but the unchanged ones with nothing else to say (no notes, retries or
+        error: :func:`quiet`), which ``unlisted`` counts (``{"sessions": n, "cached": {stage:
+        n}, "status": {status: n}}``: their cache hits and row statuses); ``summary`` has the
+        ids of the sessions added and changed, the failures' errors, and the number (not the
+        ids) of those unchanged. Their pictures and folders are in the records of the builds
+        that wrote their rows (the report page takes them from there). Records from before
+        this list every session and the unchanged ids; readers take both."""
+        listed = tuple(s for s in self.sessions if not quiet(s))
+        d = asdict(replace(self, sessions=listed))
         d["summary"] = {"added": self.added, "changed": self.changed,
-                        "unchanged": self.unchanged, "failed": self.failed}
+                        "unchanged": len(self.unchanged), "failed": self.failed}
+        cached: dict[str, int] = {}
+        status: dict[str, int] = {}
+        for s in self.sessions:
+            if quiet(s):
+                status[s.status] = status.get(s.status, 0) + 1
+                for stage in s.cached:
+                    cached[stage] = cached.get(stage, 0) + 1
+        d["unlisted"] = {"sessions": len(self.sessions) - len(listed), "cached": cached,
+                         "status": status}
         return json.loads(json.dumps(d, default=str))
+
+
+def quiet(s: SessionReport) -> bool:
+    """An unchanged session with nothing else to say: counted in a build's record, not listed
+    (``BuildReport.record``)."""
+    return s.outcome == Outcome.UNCHANGED and not (s.notes or s.retries or s.error)

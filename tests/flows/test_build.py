@@ -126,6 +126,18 @@ def test_a_build_with_nothing_to_run_or_write_starts_no_prefect(warm, synth_root
     # no session's keys changed: the record lists none (its size does not grow with them)
     assert "flow_run_id" not in quiet[0]["parameters"] and quiet[0]["keys"] == {}
     assert report.report_page and Path(report.report_page).exists()
+    # the unchanged sessions are counted, not listed; the page and status still show them
+    assert quiet[0]["sessions"] == [] and quiet[0]["summary"]["unchanged"] == 2
+    assert quiet[0]["unlisted"]["sessions"] == 2
+    page = check_page(Path(report.report_page))
+    assert sorted(r.session_id for r in page.rows) == sorted(_ids(synth_root))
+    assert all(len(r.images) == 4 and "unchanged" in r.text for r in page.rows)
+    from graspcap.flows.commands import status_text
+
+    status = status_text(catalog)
+    assert ("build quiet (no new version): 0 added, 0 changed, 2 unchanged, 0 failed; 0 stage "
+            f"run(s), {2 * len(STAGES)} cache hit(s)") in status
+    assert "\n    2 more unchanged (every stage cached)" in status
     assert build._HANDOFF == {}
     flowed = build_dataset([synth_root], catalog, PRESET, build_id="flowed",
                            flow_when_idle=True)

@@ -99,3 +99,48 @@ def test_the_snapshot_is_used_only_while_the_log_holds_its_record(tmp_path):
     assert session_keys(tmp_path)[0] == {"s9": {"x": "9"}}
     log.unlink()
     assert session_keys(tmp_path) == ({}, None)
+
+
+def _report(n: int, changed: int | None = None, notes: tuple[str, ...] = ()):
+    """A build of ``n`` sessions, unchanged (every stage cached, five pictures) but session
+    ``changed`` (its stages ran) and session 1 with ``notes``."""
+    from graspcap.flows.report import BuildReport, Outcome, SessionReport
+
+    pictures = {f"p{i}.png": f"pictures/{i:02d}/{'ab' * 32}.png" for i in range(5)}
+    sessions = tuple(SessionReport(
+        f"s{i:04d}", f"/data/sessions/s{i:04d}",
+        Outcome.CHANGED if i == changed else Outcome.UNCHANGED, "flagged" if i == 2 else "ok",
+        ran=STAGES if i == changed else (), cached=() if i == changed else STAGES,
+        notes=notes if i == 1 else (), pictures=pictures) for i in range(n))
+    return BuildReport("b", None, 1, sessions, {"total": 1.0}, {"preset": "x"})
+
+
+def test_a_record_lists_only_the_sessions_with_something_to_say(tmp_path):
+    """Unchanged sessions with nothing else to say are counted (``unlisted``), not listed;
+    the record's bytes, ``sessions`` and ``summary`` included, are flat in N."""
+    from graspcap.flows.commands import run_line
+
+    rec = _report(5, changed=3, notes=("pictures not written",)).record()
+    assert [(s["session_id"], s["outcome"]) for s in rec["sessions"]] == [
+        ("s0001", "unchanged"), ("s0003", "changed")]
+    assert rec["sessions"][0]["notes"] == ["pictures not written"]
+    assert rec["summary"] == {"added": [], "changed": ["s0003"], "unchanged": 4, "failed": {}}
+    assert rec["unlisted"] == {"sessions": 3, "cached": dict.fromkeys(STAGES, 3),
+                               "status": {"ok": 2, "flagged": 1}}
+    assert run_line("r", "Completed", None, rec).endswith(
+        "no new version (still 1): 0 added, 1 changed, 4 unchanged, 0 failed")
+    sizes = {}
+    for n in (20, 2000):
+        work = tmp_path / str(n)
+        work.mkdir()
+        used = _keys(n)
+        append_build(work, {**_report(n).record(), "build_id": "first"}, used)
+        append_build(work, {**_report(n).record(), "build_id": "same"}, used)
+        append_build(work, {**_report(n, changed=0).record(), "build_id": "one"},
+                     {**used, "s0000": _keys(1, "new")["s0000"]})
+        sizes[n] = [len(x) for x in (work / BUILDS_LOG).read_bytes().splitlines()]
+    # 100x the sessions: a few more digits in the counts (the first record keys them all)
+    assert [0 < b - a <= 16 for a, b in zip(sizes[20][1:], sizes[2000][1:], strict=True)] \
+        == [True, True] and max(sizes[20][1:]) < 3000, sizes
+    last = _records(tmp_path / "2000")[-1]
+    assert len(last["sessions"]) == 1 and last["summary"]["unchanged"] == 1999
