@@ -9,6 +9,8 @@ import shutil
 import time
 from pathlib import Path
 
+import pytest
+
 import graspcap.catalog as gc
 from graspcap.cli import main
 from graspcap.flows.build_log import session_keys
@@ -109,6 +111,7 @@ def test_a_build_records_the_result_every_stage_used(warm, tmp_path):  # noqa: F
     assert session_keys(work)[0] == record["keys"]
 
 
+@pytest.mark.slow  # four builds, 2-5 min on 2 cores; the vacuum's default tests above
 def test_after_one_session_changed_its_replaced_results_go_and_the_others_stay(
         warm, synth_root, tmp_path):
     """Build, rebuild unchanged, change one session (a scan depth pixel), rebuild, vacuum:
