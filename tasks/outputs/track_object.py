@@ -9,17 +9,22 @@ object's mesh is known, so the object is registered into that depth, frame by fr
 - the frame's depth (valid, within range, flying pixels dropped as ``estimate_adjustment``
   does) without the hand's pixels (:func:`adjustment_region.hand_mask`: the final hand, rigid
   with the object, rendered at the start pose, plus the detected keypoints' bones, grown by
-  ``mask_dilate_px``), and of the rest only the points within the object's radius plus
-  ``reach_m`` of the start pose's centre;
+  ``mask_dilate_px``), and of the rest only the points within ``band_m`` of the object's
+  surface at the start pose (the table, the background and the hand's unmasked rim within the
+  object's reach pulled a thin remote 50-180 deg away);
 - robust (Tukey) coarse-to-fine point-to-plane ICP of those points onto the mesh's surface
   samples (:func:`registration.engine.refine`), from two starts: the propagated pose and the
   previous frame's tracked pose (when one was tracked at most ``previous_within`` frames
   before: the camera moves little between frames, far less than stage 2's error);
 - a start's result is a candidate only when its correction (rotation, and the object centre's
   displacement) is within ``max_rotation_deg`` / ``max_translation_m`` of where it started, and
-  its fitness, RMSE and points pass the gates; among the candidates the one the depth agrees
-  with most (rendered against measured, hand masked: :func:`depth_agreement`) is kept when it
-  agrees on at least ``min_agreement`` and at least as well as the propagated pose does.
+  its fitness, RMSE and points pass the gates. Each pose is scored by the depth rendered
+  against the measured (hand masked, :func:`depth_agreement`): the truncated mean squared
+  difference (a pixel off by more than ``agree_tol_m`` costs ``agree_tol_m``'s square). The
+  best candidate is kept when the depth agrees with it on at least ``min_agreement`` and it
+  costs at most ``1 - min_gain`` of the propagated pose's cost: where stage 2's camera is
+  already right the depth cannot tell a better pose (it leaves a flat object's turn in its
+  plane nearly free, ICP drifts along it with the sensor's noise), and the frame keeps it.
   Otherwise the frame keeps the propagated pose, and ``ObjectTracking.reason`` says why.
 
 A near-symmetric object (a bottle, a can) cannot flip: every correction starts from the
@@ -35,17 +40,21 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.config import StageConfig
-from graspcap.tasks.core.geometry import inv_T, rotation_error_deg
+from graspcap.tasks.core.geometry import inv_T, make_T, rotation_error_deg, transform_points
 from graspcap.tasks.hand.image_masks import grow_mask, hand_mask_from_keypoints
 from graspcap.tasks.object_pose.adjustment_region import hand_mask
 from graspcap.tasks.object_pose.registration.depth_agreement import depth_agreement
 from graspcap.tasks.object_pose.registration.engine import (
     Model,
     RegistrationConfig,
+    evaluate,
     prepare_model,
     refine,
+    surface_distance,
 )
 from graspcap.tasks.object_pose.registration.open3d_threads import single_threaded
 from graspcap.tasks.object_pose.registration.point_clouds import (
@@ -75,11 +84,23 @@ class TrackObjectConfig(StageConfig):
     bone_radius_px: float = 6.0
     """Half-thickness of the detected keypoints' bones added to the hand's pixels."""
     reach_m: float = 0.04
-    """Depth points within the object's radius plus this of the start pose's centre take part
-    (the start is the propagated pose, or the previous frame's tracked pose)."""
+    """Depth points within the object's radius plus this of the start pose's centre are
+    looked at (the start is the propagated pose, or the previous frame's tracked pose)..."""
+    band_m: float = 0.025
+    """...and of them those within this of the object's surface at the start pose take part:
+    the object's own points while the start is off by up to ~10 deg / 2 cm."""
     min_points: int = 100
-    """Fewer depth points than this near the start pose (the hand covers the object, holes):
-    the frame is not tracked."""
+    """Fewer depth points than this in the band (the hand covers the object, holes): the
+    frame is not tracked."""
+    min_constraint: float = 0.02
+    """A correction moves the object only along the directions the depth points constrain:
+    eigen-directions of their point-to-plane information (about the object's centre, turns in
+    metres at its radius) whose eigenvalue is at least this share of the largest; the others
+    stay where the start put them (0: the whole ICP correction). A flat face seen alone lets
+    ICP slide and turn in its plane (a thin remote went 50-180 deg) and a can turn about its
+    axis, on the sensor's noise."""
+    constraint_distance_m: float = 0.004
+    """Depth points within this of the mesh's samples (after ICP) count in that information."""
     max_rotation_deg: float = 20.0
     """A correction that turns the object by more than this from its start is rejected: a few
     times stage 2's camera error at realistic detector noise (4-12 deg median), well under a
@@ -87,12 +108,9 @@ class TrackObjectConfig(StageConfig):
     max_translation_m: float = 0.08
     """A correction that moves the object's centre by more than this from its start is
     rejected."""
-    min_fitness: float = 0.05
-    """Fewest share of the depth points within reach (the object's radius plus ``reach_m``
-    of its centre) within ``registration.eval_distance_m`` of the posed mesh's surface: a
-    floor only (ICP found some of the object's surface). The table, the background and the
-    hand's unmasked rim are within reach too: right poses score 0.15-0.4 (a realistic bottle
-    at 0.16, a wild carton at 0.35); the depth agreement (``min_agreement``) is the gate."""
+    min_fitness: float = 0.3
+    """Fewest share of the depth points in the band within ``registration.eval_distance_m``
+    of the posed mesh's surface."""
     max_rmse_m: float = 0.004
     """Largest RMS distance of those inliers to the surface."""
     agree_tol_m: float = 0.01
@@ -102,15 +120,17 @@ class TrackObjectConfig(StageConfig):
     """The depth agreement judges every this-th pixel of every this-th row."""
     min_agreement: float = 0.5
     """The tracked pose is kept only where the depth agrees with it on this share of the
-    visible object pixels (``frame_validity``'s ``min_agreement``), and at least as well as
-    with the propagated pose."""
+    visible object pixels (``frame_validity``'s ``min_agreement``)..."""
+    min_gain: float = 0.2
+    """...and its depth cost (truncated mean squared difference) is at most ``1 - min_gain``
+    of the propagated pose's: a clear improvement, not the sensor's noise."""
     previous_within: int = 3
     """The previous tracked pose is a start when it was tracked at most this many frames
     before (0: the propagated pose is the only start)."""
     registration: RegistrationConfig = RegistrationConfig(
-        icp_voxels_m=(0.004, 0.0025, 0.0015), icp_max_distance_m=(0.03, 0.01, 0.004),
+        icp_voxels_m=(0.004, 0.0025, 0.0015), icp_max_distance_m=(0.02, 0.008, 0.004),
     )
-    """ICP levels (the first reaches 3 cm: the propagated pose is degrees and centimetres
+    """ICP levels (the first reaches 2 cm: the propagated pose is degrees and centimetres
     off) and the surface samples; ``eval_distance_m`` scores the fitness."""
 
 
@@ -138,6 +158,9 @@ class ObjectTracking:
     fitness, rmse_m, agreement : (m,) float
         The kept candidate's ICP fitness and RMSE, and the depth's agreement with it; NaN
         where not tracked.
+    gain : (m,) float
+        1 - the tracked pose's depth cost over the propagated pose's (NaN where no candidate
+        was scored).
     """
 
     T_c_o: np.ndarray
@@ -149,6 +172,7 @@ class ObjectTracking:
     fitness: np.ndarray
     rmse_m: np.ndarray
     agreement: np.ndarray
+    gain: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -158,6 +182,7 @@ class _Tried:
     fitness: float
     rmse_m: float
     agreement: float
+    cost: float
 
 
 def _depth(depth_m: np.ndarray, K: np.ndarray, config: TrackObjectConfig) -> np.ndarray:
@@ -174,22 +199,80 @@ def _correction(model: Model, T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, 
 
 def _from_start(points: np.ndarray, model: Model, T_start: np.ndarray, start: str,
                 config: TrackObjectConfig) -> _Tried | str:
-    """ICP from ``T_start`` on the ``points`` (n, 3) within reach: the result, or why not."""
+    """ICP from ``T_start`` on the ``points`` (n, 3) near its surface: the result, or why not
+    (its depth scores are filled in by the caller)."""
     centre = T_start[:3, :3] @ model.centroid + T_start[:3, 3]
     near = points[np.linalg.norm(points - centre, axis=1) <= model.radius_m + config.reach_m]
+    near = near[surface_distance(model, transform_points(inv_T(T_start), near)) <= config.band_m]
     if len(near) < config.min_points:
         return f"{len(near)} depth points near the object outside the hand " \
                f"(need {config.min_points})"
-    c = refine(to_pcd(near), model, inv_T(T_start), config.registration, start)
-    T = inv_T(c.T_o_s)
+    scene = to_pcd(near)
+    c = refine(scene, model, inv_T(T_start), config.registration, start)
+    T = _constrained(model, T_start, inv_T(c.T_o_s), transform_points(c.T_o_s, near), config)
+    fitness, rmse = evaluate(scene, model, inv_T(T), config.registration.eval_distance_m,
+                             config.registration.eval_max_points)
     rot, move = _correction(model, T_start, T)
     if rot > config.max_rotation_deg or move > config.max_translation_m:
         return f"correction {rot:.1f} deg / {move * 1e3:.0f} mm from the {start} pose " \
                f"(bound {config.max_rotation_deg:g} deg / {config.max_translation_m * 1e3:g} mm)"
-    if c.fitness < config.min_fitness or c.inlier_rmse_m > config.max_rmse_m:
-        return f"fitness {c.fitness:.2f} (need {config.min_fitness:g}), RMSE " \
-               f"{c.inlier_rmse_m * 1e3:.1f} mm (at most {config.max_rmse_m * 1e3:g})"
-    return _Tried(T, start, c.fitness, c.inlier_rmse_m, float("nan"))
+    if fitness < config.min_fitness or rmse > config.max_rmse_m:
+        return f"fitness {fitness:.2f} (need {config.min_fitness:g}), RMSE " \
+               f"{rmse * 1e3:.1f} mm (at most {config.max_rmse_m * 1e3:g})"
+    return _Tried(T, start, fitness, rmse, float("nan"), float("nan"))
+
+
+def _constrained(model: Model, T_start: np.ndarray, T_icp: np.ndarray, points_o: np.ndarray,
+                 config: TrackObjectConfig) -> np.ndarray:
+    """``T_icp`` with only the part of its correction from ``T_start`` that the depth
+    constrains: the point-to-plane information of the ``points_o`` (n, 3, object frame) on the
+    mesh (the rows ``[p x n, n]`` about the object's centre, rotations in metres at its
+    radius); directions whose eigenvalue is below ``min_constraint`` of the largest are left
+    where the start put them (a flat face's turn in its plane and slide along it, a can's
+    turn about its axis)."""
+    if config.min_constraint <= 0:
+        return T_icp
+    tree, normals = _surface_tree(model)
+    d, idx = tree.query(points_o, distance_upper_bound=config.constraint_distance_m)
+    ok = np.isfinite(d)
+    if ok.sum() < 6:
+        return T_start
+    r = model.radius_m
+    p = (points_o[ok] - model.centroid) / r
+    n = normals[idx[ok]]
+    J = np.hstack([np.cross(p, n), n])
+    lam, U = np.linalg.eigh(J.T @ J)
+    keep = lam >= config.min_constraint * lam[-1]
+    delta = inv_T(T_start) @ T_icp  # the correction, object frame
+    c = model.centroid
+    twist = np.concatenate([Rotation.from_matrix(delta[:3, :3]).as_rotvec() * r,
+                            delta[:3, :3] @ c + delta[:3, 3] - c])
+    twist = U @ np.where(keep, U.T @ twist, 0.0)
+    R = Rotation.from_rotvec(twist[:3] / r).as_matrix()
+    return T_start @ make_T(R, c + twist[3:] - R @ c)
+
+
+def _surface_tree(model: Model) -> tuple[cKDTree, np.ndarray]:
+    """A KD-tree of the model's surface samples and their normals (kept per model)."""
+    key = id(model.dense)
+    if _TREES.get("key") != key:
+        _TREES.update(key=key, tree=cKDTree(np.asarray(model.dense.points)),
+                      normals=np.asarray(model.dense.normals).copy())
+    return _TREES["tree"], _TREES["normals"]
+
+
+_TREES: dict = {}
+
+
+def _scored(depth: np.ndarray, K: np.ndarray, mesh: tuple, T_c_o: np.ndarray,
+            keep: np.ndarray, config: TrackObjectConfig) -> tuple[float, float]:
+    """(agreeing share, truncated mean squared depth difference) of the pose's visible
+    pixels outside the hand; (0, inf) when none is seen."""
+    share, rms, n = depth_agreement(depth, K, mesh, T_c_o, config.agree_tol_m, keep,
+                                    config.agree_stride_px)
+    if n == 0:
+        return 0.0, float("inf")
+    return share, share * rms**2 + (1.0 - share) * config.agree_tol_m**2
 
 
 @single_threaded()
@@ -224,7 +307,7 @@ def track_object(
     tracked = np.zeros(m, bool)
     reasons: list[str | None] = []
     starts: list[str | None] = []
-    nums = np.full((5, m), np.nan)  # correction deg, m, fitness, rmse, agreement
+    nums = np.full((6, m), np.nan)  # correction deg, m, fitness, rmse, agreement, gain
     last: tuple[int, np.ndarray] | None = None  # (frame, tracked pose)
     for j, f in enumerate(np.asarray(frame_indices, dtype=int)):
         T_prop = T_c_o[j]
@@ -247,28 +330,29 @@ def track_object(
             if isinstance(r, str):
                 why.append(f"from the {start} pose: {r}" if len(pose_starts) > 1 else r)
                 continue
-            agree = depth_agreement(depth, K, mesh, r.T_c_o, config.agree_tol_m, keep,
-                                    config.agree_stride_px)[0]
-            tried.append(_Tried(r.T_c_o, r.start, r.fitness, r.rmse_m, agree))
-        best = max(tried, key=lambda t: (t.agreement, t.fitness), default=None)
+            agree, cost = _scored(depth, K, mesh, r.T_c_o, keep, config)
+            tried.append(_Tried(r.T_c_o, r.start, r.fitness, r.rmse_m, agree, cost))
+        best = min(tried, key=lambda t: (t.cost, -t.agreement), default=None)
         reason = None
         if best is None:
             reason = "not tracked: " + "; ".join(why)
-        elif best.agreement < config.min_agreement:
-            reason = (f"not tracked: the depth agrees with the tracked pose on "
-                      f"{best.agreement:.0%} (need {config.min_agreement:.0%})")
         else:
-            prop_agree = depth_agreement(depth, K, mesh, T_prop, config.agree_tol_m, keep,
-                                         config.agree_stride_px)[0]
-            if best.agreement < prop_agree:
-                reason = (f"not tracked: the depth agrees with the propagated pose more "
-                          f"({prop_agree:.0%} against {best.agreement:.0%})")
+            cost_prop = _scored(depth, K, mesh, T_prop, keep, config)[1]
+            gain = 1.0 - best.cost / cost_prop if cost_prop > 0 else 0.0
+            nums[5, j] = gain
+            if best.agreement < config.min_agreement:
+                reason = (f"not tracked: the depth agrees with the tracked pose on "
+                          f"{best.agreement:.0%} (need {config.min_agreement:.0%})")
+            elif gain < config.min_gain:
+                reason = (f"not tracked: the depth explains the tracked pose "
+                          f"{gain:.0%} better than the propagated one "
+                          f"(need {config.min_gain:.0%})")
         reasons.append(reason)
         starts.append(None if reason else best.start)
         if reason is None:
             out_T[j], tracked[j] = best.T_c_o, True
-            nums[:, j] = (*_correction(model, T_prop, best.T_c_o), best.fitness, best.rmse_m,
-                          best.agreement)
+            nums[:5, j] = (*_correction(model, T_prop, best.T_c_o), best.fitness, best.rmse_m,
+                           best.agreement)
             last = (int(f), best.T_c_o)
     return ObjectTracking(out_T, tracked, tuple(reasons), tuple(starts), *nums)
 
