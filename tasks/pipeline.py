@@ -23,6 +23,7 @@ import numpy as np
 from graspcap.tasks.contact import build_contactmap
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.geometry import inv_T, transform_points
 from graspcap.tasks.core.presets import PIPELINE_PRESETS, UnknownPreset, apply_settings
 from graspcap.tasks.hand import fit_hand, refine_grasp
 from graspcap.tasks.hand.final import FinalHand, final_hand, final_pose
@@ -239,6 +240,7 @@ def _propagate_poses(session: Session, config, **up):
         tracking = track_object.track_object(
             prop.T_c_o, frames, read_depth, session.color_K, session.read_mesh(), hand_o,
             keypoints, config.tracking,
+            joints_o=transform_points(inv_T(prop.T_c_o[0]), prop.joints_c[0]),
         )
         T_w_c = propagate_poses.tracked_cameras(sfm.T_w_c, T_adj @ T_w_o1, tracking)
         prop = replace(carry(T_w_c), tracking=tracking)

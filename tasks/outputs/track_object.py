@@ -102,12 +102,12 @@ class TrackObjectConfig(StageConfig):
     constraint_distance_m: float = 0.004
     """Depth points within this of the mesh's samples (after ICP) count in that information."""
     max_rotation_deg: float = 20.0
-    """A correction that turns the object by more than this from its start is rejected: a few
-    times stage 2's camera error at realistic detector noise (4-12 deg median), well under a
-    near-symmetric object's twin (90-180 deg)."""
+    """A correction that turns the object by more than this from its start, or from the
+    propagated pose, is rejected: a few times stage 2's camera error at realistic detector
+    noise (4-12 deg median), well under a near-symmetric object's twin (90-180 deg)."""
     max_translation_m: float = 0.08
-    """A correction that moves the object's centre by more than this from its start is
-    rejected."""
+    """A correction that moves the object's centre by more than this from its start, or from
+    the propagated pose, is rejected."""
     min_fitness: float = 0.3
     """Fewest share of the depth points in the band within ``registration.eval_distance_m``
     of the posed mesh's surface."""
@@ -123,7 +123,16 @@ class TrackObjectConfig(StageConfig):
     visible object pixels (``frame_validity``'s ``min_agreement``)..."""
     min_gain: float = 0.2
     """...and its depth cost (truncated mean squared difference) is at most ``1 - min_gain``
-    of the propagated pose's: a clear improvement, not the sensor's noise."""
+    of the propagated pose's: a clear improvement, not the sensor's noise..."""
+    max_reproj_increase: float = 0.03
+    """...and the hand's joints, carried with it (one rigid body), project at most this share
+    of the hand's image size (its detected keypoints' box diagonal) further from the detected
+    keypoints (median) than at the propagated pose: a correction the hand's own detections
+    contradict found a surface other than the object (a wrong ``T_adj`` 0.3 m off, the depth
+    beside it; wild real-detector [9700, 2]). Needs ``joints_o``; at least 6 keypoints at
+    ``detect_confidence``."""
+    detect_confidence: float = 0.2
+    """A keypoint counts as detected at or above this confidence."""
     previous_within: int = 3
     """The previous tracked pose is a start when it was tracked at most this many frames
     before (0: the propagated pose is the only start)."""
@@ -198,9 +207,11 @@ def _correction(model: Model, T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, 
 
 
 def _from_start(points: np.ndarray, model: Model, T_start: np.ndarray, start: str,
-                config: TrackObjectConfig) -> _Tried | str:
+                T_prop: np.ndarray, config: TrackObjectConfig) -> _Tried | str:
     """ICP from ``T_start`` on the ``points`` (n, 3) near its surface: the result, or why not
-    (its depth scores are filled in by the caller)."""
+    (its depth scores are filled in by the caller). The correction is bounded from the start
+    and from the propagated pose ``T_prop`` alike: a chain of tracked frames never strays
+    further from stage 2's cameras than one correction may."""
     centre = T_start[:3, :3] @ model.centroid + T_start[:3, 3]
     near = points[np.linalg.norm(points - centre, axis=1) <= model.radius_m + config.reach_m]
     near = near[surface_distance(model, transform_points(inv_T(T_start), near)) <= config.band_m]
@@ -212,10 +223,12 @@ def _from_start(points: np.ndarray, model: Model, T_start: np.ndarray, start: st
     T = _constrained(model, T_start, inv_T(c.T_o_s), transform_points(c.T_o_s, near), config)
     fitness, rmse = evaluate(scene, model, inv_T(T), config.registration.eval_distance_m,
                              config.registration.eval_max_points)
-    rot, move = _correction(model, T_start, T)
-    if rot > config.max_rotation_deg or move > config.max_translation_m:
-        return f"correction {rot:.1f} deg / {move * 1e3:.0f} mm from the {start} pose " \
-               f"(bound {config.max_rotation_deg:g} deg / {config.max_translation_m * 1e3:g} mm)"
+    for name, T0 in ((start, T_start), (PROPAGATED, T_prop)):
+        rot, move = _correction(model, T0, T)
+        if rot > config.max_rotation_deg or move > config.max_translation_m:
+            return f"correction {rot:.1f} deg / {move * 1e3:.0f} mm from the {name} pose " \
+                   f"(bound {config.max_rotation_deg:g} deg / " \
+                   f"{config.max_translation_m * 1e3:g} mm)"
     if fitness < config.min_fitness or rmse > config.max_rmse_m:
         return f"fitness {fitness:.2f} (need {config.min_fitness:g}), RMSE " \
                f"{rmse * 1e3:.1f} mm (at most {config.max_rmse_m * 1e3:g})"
@@ -252,6 +265,36 @@ def _constrained(model: Model, T_start: np.ndarray, T_icp: np.ndarray, points_o:
     return T_start @ make_T(R, c + twist[3:] - R @ c)
 
 
+def _hand_agrees(tried: list[_Tried], T_prop: np.ndarray, joints_o: np.ndarray,
+                 K: np.ndarray, kp: np.ndarray, config: TrackObjectConfig
+                 ) -> tuple[list[_Tried], list[str]]:
+    """The candidates whose hand joints (``joints_o`` carried by the pose) project at most
+    ``max_reproj_increase`` of the hand's image size further (median) from the detected
+    keypoints ``kp`` (21, 3) than at the propagated pose, and why the others are not."""
+    seen = (kp[:, 2] >= config.detect_confidence) & np.all(np.isfinite(kp[:, :2]), axis=1)
+    if seen.sum() < 6:
+        return tried, []
+    size = float(np.linalg.norm(np.ptp(kp[seen, :2], axis=0)))
+
+    def err(T: np.ndarray) -> float:
+        p = transform_points(T, joints_o[seen])
+        if not np.all(p[:, 2] > 1e-6):
+            return float("inf")
+        uv = p[:, :2] / p[:, 2:] * np.diag(K)[:2] + K[:2, 2]
+        return float(np.median(np.linalg.norm(uv - kp[seen, :2], axis=1)))
+
+    base = err(T_prop)
+    ok, why = [], []
+    for t in tried:
+        e = err(t.T_c_o)
+        if e <= base + config.max_reproj_increase * size:
+            ok.append(t)
+        else:
+            why.append(f"from the {t.start} pose: the hand's detections contradict it (its "
+                       f"joints {e:.0f} px from them, {base:.0f} px at the propagated pose)")
+    return ok, why
+
+
 def _surface_tree(model: Model) -> tuple[cKDTree, np.ndarray]:
     """A KD-tree of the model's surface samples and their normals (kept per model)."""
     key = id(model.dense)
@@ -285,6 +328,7 @@ def track_object(
     hand_mesh_o: tuple[np.ndarray, np.ndarray] | None,
     keypoints: np.ndarray,
     config: TrackObjectConfig = DEFAULT,
+    joints_o: np.ndarray | None = None,
 ) -> ObjectTracking:
     """Track the object in every frame's depth, from its propagated pose.
 
@@ -297,6 +341,9 @@ def track_object(
     object_mesh, hand_mesh_o : (vertices, faces), both in the object frame (the final hand,
         rigid with the object; None: only the keypoints' bones mask the hand).
     keypoints : (m, 21, 3) float, the frames' detections (ideal pixels, confidence).
+    joints_o : (21, 3) float, the propagated hand joints in the object frame (rigid with it),
+        optional: a tracked pose that carries them away from the detections is rejected
+        (``max_reproj_increase``).
     """
     T_c_o = np.asarray(T_c_o, dtype=float)
     K = np.asarray(K, dtype=float)
@@ -326,12 +373,15 @@ def track_object(
         points = cloud_from_depth(depth, K, keep)
         tried, why = [], []
         for start, T0 in pose_starts:
-            r = _from_start(points, model, T0, start, config)
+            r = _from_start(points, model, T0, start, T_prop, config)
             if isinstance(r, str):
                 why.append(f"from the {start} pose: {r}" if len(pose_starts) > 1 else r)
                 continue
             agree, cost = _scored(depth, K, mesh, r.T_c_o, keep, config)
             tried.append(_Tried(r.T_c_o, r.start, r.fitness, r.rmse_m, agree, cost))
+        if tried and joints_o is not None:
+            tried, far = _hand_agrees(tried, T_prop, joints_o, K, kp, config)
+            why += far
         best = min(tried, key=lambda t: (t.cost, -t.agreement), default=None)
         reason = None
         if best is None:

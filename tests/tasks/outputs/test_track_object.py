@@ -22,12 +22,13 @@ from graspcap.tasks.outputs.track_object import TrackObjectConfig
 
 @pytest.fixture(scope="module")
 def held(tmp_path_factory):
-    """A realistic 20-frame session, the upstream results the stage reads built from its
-    truth (onset, object poses, the hand fitted to the true joints), and stage 2's cameras
-    turned by 3-5 deg about the hand's centre and shifted by 1 cm, as keypoint-only structure
-    from motion gets them wrong."""
+    """A realistic 20-frame session (a carton: a bottle's turn about its axis is one the depth
+    cannot see, and tracking leaves it where the camera put it), the upstream results the
+    stage reads built from its truth (onset, object poses, the hand fitted to the true
+    joints), and stage 2's cameras turned by 3-5 deg about the hand's centre and shifted by
+    1 cm, as keypoint-only structure from motion gets them wrong."""
     out = tmp_path_factory.mktemp("track_object")
-    d = generate_session(out, [9400, 3], config_for("realistic", 20))
+    d = generate_session(out, [9400, 5], config_for("realistic", 20))  # a carton
     truth = load_truth(d)
     configs = pipeline.configs_for()
     session = pipeline.run_stage(pipeline.STAGES["load_session"], d, configs["load_session"], {})
