@@ -11,6 +11,9 @@ cached beside it (``bench_objects.pkl``); propagate_poses runs twice. Per-frame 
 each steady frame's ``T_c_o`` against the truth (rotation deg / translation mm), pooled over
 the frames of all sessions (median, p90); camera error: ``graspcap.synth.evaluate``'s
 ``camera_rot_deg`` / ``camera_trans_mm`` (medians, per session) of ``PosePropagation.T_w_c``.
+``--truth-object`` replaces register_object and estimate_adjustment by the true object pose in
+the detected first steady frame: what is left is stage 2's cameras (the real-detector profile
+``wild`` puts them degrees off) and what tracking makes of them.
 """
 
 from __future__ import annotations
@@ -20,12 +23,13 @@ import pickle
 import time
 from collections import Counter
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 from object_stages import UPSTREAM, session_dir, upstream
 
-from graspcap.synth.evaluate import evaluate, load_truth
+from graspcap.synth.evaluate import _T_adj_at, evaluate, load_truth
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, pose_error
 from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
@@ -55,17 +59,23 @@ def frame_errors(prop, truth: dict) -> np.ndarray:
                      if 0 <= f - s < len(truth["T_w_c"])])  # fmt: skip
 
 
-def run_one(d: Path, configs: dict) -> dict[str, Any] | str:
+def run_one(d: Path, configs: dict, truth_object: bool = False) -> dict[str, Any] | str:
     up = {"load_session": run_stage(STAGES["load_session"], d, configs["load_session"], {})}
     pre = upstream(d, configs)
     if "failed" in pre:
         return pre["failed"]
     up |= {k: v for k, v in pre.items() if k in UPSTREAM and k != "load_session"}
-    obj = objects(d, configs, up)
+    truth = load_truth(d)
+    if truth_object:  # the true object in the detected first steady frame: stage 2 alone
+        T_adj = _T_adj_at(truth, up["select_steady"].steady_from)
+        obj = {"register_object": SimpleNamespace(T_w_o=truth["T_w_o_stage1"]),
+               "estimate_adjustment": SimpleNamespace(T_adj=T_adj,
+                                                      T_w_o=T_adj @ truth["T_w_o_stage1"])}
+    else:
+        obj = objects(d, configs, up)
     if "failed" in obj:
         return obj["failed"]
     up |= obj | {"refine_grasp": None}
-    truth = load_truth(d)
     out: dict[str, Any] = {}
     for mode, enabled in (("off", False), ("on", True)):
         base = configs["propagate_poses"]
@@ -102,6 +112,9 @@ def main() -> None:
     p.add_argument("--start", type=int, default=0)
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--root", type=Path, default=Path("/tmp/objtrack"))
+    p.add_argument("--truth-object", action="store_true",
+                   help="the true object pose in the detected first steady frame instead of "
+                        "register_object and estimate_adjustment: stage 2's cameras alone")
     args = p.parse_args()
     if args.seed >= 20000:
         raise SystemExit("seeds >= 20000 are the integrator's report sets")
@@ -115,7 +128,7 @@ def main() -> None:
         if d is None:
             print(f"| [{args.seed}, {i}] | the rig could not stage it |", flush=True)
             continue
-        r = run_one(d, configs)
+        r = run_one(d, configs, args.truth_object)
         if isinstance(r, str):
             print(f"| {d.name} | failed: {r} |", flush=True)
             continue
