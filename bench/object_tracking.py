@@ -12,9 +12,10 @@ each steady frame's ``T_c_o`` against the truth (rotation deg / translation mm),
 the frames of all sessions (median, p90); camera error: ``graspcap.synth.evaluate``'s
 ``camera_rot_deg`` / ``camera_trans_mm`` (medians, per session) of ``PosePropagation.T_w_c``;
 ADD-S (mm, :func:`object_stages.adds_mm`) beside the object errors: a can's or a bottle's turn
-about its own axis costs nothing there. ``--truth-object`` replaces register_object and estimate_adjustment by the true object pose in
-the detected first steady frame: what is left is stage 2's cameras (the real-detector profile
-``wild`` puts them degrees off) and what tracking makes of them.
+about its own axis costs nothing there. ``--truth-object`` replaces register_object and
+estimate_adjustment by the true object pose in the detected first steady frame: what is left
+is stage 2's cameras (the real-detector profile ``wild`` puts them degrees off) and what
+tracking makes of them.
 """
 
 from __future__ import annotations
@@ -93,8 +94,8 @@ def run_one(d: Path, configs: dict, truth_object: bool = False) -> dict[str, Any
                          "joints_w": sfm.joints_w, "camera_solved": sfm.pose_valid})
         sup = prop.validity.object_supported
         V = up["load_session"].read_mesh()[0]
-        out[mode] = {"err": frame_errors(prop, truth, V[:: max(1, len(V) // 2000)]), "cam": (m["camera_rot_deg"],
-                     m["camera_trans_mm"]), "time": dt,
+        err = frame_errors(prop, truth, V[:: max(1, len(V) // 2000)])
+        out[mode] = {"err": err, "cam": (m["camera_rot_deg"], m["camera_trans_mm"]), "time": dt,
                      "tracked": None if prop.tracking is None else int(prop.tracking.tracked.sum()),
                      "supported": sum(v is True for v in sup), "frames": len(sup),
                      "reasons": [] if prop.tracking is None else
