@@ -47,7 +47,7 @@ from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.geometry import inv_T, make_T, rotation_error_deg, transform_points
 from graspcap.tasks.hand.image_masks import grow_mask, hand_mask_from_keypoints
 from graspcap.tasks.object_pose.adjustment_region import hand_mask
-from graspcap.tasks.object_pose.registration.depth_agreement import depth_agreement
+from graspcap.tasks.object_pose.registration.depth_agreement import depth_agreement, image_box
 from graspcap.tasks.object_pose.registration.engine import (
     Model,
     RegistrationConfig,
@@ -83,6 +83,9 @@ class TrackObjectConfig(StageConfig):
     """The hand's pixels are grown by this much before they are dropped."""
     bone_radius_px: float = 6.0
     """Half-thickness of the detected keypoints' bones added to the hand's pixels."""
+    box_margin_m: float = 0.01
+    """Only the object's pixel box at its start poses is read (the hand rendered, the depth's
+    points taken), grown by what ``band_m`` plus this span at the object's nearest point."""
     reach_m: float = 0.04
     """Depth points within the object's radius plus this of the start pose's centre are
     looked at (the start is the propagated pose, or the previous frame's tracked pose)..."""
@@ -138,9 +141,11 @@ class TrackObjectConfig(StageConfig):
     before (0: the propagated pose is the only start)."""
     registration: RegistrationConfig = RegistrationConfig(
         icp_voxels_m=(0.004, 0.0025, 0.0015), icp_max_distance_m=(0.02, 0.008, 0.004),
+        icp_max_points=2000, eval_max_points=3000,
     )
     """ICP levels (the first reaches 2 cm: the propagated pose is degrees and centimetres
-    off) and the surface samples; ``eval_distance_m`` scores the fitness."""
+    off; the depth is voxelised at the finest level first) and the surface samples;
+    ``eval_distance_m`` scores the fitness (on at most ``eval_max_points`` points)."""
 
 
 DEFAULT = TrackObjectConfig()
@@ -295,6 +300,20 @@ def _hand_agrees(tried: list[_Tried], T_prop: np.ndarray, joints_o: np.ndarray,
     return ok, why
 
 
+def _box(K: np.ndarray, vertices_o: np.ndarray, poses: list[np.ndarray],
+         shape: tuple[int, ...], margin_m: float) -> tuple[int, int, int, int]:
+    """Pixel box (u0, v0, u1, v1), end exclusive, within the image, of the object at every
+    pose in ``poses`` (:func:`image_box`), grown by what ``margin_m`` spans at its nearest."""
+    h, w = shape[:2]
+    pts = [transform_points(T, vertices_o) for T in poses]
+    boxes = np.array([image_box(K, p, w, h) for p in pts])
+    z = max(min(float(p[:, 2].min()) for p in pts), 0.1)
+    margin = int(np.ceil(max(K[0, 0], K[1, 1]) * margin_m / z))
+    lo = np.maximum(boxes[:, :2].min(axis=0) - margin, 0)
+    hi = np.minimum(boxes[:, 2:].max(axis=0) + margin, (w, h))
+    return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
+
+
 def _surface_tree(model: Model) -> tuple[cKDTree, np.ndarray]:
     """A KD-tree of the model's surface samples and their normals (kept per model)."""
     key = id(model.dense)
@@ -350,6 +369,7 @@ def track_object(
     m = len(T_c_o)
     mesh = (np.asarray(object_mesh[0], float), np.asarray(object_mesh[1], np.int64))
     model = prepare_model(*mesh, config.registration)
+    finest = min(config.registration.icp_voxels_m)
     out_T = T_c_o.copy()
     tracked = np.zeros(m, bool)
     reasons: list[str | None] = []
@@ -361,33 +381,46 @@ def track_object(
         pose_starts = [(PROPAGATED, T_prop)]
         if last is not None and 0 < f - last[0] <= config.previous_within:
             pose_starts.append((PREVIOUS, last[1]))
-        depth = _depth(read_depth(int(f)), K, config)
+        raw = np.asarray(read_depth(int(f)))
+        u0, v0, u1, v1 = _box(K, mesh[0], [T for _, T in pose_starts], raw.shape,
+                              config.band_m + config.box_margin_m)
+        if u1 - u0 < 2 or v1 - v0 < 2:
+            reasons.append("not tracked: the object is out of view")
+            starts.append(None)
+            continue
+        # the object's pixel box: the same rays with the principal point moved (every point,
+        # render and projection below is that of the whole image)
+        K_box = K.copy()
+        K_box[:2, 2] -= (u0, v0)
+        depth = _depth(raw[v0:v1, u0:u1], K_box, config)
+        kp = np.asarray(keypoints[j], dtype=float) - (u0, v0, 0.0)
         T_mask = pose_starts[-1][1]  # the hand where the best-known pose puts it
-        kp = np.asarray(keypoints[j], dtype=float)
         if hand_mesh_o is None:
             hand = hand_mask_from_keypoints(kp[:, :2], kp[:, 2], depth.shape,
                                             config.bone_radius_px)
         else:
-            hand = hand_mask(depth.shape, K, T_mask, hand_mesh_o, kp, config.bone_radius_px)
+            hand = hand_mask(depth.shape, K_box, T_mask, hand_mesh_o, kp, config.bone_radius_px)
         keep = ~grow_mask(hand, config.mask_dilate_px)
-        points = cloud_from_depth(depth, K, keep)
+        points = cloud_from_depth(depth, K_box, keep)
+        if finest > 0:  # every ICP level and score works at or above this resolution
+            points = np.asarray(to_pcd(points).voxel_down_sample(finest).points)
         tried, why = [], []
         for start, T0 in pose_starts:
             r = _from_start(points, model, T0, start, T_prop, config)
             if isinstance(r, str):
                 why.append(f"from the {start} pose: {r}" if len(pose_starts) > 1 else r)
                 continue
-            agree, cost = _scored(depth, K, mesh, r.T_c_o, keep, config)
+            agree, cost = _scored(depth, K_box, mesh, r.T_c_o, keep, config)
             tried.append(_Tried(r.T_c_o, r.start, r.fitness, r.rmse_m, agree, cost))
         if tried and joints_o is not None:
-            tried, far = _hand_agrees(tried, T_prop, joints_o, K, kp, config)
+            tried, far = _hand_agrees(tried, T_prop, joints_o, K_box, kp, config)
             why += far
         best = min(tried, key=lambda t: (t.cost, -t.agreement), default=None)
         reason = None
         if best is None:
             reason = "not tracked: " + "; ".join(why)
         else:
-            cost_prop = _scored(depth, K, mesh, T_prop, keep, config)[1]
+            cost_prop = _scored(depth, K_box, mesh, T_prop, keep, config)[1]
             gain = 1.0 - best.cost / cost_prop if cost_prop > 0 else 0.0
             nums[5, j] = gain
             if best.agreement < config.min_agreement:
