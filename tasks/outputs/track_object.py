@@ -6,26 +6,33 @@ Those cameras come from 2D hand keypoints alone; at realistic detector noise the
 off, and every frame's object pose with them. Each frame has its own aligned depth and the
 object's mesh is known, so the object is registered into that depth, frame by frame:
 
-- the frame's depth (valid, within range, flying pixels dropped as ``estimate_adjustment``
-  does) without the hand's pixels (:func:`adjustment_region.hand_mask`: the final hand, rigid
-  with the object, rendered at the start pose, plus the detected keypoints' bones, grown by
-  ``mask_dilate_px``), and of the rest only the points within ``band_m`` of the object's
-  surface at the start pose (the table, the background and the hand's unmasked rim within the
-  object's reach pulled a thin remote 50-180 deg away);
+- the frame's depth in the object's pixel box at its start poses (valid, within range,
+  flying pixels dropped as ``estimate_adjustment`` does) without the hand's pixels
+  (:func:`adjustment_region.hand_mask`: the final hand, rigid with the object, rendered at
+  the start pose, plus the detected keypoints' bones, grown by ``mask_dilate_px``), and of
+  the rest only the points within ``band_m`` of the object's surface at the start pose (the
+  table, the background and the hand's unmasked rim within the object's reach pulled a thin
+  remote 50-180 deg away);
 - robust (Tukey) coarse-to-fine point-to-plane ICP of those points onto the mesh's surface
   samples (:func:`registration.engine.refine`), from two starts: the propagated pose and the
   previous frame's tracked pose (when one was tracked at most ``previous_within`` frames
   before: the camera moves little between frames, far less than stage 2's error);
+- the ICP correction is kept only along the directions the points constrain
+  (``min_constraint``: the eigen-directions of their point-to-plane information), so a flat
+  face's slide and in-plane turn, or a can's turn about its axis, stay where the start put
+  them;
 - a start's result is a candidate only when its correction (rotation, and the object centre's
-  displacement) is within ``max_rotation_deg`` / ``max_translation_m`` of where it started, and
-  its fitness, RMSE and points pass the gates. Each pose is scored by the depth rendered
-  against the measured (hand masked, :func:`depth_agreement`): the truncated mean squared
-  difference (a pixel off by more than ``agree_tol_m`` costs ``agree_tol_m``'s square). The
-  best candidate is kept when the depth agrees with it on at least ``min_agreement`` and it
-  costs at most ``1 - min_gain`` of the propagated pose's cost: where stage 2's camera is
-  already right the depth cannot tell a better pose (it leaves a flat object's turn in its
-  plane nearly free, ICP drifts along it with the sensor's noise), and the frame keeps it.
-  Otherwise the frame keeps the propagated pose, and ``ObjectTracking.reason`` says why.
+  displacement) is within ``max_rotation_deg`` / ``max_translation_m`` of where it started and of
+  the propagated pose, its fitness, RMSE and points pass the gates, and (with ``joints_o``) the
+  hand's joints carried with it land no further from the detected keypoints than
+  ``max_reproj_increase`` beyond the propagated pose's. Each pose is scored by the depth rendered
+  against the measured (hand masked, :func:`depth_agreement`): the truncated mean squared difference
+  (a pixel off by more than ``agree_tol_m`` costs ``agree_tol_m``'s square). The best candidate is
+  kept when the depth agrees with it on at least ``min_agreement`` and it costs at most ``1 -
+  min_gain`` of the propagated pose's cost: where stage 2's camera is already right the depth cannot
+  tell a better pose (it leaves a flat object's turn in its plane nearly free, ICP drifts along it
+  with the sensor's noise), and the frame keeps it. Otherwise the frame keeps the propagated pose,
+  and ``ObjectTracking.reason`` says why.
 
 A near-symmetric object (a bottle, a can) cannot flip: every correction starts from the
 propagated pose or the previous frame's tracked one and is bounded, far below a twin's
