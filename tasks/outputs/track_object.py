@@ -231,7 +231,8 @@ def _from_start(points: np.ndarray, model: Model, T_start: np.ndarray, start: st
         return f"{len(near)} depth points near the object outside the hand " \
                f"(need {config.min_points})"
     scene = to_pcd(near)
-    c = refine(scene, model, inv_T(T_start), config.registration, start)
+    # its own score is not used (the pose is scored below, after the constrained projection)
+    c = refine(scene, model, inv_T(T_start), config.registration, start, eval_points=1)
     T = _constrained(model, T_start, inv_T(c.T_o_s), transform_points(c.T_o_s, near), config)
     fitness, rmse = evaluate(scene, model, inv_T(T), config.registration.eval_distance_m,
                              config.registration.eval_max_points)
