@@ -23,6 +23,7 @@ import numpy as np
 from graspcap.tasks.contact import build_contactmap
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.core.geometry import inv_T, transform_points
 from graspcap.tasks.core.presets import PIPELINE_PRESETS, UnknownPreset, apply_settings
 from graspcap.tasks.hand import fit_hand, refine_grasp
 from graspcap.tasks.hand.final import FinalHand, final_hand, final_pose
@@ -32,7 +33,13 @@ from graspcap.tasks.hand_sfm.metric_scale import depth_lookup
 from graspcap.tasks.keypoints import detect_keypoints
 from graspcap.tasks.keypoints.detect_keypoints import why_missing
 from graspcap.tasks.object_pose import estimate_adjustment, register_object, register_scan
-from graspcap.tasks.outputs import frame_validity, pictures, propagate_poses, qa_metrics
+from graspcap.tasks.outputs import (
+    frame_validity,
+    pictures,
+    propagate_poses,
+    qa_metrics,
+    track_object,
+)
 from graspcap.tasks.session import load_session
 from graspcap.tasks.session.load_session import Session
 from graspcap.tasks.session.manifest_guard import restricted
@@ -209,20 +216,37 @@ def _refine_grasp(session: Session, config, **up):
 
 
 def _propagate_poses(session: Session, config, **up):
-    """The poses, then each frame's validity (its depth against the object at its pose)."""
+    """The poses carried by stage 2's cameras; with ``config.tracking.enabled`` the object
+    tracked in each frame's depth and everything carried again by the cameras that defines
+    (``propagate_poses.tracked_cameras``); then each frame's validity (its depth against the
+    object at its pose)."""
     sfm, frames = up["reconstruct_hand"], np.arange(up["select_steady"].steady_from,
                                                     session.manifest.grasp.count)
     T_w_p, _, joints_hand_w = final_pose(up["fit_hand"], up.get("refine_grasp"))
     keypoints = _ideal_keypoints(session, up["detect_keypoints"].keypoints[frames])
-    prop = propagate_poses.propagate_poses(
-        sfm.T_w_c, up["estimate_adjustment"].T_adj, up["register_object"].T_w_o, T_w_p,
-        sfm.joints_w, session.color_K, frames, keypoints,
-        joints_fit_w=joints_hand_w, config=config,
-    )
+    T_adj, T_w_o1 = up["estimate_adjustment"].T_adj, up["register_object"].T_w_o
+
+    def carry(T_w_c: np.ndarray) -> propagate_poses.PosePropagation:
+        return propagate_poses.propagate_poses(
+            T_w_c, T_adj, T_w_o1, T_w_p, sfm.joints_w, session.color_K, frames, keypoints,
+            joints_fit_w=joints_hand_w, config=config,
+        )
+
+    def read_depth(f: int) -> np.ndarray:
+        return session.read_depth_m(session.grasp_path("depth", f))
+
+    prop, hand_o = carry(sfm.T_w_c), _final_hand(up).mesh_o
+    if config.tracking.enabled:
+        tracking = track_object.track_object(
+            prop.T_c_o, frames, read_depth, session.color_K, session.read_mesh(), hand_o,
+            keypoints, config.tracking,
+            joints_o=transform_points(inv_T(prop.T_c_o[0]), prop.joints_c[0]),
+        )
+        T_w_c = propagate_poses.tracked_cameras(sfm.T_w_c, T_adj @ T_w_o1, tracking)
+        prop = replace(carry(T_w_c), tracking=tracking)
     validity = frame_validity.frame_validity(
         prop.frame_indices, keypoints, sfm.frames, sfm.pose_valid, sfm.inlier, prop.T_c_o,
-        lambda f: session.read_depth_m(session.grasp_path("depth", f)), session.color_K,
-        session.read_mesh(), _final_hand(up).mesh_o, config.validity,
+        read_depth, session.color_K, session.read_mesh(), hand_o, config.validity,
         sfm.diagnostics.frame_rejected,
     )
     return replace(prop, validity=validity)

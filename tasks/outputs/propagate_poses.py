@@ -5,9 +5,19 @@ Paper, end of Section 3: with the virtual cameras ``T_w_c[i]`` of stage 2,
 The static hand's joints are carried into each camera and projected, and compared with the
 frame's detected 2D keypoints. Pure numpy, vectorised over frames.
 
-The stage's glue (``tasks/pipeline.py``) adds each frame's validity (``frame_validity``: the
-hand detection used, the camera solved, the object pose supported by the frame's depth),
-which needs the frame's depth: the stage reads the grasp depth and the object mesh.
+Stage 2's cameras come from 2D hand keypoints alone and are degrees off at realistic detector
+noise; every frame's object pose inherits it. With ``config.tracking.enabled`` the stage's glue
+(``tasks/pipeline.py``) tracks the object in each steady frame's own depth
+(:mod:`track_object`, from the propagated pose, bounded corrections) and, hand and object being
+one rigid body after the onset, a tracked pose defines that frame's camera:
+``T_w_c[i]' = T_w_o @ inv(T_c_o_tracked[i])`` (:func:`tracked_cameras`); the palm and the
+joints are carried by the same corrected cameras (``PosePropagation.T_w_c``, the cameras
+used; ``reconstruct_hand``'s own ``T_w_c`` is not changed). A frame the depth does not
+support keeps stage 2's camera, with the reason in ``PosePropagation.tracking``.
+
+The glue then adds each frame's validity (``frame_validity``: the hand detection used, the
+camera solved, the object pose supported by the frame's depth), which needs the frame's
+depth: the stage reads the grasp depth and the object mesh.
 """
 
 from __future__ import annotations
@@ -21,8 +31,9 @@ from graspcap.schemas.transforms import rigidity_problems
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.outputs.frame_validity import FrameValidity, FrameValidityConfig
+from graspcap.tasks.outputs.track_object import ObjectTracking, TrackObjectConfig
 
-STAGE_VERSION = "propagate_poses/2"
+STAGE_VERSION = "propagate_poses/3"
 STAGE = "propagate_poses"
 
 
@@ -47,6 +58,10 @@ class PropagatePosesConfig(StageConfig):
     """Tolerance of the rigidity check on the input poses (max |R^T R - I|)."""
     validity: FrameValidityConfig = FrameValidityConfig()
     """Tolerances of the per-frame validity (``frame_validity``)."""
+    tracking: TrackObjectConfig = TrackObjectConfig()
+    """Per-frame tracking of the object in each steady frame's depth, and its gates
+    (:mod:`track_object`; ``enabled=False``: stage 2's cameras as they are, as
+    ``propagate_poses/2``)."""
 
 
 PRESETS: dict[str, PropagatePosesConfig] = {
@@ -80,6 +95,13 @@ class PosePropagation:
     validity : FrameValidity or None
         Per frame: hand detection used, camera solved, object pose supported by the depth,
         with reasons (the stage's glue adds it; None from :func:`propagate_poses` alone).
+    T_w_c : (m, 4, 4) float or None
+        The cameras the poses and joints were carried by: ``reconstruct_hand``'s, or where the
+        object was tracked in the frame's depth, ``T_w_o @ inv(T_c_o_tracked)``
+        (:func:`tracked_cameras`). The catalog's ``frames.T_w_c`` stays ``reconstruct_hand``'s.
+    tracking : ObjectTracking or None
+        Per frame: whether the object was tracked in its depth, and why not (the stage's glue
+        adds it when ``config.tracking.enabled``; None otherwise).
     """
 
     frame_indices: np.ndarray
@@ -91,6 +113,8 @@ class PosePropagation:
     reproj_rmse_px: float
     n_behind: int
     validity: FrameValidity | None = None
+    T_w_c: np.ndarray | None = None
+    tracking: ObjectTracking | None = None
 
 
 def _pose(name: str, T: np.ndarray, tol: float) -> np.ndarray:
@@ -221,10 +245,24 @@ def propagate_poses(
         reproj_err_px=err,
         reproj_rmse_px=rmse,
         n_behind=int(np.sum(~in_front)),
+        T_w_c=T_w_c,
     )
+
+
+def tracked_cameras(T_w_c: np.ndarray, T_w_o: np.ndarray, tracking: ObjectTracking
+                    ) -> np.ndarray:
+    """The cameras (m, 4, 4) a tracking defines: where a frame's object was tracked,
+    ``T_w_o @ inv(T_c_o_tracked)`` (hand and object are one rigid body after the onset, so
+    the object's pose in the frame is the frame's camera); elsewhere ``T_w_c`` as given.
+    ``T_w_o`` (4, 4) is ``T_adj @ T_w_o_stage1``."""
+    out = np.array(T_w_c, dtype=float)
+    rows = np.flatnonzero(np.asarray(tracking.tracked, bool))
+    if len(rows):
+        out[rows] = np.asarray(T_w_o, float) @ _inv_batch(np.asarray(tracking.T_c_o)[rows])
+    return out
 
 
 __all__ = [
     "PRESETS", "STAGE_VERSION", "JointSource", "PosePropagation", "PropagatePosesConfig",
-    "propagate_poses",
+    "propagate_poses", "tracked_cameras",
 ]  # fmt: skip
