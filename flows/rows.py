@@ -124,12 +124,16 @@ def session_rows(results: Mapping[str, Any], *, labels: Mapping[str, str], input
     }
     prop = results["propagate_poses"]
     cam_index = {int(f): i for i, f in enumerate(sfm.frames)}
+    # the cameras the frame's poses used: stage 2's, or where the object was tracked in the
+    # frame's depth the camera that pose defines (so T_c_o = inv(T_w_c) @ T_adj @ T_w_o_stage1)
+    T_w_c = sfm.T_w_c if prop.T_w_c is None else None
     frames = []
     for j, f in enumerate(np.asarray(prop.frame_indices, dtype=int)):
         i = cam_index.get(int(f))
+        camera = prop.T_w_c[j] if T_w_c is None else (T_w_c[i] if i is not None else None)
         frames.append({
             "session_id": m.session_id, "frame": int(f),
-            "T_w_c": _flat(sfm.T_w_c[i]) if i is not None else [float("nan")] * 16,
+            "T_w_c": _flat(camera) if camera is not None else [float("nan")] * 16,
             # False: reconstruct_hand interpolated this camera (too few detections), or has none
             "camera_solved": bool(sfm.pose_valid[i]) if i is not None else False,
             **validity_columns(prop.validity, j),

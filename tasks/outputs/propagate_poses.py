@@ -98,7 +98,7 @@ class PosePropagation:
     T_w_c : (m, 4, 4) float or None
         The cameras the poses and joints were carried by: ``reconstruct_hand``'s, or where the
         object was tracked in the frame's depth, ``T_w_o @ inv(T_c_o_tracked)``
-        (:func:`tracked_cameras`). The catalog's ``frames.T_w_c`` stays ``reconstruct_hand``'s.
+        (:func:`tracked_cameras`); the catalog's ``frames.T_w_c``.
     tracking : ObjectTracking or None
         Per frame: whether the object was tracked in its depth, and why not (the stage's glue
         adds it when ``config.tracking.enabled``; None otherwise).

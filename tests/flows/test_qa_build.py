@@ -185,7 +185,8 @@ def test_rows_from_before_format_3_get_the_new_qa_columns_from_cached_results(
 def test_rows_carry_the_refined_hand_and_frames_propagate_it(warm):
     """The catalog's hand is stage 5's (pipeline.md: refine_grasp -> propagate_poses): the
     row's palm, angles and joints are the refinement's, and every frame's ``T_c_p`` is
-    ``inv(T_w_c) @ T_w_p`` of that palm."""
+    ``inv(T_w_c) @ T_w_p`` of that palm (and its ``T_c_o`` ``inv(T_w_c) @ T_adj @
+    T_w_o_stage1``, where the object was tracked in the frame's depth too)."""
     import pickle
 
     import numpy as np
@@ -209,6 +210,9 @@ def test_rows_carry_the_refined_hand_and_frames_propagate_it(warm):
         assert np.array_equal(r["joint_angles_rad"], ref.angles_rad)
         mine = frames[frames.session_id == r["session_id"]]
         assert len(mine) > 10
-        for T_w_c, T_c_p in zip(mine.T_w_c, mine.T_c_p, strict=True):
+        T_w_o = np.reshape(r["T_adj"], (4, 4)) @ np.reshape(r["T_w_o_stage1"], (4, 4))
+        for T_w_c, T_c_p, T_c_o in zip(mine.T_w_c, mine.T_c_p, mine.T_c_o, strict=True):
             T_w_c, T_c_p = np.reshape(T_w_c, (4, 4)), np.reshape(T_c_p, (4, 4))
             np.testing.assert_allclose(T_w_c @ T_c_p, T_w_p, atol=1e-9)
+            # the frame's object pose, tracked in its depth or not, sits on the same camera
+            np.testing.assert_allclose(T_w_c @ np.reshape(T_c_o, (4, 4)), T_w_o, atol=1e-9)
