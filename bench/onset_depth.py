@@ -31,6 +31,8 @@ def depth_onset(z_signal: np.ndarray, kp_onset: int, before: int, after: int, dr
     ``kp_onset - before .. kp_onset + after``; (onset, z)."""
     n = len(z_signal)
     found = standardise(z_signal, np.arange(min(ref_from, n - 3), n))
+    if found is not None:  # a share: at least 1 % of spread (a flat floor is no noise scale)
+        found = ((z_signal - found[1]) / max(found[2], 0.01), found[1], max(found[2], 0.01))
     if found is None:
         return kp_onset, np.full(n, np.nan)
     z = found[0]

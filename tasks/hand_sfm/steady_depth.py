@@ -20,8 +20,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from graspcap.tasks.core.geometry import inv_T
 from graspcap.tasks.hand_sfm.depth_links import icp_batch
 from graspcap.tasks.hand_sfm.metric_scale import window_median
 from graspcap.tasks.hand_sfm.surface_clouds import SurfaceCloud, hand_centre, surface_cloud
@@ -29,11 +29,12 @@ from graspcap.tasks.hand_sfm.surface_clouds import SurfaceCloud, hand_centre, su
 
 def hand_centres(
     depth_frame: Callable[[int], np.ndarray], K: np.ndarray, uv: np.ndarray, ok: np.ndarray,
-    *, below_skin_m: float, min_points: int, smooth: int = 2,
+    *, below_skin_m: float, min_points: int, smooth: int = 2, max_fill: int = 12,
 ) -> np.ndarray:
     """(n, 3) hand centres in the camera (``surface_clouds.hand_centre`` from the detected
     joints' depth readings), each the median over frames ``i - smooth .. i + smooth`` (a
-    wrong detection moves it less); NaN where unknown."""
+    wrong detection moves it less); a frame without one takes the nearest frame's, at most
+    ``max_fill`` frames away (the sphere around it is wide); NaN where unknown."""
     n = len(uv)
     raw = np.full((n, 3), np.nan)
     for i in range(n):
@@ -48,20 +49,35 @@ def hand_centres(
         win = win[np.all(np.isfinite(win), axis=1)]
         if len(win):
             out[i] = np.median(win, axis=0)
+    have = np.flatnonzero(np.all(np.isfinite(out), axis=1))
+    for i in np.flatnonzero(~np.all(np.isfinite(out), axis=1)):
+        if len(have):  # a frame without a detection: the nearest frame's centre
+            near = have[np.argmin(np.abs(have - i))]
+            if abs(near - i) <= max_fill:
+                out[i] = out[near]
     return out
 
 
-def _misfit(a: SurfaceCloud, b: SurfaceCloud, T_a_b: np.ndarray, max_distance_m: float,
-            far_m: float) -> float:
-    """Share of ``b``'s points, moved by ``T_a_b`` into ``a``, further than ``far_m`` from
-    ``a``'s surface (point-to-plane to the nearest point; no point within
-    ``max_distance_m`` counts as far)."""
-    p = b.points @ T_a_b[:3, :3].T + T_a_b[:3, 3]
-    dist, idx = cKDTree(a.points).query(p, distance_upper_bound=max_distance_m)
-    near = np.isfinite(dist)
-    r = np.full(len(p), np.inf)
-    r[near] = np.abs(np.sum((p[near] - a.points[idx[near]]) * a.normals[idx[near]], axis=1))
-    return float(np.mean(r > far_m))
+def _seen_through(depth_m: np.ndarray, K: np.ndarray, points: np.ndarray, T_a_b: np.ndarray,
+                  far_m: float) -> float:
+    """Share of ``points`` (camera ``b``), moved by ``T_a_b`` into camera ``a``, at whose pixel
+    ``a``'s depth ``depth_m`` reads more than ``far_m`` behind them: ``a`` sees through where
+    the surface would be if only a rigid motion had moved it (free space violated). Points
+    that ``a`` sees something in front of (hidden by the motion) or has no reading for do not
+    count either way."""
+    p = points @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+    h, w = depth_m.shape
+    z = p[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.rint(K[0, 0] * p[:, 0] / z + K[0, 2]).astype(int)
+        v = np.rint(K[1, 1] * p[:, 1] / z + K[1, 2]).astype(int)
+    inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    seen = np.zeros(len(p))
+    seen[inside] = depth_m[v[inside], u[inside]]
+    valid = seen > 0
+    if valid.sum() < 20:
+        return float("nan")
+    return float(np.mean(seen[valid] > z[valid] + far_m))
 
 
 def deformation(
@@ -116,5 +132,6 @@ def deformation(
     if pairs:
         T = register(pairs, np.array(guesses))
         for (a, b), i, T_a_b in zip(pairs, rows, T, strict=True):
-            out[i] = _misfit(a, b, T_a_b, max_distance_m, far_m)
+            out[i] = 0.5 * (_seen_through(depth_frame(i + gap), K, b.points, T_a_b, far_m)
+                            + _seen_through(depth_frame(i), K, a.points, inv_T(T_a_b), far_m))
     return out
