@@ -24,6 +24,7 @@ import numpy as np
 from graspcap.tasks.core.geometry import inv_T
 from graspcap.tasks.hand_sfm.depth_links import icp_batch
 from graspcap.tasks.hand_sfm.metric_scale import window_median
+from graspcap.tasks.hand_sfm.steady_stats import cusum, standardise
 from graspcap.tasks.hand_sfm.surface_clouds import SurfaceCloud, hand_centre, surface_cloud
 
 
@@ -135,3 +136,27 @@ def deformation(
             out[i] = 0.5 * (_seen_through(depth_frame(i + gap), K, b.points, T_a_b, far_m)
                             + _seen_through(depth_frame(i), K, a.points, inv_T(T_a_b), far_m))
     return out
+
+
+def depth_onset(z_signal: np.ndarray, kp_onset: int, before: int, after: int, drift: float,
+                ref_from: int, ref_frames: int = 20,
+                min_spread: float = 0.01) -> tuple[int, np.ndarray]:
+    """Change point of the signal standardised by the last ``ref_frames`` known frames from
+    ``ref_from``, searched in
+    ``kp_onset - before .. kp_onset + after``: the ``t`` maximising
+    ``sum_{i < t} (z_i - drift)``; (onset, z). The spread is at least ``min_spread``.
+    ``kp_onset`` when too few reference frames are known."""
+    n = len(z_signal)
+    finite = np.flatnonzero(np.isfinite(z_signal))
+    ref = finite[finite >= min(ref_from, n - 3)][-ref_frames:]
+    found = standardise(z_signal, ref)
+    if found is None:
+        return kp_onset, np.full(n, np.nan)
+    spread = max(found[2], min_spread)  # a share: a flat floor is no noise scale
+    z = (z_signal - found[1]) / spread
+    sums = cusum(z, drift)
+    lo, hi = max(kp_onset - before, 0), min(kp_onset + after, n - 1)
+    sums[:lo], sums[hi + 1:] = -np.inf, -np.inf
+    # the last of tied maxima: NaN frames count 0, so a change inside a run of frames without
+    # a surface lands at the run's end (a later onset loses frames; an early one spoils them)
+    return int(len(sums) - 1 - np.argmax(sums[::-1])), z
