@@ -127,7 +127,8 @@ def _select_steady(session: Session, config, **up):
     return select_steady.select_steady(
         _ideal_keypoints(session, keypoints.keypoints), session.color_K,
         session.manifest.grasp.steady_from, config,
-        why_missing=why_missing(keypoints),
+        why_missing=why_missing(keypoints), depth_frame=session.grasp_depth_reader(),
+        T_color_turntable=session.T_color_turntable,
     )
 
 
@@ -316,8 +317,9 @@ STAGES: dict[str, Stage] = {
               fields=("hand", "color_camera.width", "color_camera.height", "grasp.count",
                       "grasp.keypoints", "grasp.color")),
         Stage("select_steady", select_steady.STAGE_VERSION, select_steady.PRESETS,
-              ("load_session", "detect_keypoints"), (), _select_steady,
-              fields=(_CAM, "grasp.steady_from")),
+              ("load_session", "detect_keypoints"), ("grasp_depth",), _select_steady,
+              fields=(_CAM, "grasp.steady_from", "grasp.count", "grasp.depth", _DEPTH_SCALE,
+                      _T_TT)),
         Stage("joint_solve", joint_solve.STAGE_VERSION, joint_solve.PRESETS,
               ("load_session", "detect_keypoints", "select_steady"), ("grasp_depth",),
               _joint_solve, fields=(_CAM, "grasp.count", "grasp.depth", _DEPTH_SCALE, _T_TT,

@@ -24,11 +24,22 @@ Detection, a change point in how rigid the hand is:
    noise is one coordinate's, not 42's; standardised by the steady frames, its CUSUM from
    the start of the pattern window gives the onset, at most ``pattern_frames / 2`` after the
    coarse one. Pattern and onset are re-estimated until the onset settles.
+5. Depth onset (with the aligned depth): under a real detector's keypoint noise (5-10 % of
+   the hand's image size, correlated over frames) steps 3-4 find the onset 6-15 frames early.
+   The depth is far less noisy: before the onset the hand-and-object surface deforms from
+   frame to frame (the fingers close, the palm approaches, the object is lifted), after it
+   two frames' surfaces differ by one rigid motion. ``hand_sfm.steady_depth`` registers each
+   frame's surface rigidly onto the one ``depth_gap`` frames later and measures the share of
+   it that the other frame sees through; that share's change point (a CUSUM standardised by
+   the last known frames), searched from ``depth_before`` frames before the keypoint onset to
+   ``depth_after`` frames after it, replaces the keypoint onset when enough frames have a
+   surface (``depth_min_share``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
@@ -36,13 +47,14 @@ import numpy as np
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import umeyama
+from graspcap.tasks.hand_sfm import steady_depth
 from graspcap.tasks.hand_sfm.batch_pnp import ransac_poses, refine_poses, residual_vectors
 from graspcap.tasks.hand_sfm.graph import bundle_adjust
 from graspcap.tasks.hand_sfm.steady_stats import cusum, matched_filter, standardise, window_scores
 from graspcap.tasks.hand_sfm.two_view_init import initialise
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/6"
+STAGE_VERSION = "select_steady/7"
 
 
 class SteadyMethod(StrEnum):
@@ -107,7 +119,40 @@ class SelectSteadyConfig(StageConfig):
     image size (median bounding-box diagonal of the detections): the last frames of a
     settling grasp move the fingers by a few per cent of the hand, which such noise hides
     (rig: realistic scores 1-2 % of the hand, onsets within 3 frames; real-detector 2.5-4 %,
-    every onset 10-15 frames early)."""
+    every onset 10-15 frames early). An onset the depth found (step 5) is not marked for
+    this."""
+    depth_onset: bool = True
+    """Refine the onset from the depth's non-rigidity (step 5) when the depth is given."""
+    depth_gap: int = 4
+    """Each frame's surface is registered onto the one this many frames later: the frames
+    just before the onset then show all the deformation left, not one frame's worth."""
+    depth_far_m: float = 0.004
+    """A surface point counts as not explained by the rigid motion when the other frame sees
+    this far behind it (about 3 sigma of the sensor's noise at a hand's distance)."""
+    depth_drift_sigmas: float = 2.0
+    """CUSUM drift of the depth onset, in spreads of the steady frames' share."""
+    depth_min_spread: float = 0.01
+    """Smallest spread of the steady frames' share (a share of 0 on every steady frame has no
+    noise scale)."""
+    depth_before: int = 3
+    """The depth onset is searched from this many frames before the keypoint onset..."""
+    depth_after: int = 20
+    """... to this many after it (the keypoint onset is early under noise, not late)."""
+    depth_ref_after: int = 12
+    """The steady reference of the depth's share: its last 20 known frames at least this many
+    frames after the keypoint onset."""
+    depth_min_share: float = 0.5
+    """The depth onset is used only when at least this share of the frames has a share."""
+    depth_radius_m: float = 0.15
+    """Radius of the sphere around the hand's centre that cuts each frame's surface."""
+    depth_stride_px: int = 3
+    """Pixel lattice of the surfaces."""
+    depth_min_height_m: float = 0.015
+    """Depth less than this above the platter's top plane (platter, table) is dropped."""
+    depth_max_points: int = 600
+    """At most this many points of a surface in its registration."""
+    depth_iterations: int = 12
+    """Point-to-plane ICP iterations of a registration."""
 
 
 PRESETS: dict[str, SelectSteadyConfig] = {
@@ -138,7 +183,13 @@ class SteadySelection:
     model_frames : (k,) int, video frames the final hand model was reconstructed from.
     uncertain : why the detected onset may be wrong by more than a few frames ("" when it is
         not, and from the manifest): no frame stood out as moving, or the keypoint noise is
-        too large a share of the hand to see the last motion. QA flags such a session.
+        too large a share of the hand to see the last motion (and the depth did not find
+        the onset). QA flags such a session.
+    keypoint_from : the onset from the keypoints alone (steps 1-4); -1 from the manifest.
+    depth_share : (n,) float, per frame the share of its surface that no rigid motion onto
+        the frame ``depth_gap`` later explains (step 5; NaN where unknown; empty without
+        depth or from the manifest).
+    depth_from : the depth's onset (step 5), -1 when not used.
     """
 
     steady_from: int
@@ -151,6 +202,9 @@ class SteadySelection:
     cusum: np.ndarray
     model_frames: np.ndarray
     uncertain: str = ""
+    keypoint_from: int = -1
+    depth_share: np.ndarray = field(default_factory=lambda: np.empty(0))
+    depth_from: int = -1
 
 
 def _bundle(uv, ok, K, cfg, frames, T_c_w, X, anchor, scale_ref):
@@ -351,7 +405,26 @@ def _detect(uv, ok, K, cfg):
     return onset, scores, threshold, matched, model
 
 
-def _uncertainty(uv, ok, scores, onset, detected, cfg) -> str:
+def _depth_onset(uv, ok, K, onset, depth_frame, T_color_turntable, cfg):
+    """(depth onset or -1, share (n,)) of step 5."""
+    share_of = steady_depth.deformation(
+        depth_frame, K,
+        steady_depth.hand_centres(depth_frame, K, uv, ok, below_skin_m=0.01,
+                                  min_points=cfg.min_points),
+        T_color_turntable, gap=cfg.depth_gap, radius_m=cfg.depth_radius_m,
+        stride_px=cfg.depth_stride_px, min_height_m=cfg.depth_min_height_m,
+        max_points=cfg.depth_max_points, max_distance_m=0.01, huber_m=0.003,
+        iterations=cfg.depth_iterations, far_m=cfg.depth_far_m,
+    )  # fmt: skip
+    if np.isfinite(share_of).mean() < cfg.depth_min_share:
+        return -1, share_of
+    found, _ = steady_depth.depth_onset(share_of, onset, cfg.depth_before, cfg.depth_after,
+                                        cfg.depth_drift_sigmas, onset + cfg.depth_ref_after,
+                                        min_spread=cfg.depth_min_spread)  # fmt: skip
+    return found, share_of
+
+
+def _uncertainty(uv, ok, scores, onset, detected, cfg, by_depth=False) -> str:
     """Why the detected ``onset`` may be wrong by more than a few frames, "" if not."""
     steady = scores[onset:][np.isfinite(scores[onset:])]
     noise = float(np.median(steady)) if len(steady) else float("nan")
@@ -363,7 +436,7 @@ def _uncertainty(uv, ok, scores, onset, detected, cfg) -> str:
         return (f"no frame before {onset} stands out as moving above the keypoint noise "
                 f"({noise:.1f} px, {share:.1%} of the hand's {hand:.0f} px): the adjustment "
                 "phase is not seen; set grasp.steady_from in session.json if there is one")
-    if share > cfg.max_noise_share:
+    if share > cfg.max_noise_share and not by_depth:
         return (f"the keypoint noise ({noise:.1f} px, {share:.1%} of the hand's {hand:.0f} px "
                 f"> {cfg.max_noise_share:.1%}) hides the last motion of the grasp: the onset "
                 f"(frame {onset}) may be several frames early; set grasp.steady_from in "
@@ -378,6 +451,8 @@ def select_steady(
     config: SelectSteadyConfig = PRESETS["default"],
     *,
     why_missing: str = "",
+    depth_frame: Callable[[int], np.ndarray] | None = None,
+    T_color_turntable: np.ndarray | None = None,
 ) -> SteadySelection:
     """The first steady frame: the manifest's ``steady_from`` when given, else detected.
 
@@ -389,6 +464,8 @@ def select_steady(
     steady_from : the manifest's value, or None to detect it.
     why_missing : why frames lack detections (``Keypoints2D.missing_summary``), added to the
         error when too few frames have enough joints.
+    depth_frame : ``depth_frame(frame) -> (h, w)`` metres of the aligned depth, 0 where no
+        reading; with ``T_color_turntable`` (4, 4) it gives the depth onset (step 5).
     """
     cfg = config
     kp = np.asarray(keypoints, dtype=float)
@@ -418,6 +495,12 @@ def select_steady(
     # the first steady frame anchors the hand's cameras: a frame without the hand detected
     # (dropped detection) has no pose of its own, so the onset moves to the next detected one
     detected = np.flatnonzero(ok.sum(1) >= cfg.min_points)
+    keypoint_from, depth_from, share_of = onset, -1, np.empty(0)
+    if cfg.depth_onset and depth_frame is not None and T_color_turntable is not None:
+        depth_from, share_of = _depth_onset(uv, ok, K, onset, depth_frame,
+                                            np.asarray(T_color_turntable, float), cfg)
+        if depth_from >= 0:
+            onset = depth_from
     onset = int(detected[np.searchsorted(detected, onset)]) if onset <= detected[-1] else n
     if onset >= n - 2:
         raise StageError(
@@ -427,7 +510,7 @@ def select_steady(
         )
     return SteadySelection(
         steady_from=onset,
-        uncertain=_uncertainty(uv, ok, scores, onset, detected, cfg),
+        uncertain=_uncertainty(uv, ok, scores, onset, detected, cfg, depth_from >= 0),
         method=SteadyMethod.DETECTED,
         scores_px=scores,
         threshold_px=threshold,
@@ -436,4 +519,7 @@ def select_steady(
         z=z,
         cusum=cusum,
         model_frames=model,
+        keypoint_from=keypoint_from,
+        depth_share=share_of,
+        depth_from=depth_from,
     )

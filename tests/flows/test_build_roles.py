@@ -54,8 +54,8 @@ def test_one_grasp_depth_pixel_reruns_only_the_stages_that_read_grasp_depth(
     edited(frame, cv2.imencode(".png", depth)[1].tobytes())
 
     readers = {n for n, s in STAGES.items() if "grasp_depth" in s.reads}
-    assert readers == {"load_session", "joint_solve", "reconstruct_hand", "estimate_adjustment",
-                       "propagate_poses", "pictures"}
+    assert readers == {"load_session", "select_steady", "joint_solve", "reconstruct_hand",
+                       "estimate_adjustment", "propagate_poses", "pictures"}
     plans = plan_build([synth_root], catalog, PRESET)
     planned = {p.stage for p in plans if p.action == "run"}
     assert {p.session_id for p in plans if p.action == "run"} == {sid}
@@ -66,8 +66,7 @@ def test_one_grasp_depth_pixel_reruns_only_the_stages_that_read_grasp_depth(
         if p.stage in own and p.session_id == sid:
             assert ("changed input file", f"grasp_depth: {frame.relative_to(session)} "
                                           "(changed)") in p.reasons
-    for name in ("register_object", "register_scan", "build_contactmap", "detect_keypoints",
-                 "select_steady"):
+    for name in ("register_object", "register_scan", "build_contactmap", "detect_keypoints"):
         assert name not in planned
 
     report = build_dataset([synth_root], catalog, PRESET, build_id="pixel")

@@ -1,0 +1,162 @@
+"""How far the hand and the object it holds deform between video frames, from the depth.
+
+Before the grasp settles the surface of the hand and the object deforms from frame to frame
+(the fingers close, the palm approaches, the object is lifted off the platter); from the
+first steady frame on, two frames' surfaces differ by one rigid motion. The depth is far less
+noisy than a real detector's keypoints, so that residual non-rigidity shows the last frames
+of the adjustment where the keypoints' noise hides them.
+
+For every frame ``i`` the surface (``surface_clouds.surface_cloud``: the depth within a sphere
+around the hand's centre, the platter and table dropped) is registered rigidly
+(``depth_links.icp_batch``, point-to-plane) onto frame ``i + gap``'s, both cut by the same
+sphere, from the chained registrations of neighbouring frames. The signal is the share of
+frame ``i``'s points that, after the registration, lie further than ``far_m`` from the other
+surface (point-to-plane, or with no surface point within ``max_distance_m``): the share of the
+surface that no rigid motion explains.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from graspcap.tasks.core.geometry import inv_T
+from graspcap.tasks.hand_sfm.depth_links import icp_batch
+from graspcap.tasks.hand_sfm.metric_scale import window_median
+from graspcap.tasks.hand_sfm.steady_stats import cusum, standardise
+from graspcap.tasks.hand_sfm.surface_clouds import SurfaceCloud, hand_centre, surface_cloud
+
+
+def hand_centres(
+    depth_frame: Callable[[int], np.ndarray], K: np.ndarray, uv: np.ndarray, ok: np.ndarray,
+    *, below_skin_m: float, min_points: int, smooth: int = 2, max_fill: int = 12,
+) -> np.ndarray:
+    """(n, 3) hand centres in the camera (``surface_clouds.hand_centre`` from the detected
+    joints' depth readings), each the median over frames ``i - smooth .. i + smooth`` (a
+    wrong detection moves it less); a frame without one takes the nearest frame's, at most
+    ``max_fill`` frames away (the sphere around it is wide); NaN where unknown."""
+    n = len(uv)
+    raw = np.full((n, 3), np.nan)
+    for i in range(n):
+        if ok[i].sum() >= min_points:
+            px = uv[i, ok[i]]
+            c = hand_centre(K, px, window_median(depth_frame(i), px, 2), below_skin_m)
+            if c is not None:
+                raw[i] = c
+    out = np.full((n, 3), np.nan)
+    for i in range(n):
+        win = raw[max(i - smooth, 0): i + smooth + 1]
+        win = win[np.all(np.isfinite(win), axis=1)]
+        if len(win):
+            out[i] = np.median(win, axis=0)
+    have = np.flatnonzero(np.all(np.isfinite(out), axis=1))
+    for i in np.flatnonzero(~np.all(np.isfinite(out), axis=1)):
+        if len(have):  # a frame without a detection: the nearest frame's centre
+            near = have[np.argmin(np.abs(have - i))]
+            if abs(near - i) <= max_fill:
+                out[i] = out[near]
+    return out
+
+
+def _seen_through(depth_m: np.ndarray, K: np.ndarray, points: np.ndarray, T_a_b: np.ndarray,
+                  far_m: float) -> float:
+    """Share of ``points`` (camera ``b``), moved by ``T_a_b`` into camera ``a``, at whose pixel
+    ``a``'s depth ``depth_m`` reads more than ``far_m`` behind them: ``a`` sees through where
+    the surface would be if only a rigid motion had moved it (free space violated). Points
+    that ``a`` sees something in front of (hidden by the motion) or has no reading for do not
+    count either way."""
+    p = points @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+    h, w = depth_m.shape
+    z = p[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.rint(K[0, 0] * p[:, 0] / z + K[0, 2]).astype(int)
+        v = np.rint(K[1, 1] * p[:, 1] / z + K[1, 2]).astype(int)
+    inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    seen = np.zeros(len(p))
+    seen[inside] = depth_m[v[inside], u[inside]]
+    valid = seen > 0
+    if valid.sum() < 20:
+        return float("nan")
+    return float(np.mean(seen[valid] > z[valid] + far_m))
+
+
+def deformation(
+    depth_frame: Callable[[int], np.ndarray], K: np.ndarray, centres: np.ndarray,
+    T_color_turntable: np.ndarray, *, gap: int, radius_m: float, stride_px: int,
+    min_height_m: float, max_points: int, max_distance_m: float, huber_m: float,
+    iterations: int, far_m: float,
+) -> np.ndarray:
+    """(n,) per frame ``i`` the share of its hand-and-object surface that no rigid motion
+    onto frame ``i + gap``'s explains (NaN where a frame lacks a centre or a surface, and for
+    the last ``gap`` frames)."""
+    n = len(centres)
+
+    def cloud(frame: int, centre: np.ndarray) -> SurfaceCloud | None:
+        return surface_cloud(depth_frame(frame), K, centre, radius_m=radius_m,
+                             stride_px=stride_px, T_color_turntable=T_color_turntable,
+                             min_height_m=min_height_m)  # fmt: skip
+
+    def register(pairs: list[tuple[SurfaceCloud, SurfaceCloud]], guess: np.ndarray):
+        clouds = [c for pair in pairs for c in pair]
+        idx = np.arange(2 * len(pairs)).reshape(-1, 2)
+        return icp_batch(clouds, idx, guess, K, max_points=max_points,
+                         max_distance_m=max_distance_m, huber_m=huber_m,
+                         iterations=iterations, sigma_m=0.0015,
+                         effective_points=300.0)[0]  # fmt: skip
+
+    # neighbouring frames first (from no motion), their chain the start of the gapped pairs
+    step = np.full((n, 4, 4), np.nan)  # step[i] = T_{i+1, i}
+    known = [i for i in range(n - 1) if np.all(np.isfinite(centres[i]))]
+    pairs, rows = [], []
+    for i in known:
+        a, b = cloud(i + 1, centres[i]), cloud(i, centres[i])
+        if a is not None and b is not None:
+            pairs.append((a, b))
+            rows.append(i)
+    if pairs:
+        step[rows] = register(pairs, np.repeat(np.eye(4)[None], len(pairs), 0))
+    out = np.full(n, np.nan)
+    pairs, rows, guesses = [], [], []
+    for i in known:
+        j = i + gap
+        if j >= n:
+            continue
+        chain = np.eye(4)
+        for m in range(i, j):
+            chain = step[m] @ chain if np.all(np.isfinite(step[m])) else chain
+        a, b = cloud(j, centres[i]), cloud(i, centres[i])
+        if a is not None and b is not None:
+            pairs.append((a, b))
+            rows.append(i)
+            guesses.append(chain)
+    if pairs:
+        T = register(pairs, np.array(guesses))
+        for (a, b), i, T_a_b in zip(pairs, rows, T, strict=True):
+            out[i] = 0.5 * (_seen_through(depth_frame(i + gap), K, b.points, T_a_b, far_m)
+                            + _seen_through(depth_frame(i), K, a.points, inv_T(T_a_b), far_m))
+    return out
+
+
+def depth_onset(z_signal: np.ndarray, kp_onset: int, before: int, after: int, drift: float,
+                ref_from: int, ref_frames: int = 20,
+                min_spread: float = 0.01) -> tuple[int, np.ndarray]:
+    """Change point of the signal standardised by the last ``ref_frames`` known frames from
+    ``ref_from``, searched in
+    ``kp_onset - before .. kp_onset + after``: the ``t`` maximising
+    ``sum_{i < t} (z_i - drift)``; (onset, z). The spread is at least ``min_spread``.
+    ``kp_onset`` when too few reference frames are known."""
+    n = len(z_signal)
+    finite = np.flatnonzero(np.isfinite(z_signal))
+    ref = finite[finite >= min(ref_from, n - 3)][-ref_frames:]
+    found = standardise(z_signal, ref)
+    if found is None:
+        return kp_onset, np.full(n, np.nan)
+    spread = max(found[2], min_spread)  # a share: a flat floor is no noise scale
+    z = (z_signal - found[1]) / spread
+    sums = cusum(z, drift)
+    lo, hi = max(kp_onset - before, 0), min(kp_onset + after, n - 1)
+    sums[:lo], sums[hi + 1:] = -np.inf, -np.inf
+    # the last of tied maxima: NaN frames count 0, so a change inside a run of frames without
+    # a surface lands at the run's end (a later onset loses frames; an early one spoils them)
+    return int(len(sums) - 1 - np.argmax(sums[::-1])), z
