@@ -45,10 +45,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.geometry import inv_T, make_T, rotation_error_deg, transform_points
@@ -70,6 +69,11 @@ from graspcap.tasks.object_pose.registration.point_clouds import (
     to_pcd,
     valid_depth,
 )
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
+
+# scipy: imported where used, so that importing the stage table stays cheap
 
 PROPAGATED = "propagated"
 PREVIOUS = "previous"
@@ -256,6 +260,7 @@ def _constrained(model: Model, T_start: np.ndarray, T_icp: np.ndarray, points_o:
     radius); directions whose eigenvalue is below ``min_constraint`` of the largest are left
     where the start put them (a flat face's turn in its plane and slide along it, a can's
     turn about its axis)."""
+    from scipy.spatial.transform import Rotation
     if config.min_constraint <= 0:
         return T_icp
     tree, normals = _surface_tree(model)
@@ -323,6 +328,8 @@ def _box(K: np.ndarray, vertices_o: np.ndarray, poses: list[np.ndarray],
 
 
 def _surface_tree(model: Model) -> tuple[cKDTree, np.ndarray]:
+    from scipy.spatial import cKDTree
+
     """A KD-tree of the model's surface samples and their normals (kept per model)."""
     key = id(model.dense)
     if _TREES.get("key") != key:
