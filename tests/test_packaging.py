@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import fcntl
 import subprocess
 import sys
 import zipfile
@@ -61,12 +62,19 @@ def test_stage_modules_do_not_pull_in_prefect_at_run_time():
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
+    """The wheel, built once per test process. pytest-xdist may run this module's tests in
+    two workers at once, and two ``pip wheel`` runs on one source tree clash in its ``build/``
+    folder: a lock beside the workers' temporary folders makes them take turns."""
     out = tmp_path_factory.mktemp("wheel")
-    subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
-         "-w", str(out), str(REPO)],
-        check=True, capture_output=True,
-    )
+    lock = tmp_path_factory.getbasetemp().parent / "graspcap-wheel.lock"
+    with open(lock, "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        built = subprocess.run(
+            [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+             "-w", str(out), str(REPO)],
+            capture_output=True, text=True,
+        )
+    assert built.returncode == 0, built.stderr[-3000:]
     return next(out.glob("graspcap-*.whl"))
 
 
