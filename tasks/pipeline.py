@@ -236,10 +236,10 @@ def _propagate_poses(session: Session, config, **up):
     def read_depth(f: int) -> np.ndarray:
         return session.read_depth_m(session.grasp_path("depth", f))
 
-    prop, hand_o = carry(sfm.T_w_c), _final_hand(up).mesh_o
+    prop, hand_o, mesh = carry(sfm.T_w_c), _final_hand(up).mesh_o, session.read_mesh()
     if config.tracking.enabled:
         tracking = track_object.track_object(
-            prop.T_c_o, frames, read_depth, session.color_K, session.read_mesh(), hand_o,
+            prop.T_c_o, frames, read_depth, session.color_K, mesh, hand_o,
             keypoints, config.tracking,
             joints_o=transform_points(inv_T(prop.T_c_o[0]), prop.joints_c[0]),
         )
@@ -247,7 +247,7 @@ def _propagate_poses(session: Session, config, **up):
         prop = replace(carry(T_w_c), tracking=tracking)
     validity = frame_validity.frame_validity(
         prop.frame_indices, keypoints, sfm.frames, sfm.pose_valid, sfm.inlier, prop.T_c_o,
-        read_depth, session.color_K, session.read_mesh(), hand_o, config.validity,
+        read_depth, session.color_K, mesh, hand_o, config.validity,
         sfm.diagnostics.frame_rejected,
     )
     return replace(prop, validity=validity)
