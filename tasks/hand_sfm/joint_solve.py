@@ -43,8 +43,13 @@ from graspcap.tasks.hand_sfm.hand_graph import (
     GraphSolve,
     HandKinematics,
     HandPriors,
-    project_hand,
     solve_graph,
+)
+from graspcap.tasks.hand_sfm.joint_frames import (
+    depth_disagrees,
+    frame_medians,
+    off_smooth_path,
+    residuals_px,
 )
 from graspcap.tasks.hand_sfm.metric_scale import DepthLookup, depth_lookup_from_frames
 from graspcap.tasks.hand_sfm.reconstruct_hand import ReconstructConfig
@@ -335,8 +340,8 @@ def _depth_start(uv, ok, K, readings, steady_from, side, cfg) -> _Start | str:
         T_c_p = np.einsum("mab,bc->mac", init.T_c_w, fit.T_w_p)
         posed = np.all(np.isfinite(T_c_p.reshape(len(T_c_p), -1)), axis=1)
         J = fit.joints_fit_w @ fit.T_w_p[:3, :3] - fit.T_w_p[:3, 3] @ fit.T_w_p[:3, :3]
-        agree = posed & ~_depth_disagrees(T_c_p, J, fit.scale * offset, readings, cfg)
-        agree &= ~_off_smooth_path(T_c_p, agree, cfg)
+        agree = posed & ~depth_disagrees(T_c_p, J, fit.scale * offset, readings, cfg)
+        agree &= ~off_smooth_path(T_c_p, agree, cfg)
         score = int(agree.sum())
         if best is None or score > best[0]:
             best = (score, _Start(T_c_p, fit.angles_rad, fit.scale, "depth"))
@@ -350,60 +355,6 @@ def _readings(depth_at: DepthLookup, uv, ok, conf, steady_from, min_conf) -> np.
     for i in np.flatnonzero(sample.any(1)):
         d = np.asarray(depth_at(steady_from + int(i), uv[i, sample[i]]), dtype=float)
         out[i, sample[i]] = np.where(np.isfinite(d) & (d > 0), d, np.nan)
-    return out
-
-
-def _residuals(K, T_c_p, J, uv, ok) -> np.ndarray:
-    """Pixel residuals (m, 21); NaN for missing detections or cameras."""
-    proj = project_hand(K, T_c_p, J)
-    res = np.linalg.norm(proj - uv, axis=2)
-    return np.where(ok & np.isfinite(res), res, np.nan)
-
-
-def _frame_medians(res: np.ndarray) -> np.ndarray:
-    out = np.full(len(res), np.nan)
-    has = np.isfinite(res).any(1)
-    out[has] = np.nanmedian(res[has], axis=1)
-    return out
-
-
-def _depth_disagrees(T_c_p, J, offset_m, readings, cfg: JointSolveConfig) -> np.ndarray:
-    """(m,) frames with enough depth readings of which too few agree with the solved camera
-    (``frame_min_depth_share``)."""
-    z = (np.einsum("mab,jb->mja", T_c_p[:, :3, :3], J) + T_c_p[:, None, :3, 3])[..., 2]
-    has = np.isfinite(readings) & np.isfinite(z)
-    with np.errstate(invalid="ignore"):
-        agree = has & (np.abs(z - readings - offset_m) <= cfg.frame_depth_gate_m)
-    n = has.sum(1)
-    return (n >= cfg.frame_min_readings) & (agree.sum(1) < cfg.frame_min_depth_share * n)
-
-
-def _off_smooth_path(T_c_p, active, cfg: JointSolveConfig) -> np.ndarray:
-    """(m,) active frames off the longest chain of frames whose consecutive cameras turn
-    like a hand turning smoothly (at most ``frame_turn_deg_per_frame`` per frame, or
-    ``frame_turn_min_deg``): a mirrored detection is explained by a camera on the other side
-    of the hand, another hand's by a camera somewhere else; either breaks the chain."""
-    idx = np.flatnonzero(active)
-    out = np.zeros(len(T_c_p), bool)
-    if len(idx) < 2:
-        return out
-    R = T_c_p[idx, :3, :3]
-    cos = (np.einsum("kab,nab->kn", R, R) - 1.0) / 2.0
-    turn = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    allowed = np.maximum(cfg.frame_turn_min_deg,
-                         cfg.frame_turn_deg_per_frame * np.abs(idx[:, None] - idx[None, :]))
-    fits = turn <= allowed
-    length, back = np.ones(len(idx), int), np.full(len(idx), -1)
-    for n in range(1, len(idx)):  # longest chain ending at n (a path in a DAG)
-        prev = np.flatnonzero(fits[n, :n])
-        if len(prev):
-            k = prev[np.argmax(length[prev])]
-            length[n], back[n] = length[k] + 1, k
-    n = int(np.argmax(length))
-    on = np.zeros(len(idx), bool)
-    while n >= 0:
-        on[n], n = True, back[n]
-    out[idx[~on]] = True
     return out
 
 
@@ -459,8 +410,8 @@ def solve_from_start(
     usable = ok.sum(1) >= cfg.min_points_per_frame
     active = posed & usable
     offset = np.asarray(SURFACE_OFFSET_M)
-    rejected = active & (_depth_disagrees(T_c_p, J, start.scale * offset, readings, cfg)
-                         | _off_smooth_path(T_c_p, active, cfg))
+    rejected = active & (depth_disagrees(T_c_p, J, start.scale * offset, readings, cfg)
+                         | off_smooth_path(T_c_p, active, cfg))
     if (active & ~rejected).sum() >= max(cfg.min_frames, cfg.start_min_share * active.sum()):
         active &= ~rejected  # else the start is too poor to judge frames by: solve them all
     sigma = cfg.sigma_px / np.maximum(conf, cfg.min_sigma_confidence)
@@ -501,7 +452,7 @@ def solve_from_start(
         # every usable frame judged against the solved hand: the kept with their solved
         # cameras, the others posed by PnP against it (a frame dropped against a poor start
         # comes back once the hand is right)
-        level = float(np.nanmedian(_frame_medians(_residuals(K, T_c_p, J, uv, ok))[active]))
+        level = float(np.nanmedian(frame_medians(residuals_px(K, T_c_p, J, uv, ok))[active]))
         cand = np.where(active[:, None, None], T_c_p, np.nan)
         for i in np.flatnonzero(usable & ~active):
             pose = pnp(K, J[ok[i]], uv[i, ok[i]], max(cfg.ransac_px, 2 * level),
@@ -509,12 +460,12 @@ def solve_from_start(
             if pose is not None:
                 cand[i] = pose
         judged = np.all(np.isfinite(cand.reshape(m, -1)), axis=1)
-        med = _frame_medians(_residuals(K, cand, J, uv, ok))
+        med = frame_medians(residuals_px(K, cand, J, uv, ok))
         frame_median = np.where(judged, med, frame_median)
         with np.errstate(invalid="ignore"):
             bad = med > max(cfg.frame_reject_factor * level, cfg.frame_reject_min_px)
-        bad |= _depth_disagrees(cand, J, np.exp(log_scale) * offset, readings, cfg)
-        bad |= _off_smooth_path(cand, judged, cfg)
+        bad |= depth_disagrees(cand, J, np.exp(log_scale) * offset, readings, cfg)
+        bad |= off_smooth_path(cand, judged, cfg)
         keep = judged & ~bad
         if np.array_equal(keep, active) or rounds == cfg.frame_rounds or (
                 keep.sum() < cfg.min_frames):
@@ -552,7 +503,7 @@ def _assemble(kin, K, steady_from, uv, ok, T_c_p, start, angles, log_bone, log_s
     T_w_c = np.stack([T_w_p @ inv_T(T) for T in T_c_p_filled])
     T_w_c[0] = np.eye(4)
     joints_w = J @ T_w_p[:3, :3].T + T_w_p[:3, 3]
-    res = _residuals(K, T_c_p_filled, J, uv, ok)
+    res = residuals_px(K, T_c_p_filled, J, uv, ok)
     res[~pose_valid] = np.nan
     level = float(np.nanmedian(res[pose_valid])) if pose_valid.any() else float("nan")
     inlier = ok & pose_valid[:, None] & (res < max(cfg.outlier_px, cfg.outlier_factor * level))
