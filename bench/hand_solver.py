@@ -29,7 +29,7 @@ import numpy as np
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import evaluate
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.hand_sfm.joint_solve import HandPath, JointSolveConfig
+from graspcap.tasks.hand_sfm.joint_solve import HandPath, JointSolveConfig, noisy
 from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
 
 UPSTREAM = ("load_session", "detect_keypoints", "select_steady")
@@ -57,7 +57,8 @@ def _path(results: dict, configs: dict, d: Path, joint: bool) -> dict:
     diag = rec.diagnostics
     out = {"failed": None, "time_s": wall, **{k: evaluate(d, est).get(k) for k in KEYS},
            "solved_share": float(np.mean(rec.pose_valid)),
-           "noise_share": diag.noise_sigma_px / diag.hand_size_px if diag.hand_size_px else None}
+           "noise_share": diag.noise_sigma_px / diag.hand_size_px if diag.hand_size_px else None,
+           "noisy": noisy(diag.noise_sigma_px, diag.hand_size_px, AUTO_SHARE)}
     js = res["joint_solve"]
     if js is not None:
         out |= {"start": js.start, "dropped": int(js.frame_rejected.sum()),
@@ -115,8 +116,7 @@ def summary(rows: list[dict]) -> None:
           f"/{len(rows)}; silently > 3 frames off: {len(silent)} {silent}")
     for r in rows:  # what ``mode = auto`` returns: the staged row on clean detections
         if "staged" in r and "joint" in r:
-            share = r["staged"].get("noise_share")
-            clean = not r["staged"]["failed"] and not (share is not None and share > AUTO_SHARE)
+            clean = not r["staged"]["failed"] and not r["staged"]["noisy"]
             r["auto"] = r["staged"] if clean else r["joint"]
     for name in ("staged", "joint", "auto"):
         done = [r[name] for r in rows if name in r]
