@@ -64,7 +64,12 @@ def estimate_from_results(
             est["refine_time_s"] = float(timings_s["refine_grasp"])
     if get("propagate_poses") is not None:
         prop = results["propagate_poses"]
-        est |= {"frame": np.asarray(prop.frame_indices), "T_c_o": prop.T_c_o}
+        est |= {"frame": np.asarray(prop.frame_indices), "T_c_o": prop.T_c_o,
+                "joints_c": prop.joints_c}
+        if prop.T_w_c is not None and "T_w_c" in est:
+            # the catalog's frames.T_w_c: stage 2's cameras, or where the object was tracked in
+            # the frame's depth the camera that tracking defines (as estimate_from_catalog reads)
+            est |= {"T_w_c_sfm": est["T_w_c"], "T_w_c": prop.T_w_c}
     return est
 
 
@@ -97,6 +102,8 @@ def estimate_from_catalog(session: Mapping[str, Any], frames: Any) -> dict[str, 
     est["frame"] = frames["frame"].to_numpy()
     est["T_w_c"] = np.stack([mat(v, (4, 4)) for v in frames["T_w_c"]])
     est["T_c_o"] = np.stack([mat(v, (4, 4)) for v in frames["T_c_o"]])
+    if "joints_c" in frames and not frames["joints_c"].isna().any():
+        est["joints_c"] = np.stack([mat(v, (21, 3)) for v in frames["joints_c"]])
     # null in a catalog written before format 4: unknown which cameras reconstruct_hand solved
     solved = frames["camera_solved"] if "camera_solved" in frames else None
     if solved is not None and not solved.isna().any():
@@ -134,10 +141,14 @@ def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
         solved = est.get("camera_solved")
         at = _anchor(steady_est, int(truth["steady_from"]), len(est["T_w_c"]),
                      None if solved is None else np.asarray(solved, dtype=bool))
-        out["joints_mpjpe_mm"] = _mpjpe_mm(est["joints_w"], est["T_w_c"], steady_est, truth, at)
-        cams = _camera_errors(est["T_w_c"], steady_est, truth, at)
-        out["camera_rot_deg"] = float(np.median(cams[:, 0]))
-        out["camera_trans_mm"] = 1e3 * float(np.median(cams[:, 1]))
+        for key, prefix in (("T_w_c", ""), ("T_w_c_sfm", "sfm_")):
+            if key not in est:
+                continue
+            out[f"{prefix}joints_mpjpe_mm"] = _mpjpe_mm(est["joints_w"], est[key], steady_est,
+                                                        truth, at)
+            cams = _camera_errors(est[key], steady_est, truth, at)
+            out[f"{prefix}camera_rot_deg"] = float(np.median(cams[:, 0]))
+            out[f"{prefix}camera_trans_mm"] = 1e3 * float(np.median(cams[:, 1]))
     if "joints_fit_w" in est:
         out["fit_joints_mm"] = _mpjpe_mm(est["joints_fit_w"], est["T_w_c"], steady_est, truth, at)
     if "joints_refined_w" in est:
@@ -151,6 +162,8 @@ def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
             out[name] = float(est[key])
     if "T_c_o" in est:
         out |= _per_frame_object_errors(est["frame"], est["T_c_o"], truth)
+    if "joints_c" in est:
+        out |= _per_frame_joint_errors(est["frame"], est["joints_c"], truth)
     return out
 
 
@@ -272,6 +285,25 @@ def _per_frame_object_errors(
         "frame_object_rot_p95_deg": float(np.percentile(e[:, 0], 95)),
         "frame_object_trans_p95_mm": 1e3 * float(np.percentile(e[:, 1], 95)),
     }
+
+
+def _per_frame_joint_errors(
+    frames: np.ndarray, joints_c: np.ndarray, truth: Mapping[str, Any]
+) -> dict[str, float]:
+    """The hand as delivered in each steady frame's camera (``frames.joints_c``: the static
+    joints carried by that frame's camera) against the truth: the median and p90 over frames of
+    the mean joint error, mm."""
+    steady_true = int(truth["steady_from"])
+    errs = []
+    for f, J in zip(np.asarray(frames), np.asarray(joints_c), strict=True):
+        i = int(f) - steady_true
+        if 0 <= i < len(truth["T_w_c"]):
+            J_true = transform_points(inv_T(truth["T_w_c"][i]), truth["joints_w"])
+            errs.append(np.linalg.norm(J - J_true, axis=1).mean())
+    if not errs:
+        return {}
+    return {"frame_joints_mm": 1e3 * float(np.median(errs)),
+            "frame_joints_p90_mm": 1e3 * float(np.percentile(errs, 90))}
 
 
 GOOD_IF: dict[str, tuple[float, str]] = {

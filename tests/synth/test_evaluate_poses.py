@@ -50,3 +50,47 @@ def test_cameras_are_compared_from_a_camera_the_estimate_solved():
     at_fill = _anchor(19, 20, len(est), None)  # without the flags: frame 20, the fill
     assert at_fill == 20
     assert np.median(_camera_errors(est, 19, truth, at_fill)[:, 0]) > 3.5
+
+
+def test_per_frame_hand_is_scored_in_each_frames_camera():
+    """``frames.joints_c`` (the static hand carried by each frame's camera) is scored against
+    the true joints in that frame's true camera; frames before the true onset are left out."""
+    from graspcap.synth.evaluate import _per_frame_joint_errors
+
+    rng = np.random.default_rng(2)
+    T_w_c = np.stack([from_rotvec(rng.normal(0, 0.2, 3), rng.normal(0, 0.05, 3))
+                      for _ in range(6)])  # fmt: skip
+    joints_w = rng.normal(0, 0.05, (21, 3))
+    truth = {"steady_from": 10, "T_w_c": T_w_c, "joints_w": joints_w}
+    frames = np.arange(9, 16)  # one frame before the true onset
+    true_c = np.stack([(inv_T(T_w_c[max(f - 10, 0)]) @ np.c_[joints_w, np.ones(21)].T).T[:, :3]
+                       for f in frames])  # fmt: skip
+    assert _per_frame_joint_errors(frames, true_c, truth)["frame_joints_mm"] < 1e-9
+    shifted = true_c + np.array([0.0, 0.0, 0.004])
+    shifted[-1] += 0.1  # one frame 10 cm off moves the p90, not the median
+    out = _per_frame_joint_errors(frames, shifted, truth)
+    assert abs(out["frame_joints_mm"] - 4.0) < 1e-6 and out["frame_joints_p90_mm"] > 4.0
+
+
+def test_cameras_scored_are_the_catalogs_and_stage_2s_beside_them():
+    """With ``propagate_poses`` in the results, the cameras scored are its ``T_w_c`` (the
+    catalog's ``frames.T_w_c``: tracked where the object was tracked in the depth), as
+    ``estimate_from_catalog`` scores a built catalog; stage 2's own are kept as ``sfm_``."""
+    from types import SimpleNamespace
+
+    from graspcap.synth.evaluate import estimate_from_results
+
+    sfm = np.stack([np.eye(4)] * 3)
+    tracked = sfm.copy()
+    tracked[:, 0, 3] = 0.01
+    results = {
+        "reconstruct_hand": SimpleNamespace(joints_w=np.zeros((21, 3)), T_w_c=sfm,
+                                            pose_valid=np.ones(3, bool), reproj_rmse_px=1.0),
+        "propagate_poses": SimpleNamespace(frame_indices=np.arange(3), T_c_o=sfm,
+                                           joints_c=np.zeros((3, 21, 3)), T_w_c=tracked),
+    }
+    est = estimate_from_results(results)
+    assert est["T_w_c"] is tracked and est["T_w_c_sfm"] is sfm
+    results["propagate_poses"].T_w_c = None  # an older result: stage 2's cameras only
+    est = estimate_from_results(results)
+    assert est["T_w_c"] is sfm and "T_w_c_sfm" not in est
