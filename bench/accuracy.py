@@ -34,7 +34,7 @@ from graspcap.synth.evaluate import (
     qa_confusion,
 )
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.pipeline import STAGES, run_session
+from graspcap.tasks.pipeline import STAGES, configs_for, run_session
 
 SEED = 9000
 """The default seed; the reported runs in docs/benchmarks.md use it unless they say."""
@@ -84,7 +84,8 @@ POSE_STAGES = ("register_object", "select_steady", "reconstruct_hand", "crossche
 """The stages of issue 3, whose total per session has the 6 s target."""
 
 
-def _session(root: Path, profile: str, frames: int, seed: int, i: int) -> dict | None:
+def _session(root: Path, profile: str, frames: int, seed: int, i: int, preset: str = "default"
+             ) -> dict | None:
     """Session ``[seed, i]`` of ``profile`` generated and run bare: its errors, timings, QA
     verdict, or the stage's failure; None when the rig cannot stage the seed."""
     try:
@@ -93,7 +94,7 @@ def _session(root: Path, profile: str, frames: int, seed: int, i: int) -> dict |
         return None
     t: dict[str, float] = {}
     try:
-        results = run_session(d, timings_s=t)
+        results = run_session(d, configs_for(preset), timings_s=t)
     except StageError as e:
         return {"name": d.name, "failed": f"{e.stage}: {e.reason[:80]}"}
     qa = results["qa_metrics"]
@@ -105,10 +106,10 @@ def _session(root: Path, profile: str, frames: int, seed: int, i: int) -> dict |
 
 
 def run(profile: str, sessions: int, frames: tuple[int, ...], root: Path, seed: int = SEED,
-        jobs: int = 1, out: Path | None = None) -> None:
+        jobs: int = 1, out: Path | None = None, preset: str = "default") -> None:
     from concurrent.futures import ProcessPoolExecutor
 
-    args = [(root, profile, frames[i % len(frames)], seed, i) for i in range(sessions)]
+    args = [(root, profile, frames[i % len(frames)], seed, i, preset) for i in range(sessions)]
     if jobs <= 1:
         done = [_session(*a) for a in args]
     else:
@@ -118,7 +119,7 @@ def run(profile: str, sessions: int, frames: tuple[int, ...], root: Path, seed: 
         with out.open("a") as f:
             for a, r in zip(args, done, strict=True):
                 f.write(json.dumps({"profile": profile, "seed": [seed, a[4]], "frames": a[2],
-                                    "result": r}, default=float) + "\n")
+                                    "preset": preset, "result": r}, default=float) + "\n")
     skipped = sum(r is None for r in done)
     ran = [r for r in done if r is not None]
     metrics: dict[str, list[float]] = defaultdict(list)
@@ -166,7 +167,7 @@ def run(profile: str, sessions: int, frames: tuple[int, ...], root: Path, seed: 
     ok = len(ran) - sum(failures.values())
     print(
         f"\n### {profile}: {len(ran)} sessions x {'/'.join(map(str, frames))} frames "
-        f"(seed {seed}), "
+        f"(seed {seed}, preset {preset}), "
         f"{ok} ran every stage"
         + (f" ({skipped} seeds the rig could not stage)" if skipped else "")
         + "\n"
@@ -231,13 +232,15 @@ def main() -> None:
                         default=["easy", "realistic", "hard"])
     parser.add_argument("--seed", type=int, default=SEED)
     parser.add_argument("--jobs", type=int, default=1, help="sessions at a time (processes)")
+    parser.add_argument("--preset", default="default",
+                        help="pipeline preset (graspcap.tasks.pipeline.configs_for), e.g. staged")
     parser.add_argument("--out", type=Path, default=None,
                         help="append each session's errors, timings and verdict here (JSON lines)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         for profile in args.profile:
             run(profile, args.sessions, tuple(args.frames), Path(tmp), args.seed, args.jobs,
-                args.out)
+                args.out, args.preset)
 
 
 if __name__ == "__main__":
