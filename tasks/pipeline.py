@@ -36,6 +36,7 @@ from graspcap.tasks.object_pose import (
     estimate_adjustment,
     register_object,
     register_scan,
+    track_object,
     tracked_average,
 )
 from graspcap.tasks.outputs import (
@@ -43,7 +44,6 @@ from graspcap.tasks.outputs import (
     pictures,
     propagate_poses,
     qa_metrics,
-    track_object,
 )
 from graspcap.tasks.session import load_session
 from graspcap.tasks.session.load_session import Session

@@ -60,8 +60,8 @@ from graspcap.tasks.object_pose.registration.point_clouds import (
 )
 from graspcap.tasks.object_pose.registration.symmetry import axes_ill_defined
 from graspcap.tasks.object_pose.registration.twin_search import search_twins
+from graspcap.tasks.object_pose.track_object import ObjectTracking, TrackObjectConfig
 from graspcap.tasks.object_pose.tracked_average import TrackedAverage, TrackedAverageConfig
-from graspcap.tasks.outputs.track_object import ObjectTracking, TrackObjectConfig
 
 STAGE_VERSION = "estimate_adjustment/18"
 STAGE = "estimate_adjustment"

@@ -31,8 +31,8 @@ import numpy as np
 from graspcap.schemas.transforms import rigidity_problems
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.object_pose.track_object import ObjectTracking
 from graspcap.tasks.outputs.frame_validity import FrameValidity, FrameValidityConfig
-from graspcap.tasks.outputs.track_object import ObjectTracking
 
 STAGE_VERSION = "propagate_poses/4"
 STAGE = "propagate_poses"

@@ -23,9 +23,9 @@ from graspcap.tasks.object_pose.estimate_adjustment import (
     AdjustmentPath,
     EstimateAdjustmentConfig,
 )
+from graspcap.tasks.object_pose.track_object import TrackObjectConfig
 from graspcap.tasks.object_pose.tracked_average import TrackedAverageConfig
 from graspcap.tasks.outputs.propagate_poses import PropagatePosesConfig, propagate_poses
-from graspcap.tasks.outputs.track_object import TrackObjectConfig
 
 
 @pytest.fixture(scope="module")
