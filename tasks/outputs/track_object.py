@@ -158,6 +158,12 @@ class TrackObjectConfig(StageConfig):
     """...and when its result passes every gate and would be kept (agreement, gain), the
     other start is not tried (half the ICP of such a frame). False: both starts always run
     and the lower depth cost wins."""
+    same_start_deg: float = 1.0
+    """The second start is not tried when it lies within this rotation...
+    """
+    same_start_m: float = 0.002
+    """...and this displacement of the object's centre from the first (ICP from either ends in
+    the same place)."""
     registration: RegistrationConfig = RegistrationConfig(
         icp_voxels_m=(0.004, 0.0025, 0.0015), icp_max_distance_m=(0.02, 0.008, 0.004),
         icp_max_points=2000, eval_max_points=3000,
@@ -445,7 +451,11 @@ def track_object(
             points = np.asarray(to_pcd(points).voxel_down_sample(finest).points)
         tried, why = [], []
         cost_prop: float | None = None
-        for start, T0 in pose_starts:
+        for k, (start, T0) in enumerate(pose_starts):
+            if k > 0 and config.first_start_suffices:
+                rot, move = _correction(model, pose_starts[0][1], T0)
+                if rot <= config.same_start_deg and move <= config.same_start_m:
+                    break
             r = _from_start(points, model, T0, start, T_prop, config)
             if isinstance(r, str):
                 why.append(f"from the {start} pose: {r}" if len(pose_starts) > 1 else r)
