@@ -122,12 +122,26 @@ def _detect_keypoints(session: Session, config, **up):
     return detect_keypoints.detect_keypoints(session, config)
 
 
+DEPTH_CACHE_BYTES = 512 * 2**20
+"""Decoded grasp depth (float32 metres) a stage that visits frames more than once keeps: as
+many frames as fit (at least 4). select_steady's depth onset reads each frame up to six times
+(hand centres, two registrations, two free-space checks) and propagate_poses twice (tracking,
+validity); decoding a depth PNG costs ~10 ms."""
+
+
+def _depth_reader(session: Session) -> Callable[[int], np.ndarray]:
+    """Grasp depth frame -> (h, w) float32 metres, decoded once while ``DEPTH_CACHE_BYTES``
+    holds the frames visited."""
+    w, h = session.color_camera.size
+    return session.grasp_depth_reader(max(4, DEPTH_CACHE_BYTES // (4 * w * h)))
+
+
 def _select_steady(session: Session, config, **up):
     keypoints = up["detect_keypoints"]
     return select_steady.select_steady(
         _ideal_keypoints(session, keypoints.keypoints), session.color_K,
         session.manifest.grasp.steady_from, config,
-        why_missing=why_missing(keypoints), depth_frame=session.grasp_depth_reader(),
+        why_missing=why_missing(keypoints), depth_frame=_depth_reader(session),
         T_color_turntable=session.T_color_turntable,
     )
 
@@ -233,9 +247,7 @@ def _propagate_poses(session: Session, config, **up):
             joints_fit_w=joints_hand_w, config=config,
         )
 
-    def read_depth(f: int) -> np.ndarray:
-        return session.read_depth_m(session.grasp_path("depth", f))
-
+    read_depth = _depth_reader(session)  # tracking and validity read every frame
     prop, hand_o, mesh = carry(sfm.T_w_c), _final_hand(up).mesh_o, session.read_mesh()
     if config.tracking.enabled:
         tracking = track_object.track_object(

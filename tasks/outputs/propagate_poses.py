@@ -33,7 +33,7 @@ from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.outputs.frame_validity import FrameValidity, FrameValidityConfig
 from graspcap.tasks.outputs.track_object import ObjectTracking, TrackObjectConfig
 
-STAGE_VERSION = "propagate_poses/3"
+STAGE_VERSION = "propagate_poses/4"
 STAGE = "propagate_poses"
 
 
