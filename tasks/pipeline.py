@@ -127,12 +127,27 @@ def _detect_keypoints(session: Session, config, **up):
     return detect_keypoints.detect_keypoints(session, config)
 
 
+DEPTH_CACHE_BYTES = 512 * 2**20
+"""Decoded grasp depth (float32 metres) a stage that visits frames more than once keeps: as
+many frames as fit (at least 4). select_steady's depth onset reads each frame up to six times
+(hand centres, two registrations, two free-space checks); decoding a depth PNG costs ~10 ms.
+The stages that read each frame once, in order (estimate_adjustment's tracking,
+propagate_poses' validity), keep the reader's default few."""
+
+
+def _depth_reader(session: Session) -> Callable[[int], np.ndarray]:
+    """Grasp depth frame -> (h, w) float32 metres, decoded once while ``DEPTH_CACHE_BYTES``
+    holds the frames visited."""
+    w, h = session.color_camera.size
+    return session.grasp_depth_reader(max(4, DEPTH_CACHE_BYTES // (4 * w * h)))
+
+
 def _select_steady(session: Session, config, **up):
     keypoints = up["detect_keypoints"]
     return select_steady.select_steady(
         _ideal_keypoints(session, keypoints.keypoints), session.color_K,
         session.manifest.grasp.steady_from, config,
-        why_missing=why_missing(keypoints), depth_frame=session.grasp_depth_reader(),
+        why_missing=why_missing(keypoints), depth_frame=_depth_reader(session),
         T_color_turntable=session.T_color_turntable,
     )
 
@@ -207,9 +222,9 @@ def _track_adjustment(session: Session, config, adj: estimate_adjustment.Adjustm
     T_o_w = inv_T(adj.T_w_o)
     tracking = track_object.track_object(
         np.stack([inv_T(T) @ adj.T_w_o for T in sfm.T_w_c]),
-        frames, lambda f: session.read_depth_m(session.grasp_path("depth", f)),
-        session.color_K, mesh, (transform_points(T_o_w, hand.vertices), hand.faces), keypoints,
-        config.tracking, joints_o=transform_points(T_o_w, sfm.joints_w),
+        frames, session.grasp_depth_reader(), session.color_K, mesh,
+        (transform_points(T_o_w, hand.vertices), hand.faces), keypoints, config.tracking,
+        joints_o=transform_points(T_o_w, sfm.joints_w),
     )
     adj = replace(adj, tracking=tracking)
     if not config.average.enabled:
@@ -271,9 +286,7 @@ def _propagate_poses(session: Session, config, **up):
             joints_fit_w=joints_hand_w, config=config,
         )
 
-    def read_depth(f: int) -> np.ndarray:
-        return session.read_depth_m(session.grasp_path("depth", f))
-
+    read_depth = session.grasp_depth_reader()  # the validity reads each frame once, in order
     prop, hand_o, mesh = carry(sfm.T_w_c), _final_hand(up).mesh_o, session.read_mesh()
     tracking = getattr(up["estimate_adjustment"], "tracking", None)
     if tracking is not None:

@@ -18,7 +18,9 @@ object's mesh is known, so the object is registered into that depth, frame by fr
 - robust (Tukey) coarse-to-fine point-to-plane ICP of those points onto the mesh's surface
   samples (:func:`registration.engine.refine`), from two starts: the propagated pose and the
   previous frame's tracked pose (when one was tracked at most ``previous_within`` frames
-  before: the camera moves little between frames, far less than stage 2's error);
+  before: the camera moves little between frames, far less than stage 2's error); the
+  propagated start first, the previous one only when the first's result is not kept
+  (``first_start_suffices``: half the ICP of most tracked frames);
 - the ICP correction is kept only along the directions the points constrain
   (``min_constraint``: the eigen-directions of their point-to-plane information), so a flat
   face's slide and in-plane turn, or a can's turn about its axis, stay where the start put
@@ -48,7 +50,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -153,6 +155,18 @@ class TrackObjectConfig(StageConfig):
     previous_within: int = 3
     """The previous tracked pose is a start when it was tracked at most this many frames
     before (0: the propagated pose is the only start)."""
+    first_start: Literal["propagated", "previous"] = "propagated"
+    """The start tried first..."""
+    first_start_suffices: bool = True
+    """...and when its result passes every gate and would be kept (agreement, gain), the
+    other start is not tried (half the ICP of such a frame). False: both starts always run
+    and the lower depth cost wins."""
+    same_start_deg: float = 1.0
+    """The second start is not tried when it lies within this rotation...
+    """
+    same_start_m: float = 0.002
+    """...and this displacement of the object's centre from the first (ICP from either ends in
+    the same place)."""
     registration: RegistrationConfig = RegistrationConfig(
         icp_voxels_m=(0.004, 0.0025, 0.0015), icp_max_distance_m=(0.02, 0.008, 0.004),
         icp_max_points=2000, eval_max_points=3000,
@@ -355,6 +369,20 @@ def _scored(depth: np.ndarray, K: np.ndarray, mesh: tuple, T_c_o: np.ndarray,
     return share, share * rms**2 + (1.0 - share) * config.agree_tol_m**2
 
 
+def _verdict(best: _Tried, cost_prop: float, config: TrackObjectConfig
+             ) -> tuple[str | None, float]:
+    """(why the candidate is not kept or None, its gain over the propagated pose's depth
+    cost ``cost_prop``)."""
+    gain = 1.0 - best.cost / cost_prop if cost_prop > 0 else 0.0
+    if best.agreement < config.min_agreement:
+        return (f"not tracked: the depth agrees with the tracked pose on "
+                f"{best.agreement:.0%} (need {config.min_agreement:.0%})"), gain
+    if gain < config.min_gain:
+        return (f"not tracked: the depth explains the tracked pose {gain:.0%} better than "
+                f"the propagated one (need {config.min_gain:.0%})"), gain
+    return None, gain
+
+
 @single_threaded()
 def track_object(
     T_c_o: np.ndarray,
@@ -399,6 +427,9 @@ def track_object(
         pose_starts = [(PROPAGATED, T_prop)]
         if last is not None and 0 < f - last[0] <= config.previous_within:
             pose_starts.append((PREVIOUS, last[1]))
+        T_mask = pose_starts[-1][1]  # the hand where the best-known pose puts it
+        if config.first_start == PREVIOUS:
+            pose_starts.reverse()
         raw = np.asarray(read_depth(int(f)))
         u0, v0, u1, v1 = _box(K, mesh[0], [T for _, T in pose_starts], raw.shape,
                               config.band_m + config.box_margin_m)
@@ -412,7 +443,6 @@ def track_object(
         K_box[:2, 2] -= (u0, v0)
         depth = _depth(raw[v0:v1, u0:u1], K_box, config)
         kp = np.asarray(keypoints[j], dtype=float) - (u0, v0, 0.0)
-        T_mask = pose_starts[-1][1]  # the hand where the best-known pose puts it
         if hand_mesh_o is None:
             hand = hand_mask_from_keypoints(kp[:, :2], kp[:, 2], depth.shape,
                                             config.bone_radius_px)
@@ -423,31 +453,37 @@ def track_object(
         if finest > 0:  # every ICP level and score works at or above this resolution
             points = np.asarray(to_pcd(points).voxel_down_sample(finest).points)
         tried, why = [], []
-        for start, T0 in pose_starts:
+        cost_prop: float | None = None
+        for k, (start, T0) in enumerate(pose_starts):
+            if k > 0 and config.first_start_suffices:
+                rot, move = _correction(model, pose_starts[0][1], T0)
+                if rot <= config.same_start_deg and move <= config.same_start_m:
+                    break
             r = _from_start(points, model, T0, start, T_prop, config)
             if isinstance(r, str):
                 why.append(f"from the {start} pose: {r}" if len(pose_starts) > 1 else r)
                 continue
             agree, cost = _scored(depth, K_box, mesh, r.T_c_o, keep, config)
-            tried.append(_Tried(r.T_c_o, r.start, r.fitness, r.rmse_m, agree, cost))
-        if tried and joints_o is not None:
-            tried, far = _hand_agrees(tried, T_prop, joints_o, K_box, kp, config)
-            why += far
+            t = _Tried(r.T_c_o, r.start, r.fitness, r.rmse_m, agree, cost)
+            if joints_o is not None:
+                ok, far = _hand_agrees([t], T_prop, joints_o, K_box, kp, config)
+                why += far
+                if not ok:
+                    continue
+            tried.append(t)
+            if config.first_start_suffices and len(pose_starts) > 1 and len(tried) == 1:
+                if cost_prop is None:
+                    cost_prop = _scored(depth, K_box, mesh, T_prop, keep, config)[1]
+                if _verdict(t, cost_prop, config)[0] is None:
+                    break  # kept: the other start need not run
         best = min(tried, key=lambda t: (t.cost, -t.agreement), default=None)
         reason = None
         if best is None:
             reason = "not tracked: " + "; ".join(why)
         else:
-            cost_prop = _scored(depth, K_box, mesh, T_prop, keep, config)[1]
-            gain = 1.0 - best.cost / cost_prop if cost_prop > 0 else 0.0
-            nums[5, j] = gain
-            if best.agreement < config.min_agreement:
-                reason = (f"not tracked: the depth agrees with the tracked pose on "
-                          f"{best.agreement:.0%} (need {config.min_agreement:.0%})")
-            elif gain < config.min_gain:
-                reason = (f"not tracked: the depth explains the tracked pose "
-                          f"{gain:.0%} better than the propagated one "
-                          f"(need {config.min_gain:.0%})")
+            if cost_prop is None:
+                cost_prop = _scored(depth, K_box, mesh, T_prop, keep, config)[1]
+            reason, nums[5, j] = _verdict(best, cost_prop, config)
         reasons.append(reason)
         starts.append(None if reason else best.start)
         if reason is None:

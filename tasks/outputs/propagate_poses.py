@@ -34,7 +34,7 @@ from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.object_pose.track_object import ObjectTracking
 from graspcap.tasks.outputs.frame_validity import FrameValidity, FrameValidityConfig
 
-STAGE_VERSION = "propagate_poses/4"
+STAGE_VERSION = "propagate_poses/5"
 STAGE = "propagate_poses"
 
 

@@ -170,3 +170,30 @@ def test_a_T_w_o_registered_off_comes_back_as_the_mean_over_tracked_frames(held)
     T_o_p = inv_T(T_w_o) @ up["fit_hand"].T_w_p
     for T_c_o, T_c_p in zip(prop.T_c_o, prop.T_c_p, strict=True):
         np.testing.assert_allclose(inv_T(T_c_o) @ T_c_p, T_o_p, atol=1e-9)
+
+
+def test_a_kept_first_start_spares_the_other(held, monkeypatch):
+    """With ``first_start_suffices`` a frame whose first start's result is kept runs one ICP,
+    not two; both modes track the perturbed frames back near the truth."""
+    from graspcap.tasks.object_pose import track_object
+
+    _, truth, _ = held
+    calls = []
+    real = track_object._from_start
+
+    def counted(*args, **kwargs):
+        calls.append(args[3])  # the start's name
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(track_object, "_from_start", counted)
+    results = {}
+    for suffices in (True, False):
+        calls.clear()
+        prop = _run(held, TrackObjectConfig(first_start_suffices=suffices))
+        results[suffices] = (prop, list(calls))
+        assert np.median(_errors(truth, prop)[:, 0]) < 1.0
+    (one, calls_one), (_, calls_both) = results[True], results[False]
+    assert len(calls_one) < len(calls_both), (calls_one, calls_both)
+    # the propagated start first: it runs in every frame, the previous one only after it
+    assert calls_one.count(track_object.PROPAGATED) == len(one.frame_indices)
+    assert one.tracking.tracked.sum() >= 0.8 * len(one.frame_indices)
