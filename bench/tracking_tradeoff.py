@@ -13,13 +13,16 @@ camera (median over frames) carried by stage 2's cameras and by the delivered on
 would be with ``T_w_o`` re-estimated from the tracked frames:
 
 - ``average``: the robust mean over tracked frames of ``T_w_c_stage2[i] @ T_c_o_tracked[i]``
-  (each frame measures the object in the hand's world through its stage 2 camera);
+  (each frame measures the object in the hand's world through its stage 2 camera): what
+  ``estimate_adjustment/18`` does (``tracked_average``), so on results of that code the
+  delivered column already has it;
 - ``keypoints``: the rigid correction of the hand's joints in the object frame that best
   reprojects them, carried by each tracked object pose, onto the detected keypoints (Cauchy
   loss, frames no pose explains dropped, one refit).
 
-Neither is in the pipeline: moving ``T_w_o`` after ``refine_grasp`` would break the grasp's
-consistency (the hand in the object frame), so a change belongs in ``estimate_adjustment``.
+Moving ``T_w_o`` after ``refine_grasp`` would break the grasp's consistency (the hand in the
+object frame), so the mean is taken in ``estimate_adjustment``; the keypoint estimate is not
+in the pipeline (one session of five 7.5 -> 18.7 mm: a large hand's 28 px keypoint noise).
 Sessions run bare (``run_session``, default configs) and their results are cached under
 ``--root`` (``results.pkl``).
 """
@@ -36,6 +39,7 @@ from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import load_truth
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import from_rotvec, inv_T, transform_points
+from graspcap.tasks.object_pose.tracked_average import average_object_pose
 from graspcap.tasks.pipeline import _ideal_keypoints, _load, configs_for, run_session
 
 
@@ -54,16 +58,12 @@ def results_for(d: Path) -> dict | None:
     return res
 
 
-def average_T_w_o(T_w_c: np.ndarray, T_c_o: np.ndarray) -> np.ndarray:
-    """(4, 4) robust mean of the per-frame object poses in the world ``T_w_c[i] @ T_c_o[i]``:
-    chordal mean rotation, median translation."""
-    from scipy.spatial.transform import Rotation
-
-    T = np.einsum("mij,mjk->mik", T_w_c, T_c_o)
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_matrix(T[:, :3, :3]).mean().as_matrix()
-    out[:3, 3] = np.median(T[:, :3, 3], axis=0)
-    return out
+def average_T_w_o(T_w_c: np.ndarray, T_c_o: np.ndarray, centre_o: np.ndarray) -> np.ndarray:
+    """(4, 4) the robust mean of the per-frame object poses in the world ``T_w_c[i] @ T_c_o[i]``
+    (``estimate_adjustment``'s :func:`tracked_average.average_object_pose`, every frame given
+    as tracked)."""
+    out = average_object_pose(T_w_c, T_c_o, np.ones(len(T_w_c), bool), centre_o)
+    return out.T_w_o if out.T_w_o is not None else np.full((4, 4), np.nan)
 
 
 def keypoint_correction(T_c_o: np.ndarray, keypoints: np.ndarray, K: np.ndarray,
@@ -131,7 +131,8 @@ def session_row(d: Path, res: dict) -> str:
         return row + "| - | - |"
     session = _load(d, configs_for()["load_session"])
     keypoints = _ideal_keypoints(session, res["detect_keypoints"].keypoints[prop.frame_indices])
-    T_avg = average_T_w_o(np.asarray(rec.T_w_c)[tracked], T_c_o[tracked])
+    T_avg = average_T_w_o(np.asarray(rec.T_w_c)[tracked], T_c_o[tracked],
+                          np.asarray(session.read_mesh()[0], float).mean(axis=0))
     A = keypoint_correction(T_c_o[tracked], keypoints[tracked], session.color_K,
                             transform_points(inv_T(T_w_o), joints_w))
     return row + (f"| {hand_error_mm(cameras(T_avg)):.1f} "

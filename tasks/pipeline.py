@@ -32,13 +32,18 @@ from graspcap.tasks.hand_sfm import crosscheck_sfm, joint_solve, reconstruct_han
 from graspcap.tasks.hand_sfm.metric_scale import depth_lookup
 from graspcap.tasks.keypoints import detect_keypoints
 from graspcap.tasks.keypoints.detect_keypoints import why_missing
-from graspcap.tasks.object_pose import estimate_adjustment, register_object, register_scan
+from graspcap.tasks.object_pose import (
+    estimate_adjustment,
+    register_object,
+    register_scan,
+    track_object,
+    tracked_average,
+)
 from graspcap.tasks.outputs import (
     frame_validity,
     pictures,
     propagate_poses,
     qa_metrics,
-    track_object,
 )
 from graspcap.tasks.session import load_session
 from graspcap.tasks.session.load_session import Session
@@ -125,8 +130,9 @@ def _detect_keypoints(session: Session, config, **up):
 DEPTH_CACHE_BYTES = 512 * 2**20
 """Decoded grasp depth (float32 metres) a stage that visits frames more than once keeps: as
 many frames as fit (at least 4). select_steady's depth onset reads each frame up to six times
-(hand centres, two registrations, two free-space checks) and propagate_poses twice (tracking,
-validity); decoding a depth PNG costs ~10 ms."""
+(hand centres, two registrations, two free-space checks); decoding a depth PNG costs ~10 ms.
+The stages that read each frame once, in order (estimate_adjustment's tracking,
+propagate_poses' validity), keep the reader's default few."""
 
 
 def _depth_reader(session: Session) -> Callable[[int], np.ndarray]:
@@ -189,15 +195,48 @@ def _fit_hand(session: Session, config, **up):
 
 
 def _estimate_adjustment(session: Session, config, **up):
+    """``T_adj`` registered in the first steady frame(s); with ``config.tracking.enabled`` the
+    object then tracked in every steady frame's depth and, with ``config.average.enabled``,
+    ``T_w_o`` the robust mean of the tracked frames' poses (:mod:`tracked_average`)."""
     s, sfm, stage1 = up["select_steady"].steady_from, up["reconstruct_hand"], up["register_object"]
-    hand = up["fit_hand"].mesh()
-    return estimate_adjustment.estimate_adjustment_steady(
+    hand, mesh = up["fit_hand"].mesh(), session.read_mesh()
+    frames = np.arange(s, s + len(sfm.T_w_c))
+    keypoints = _ideal_keypoints(session, up["detect_keypoints"].keypoints[frames])
+    adj = estimate_adjustment.estimate_adjustment_steady(
         lambda k: session.read_depth_m(session.grasp_path("depth", s + k)), session.color_K,
-        *session.read_mesh(), (hand.vertices, hand.faces),
-        _ideal_keypoints(session, up["detect_keypoints"].keypoints[s : s + len(sfm.T_w_c)]),
-        sfm.T_w_c, sfm.pose_valid,
+        *mesh, (hand.vertices, hand.faces), keypoints, sfm.T_w_c, sfm.pose_valid,
         stage1.T_w_o, config, T_w_o_stage1_alt=stage1.second_hypothesis,
     )
+    return _track_adjustment(session, config, adj, **up)
+
+
+def _track_adjustment(session: Session, config, adj: estimate_adjustment.Adjustment, **up):
+    """``adj``'s object tracked in every steady frame's depth (``config.tracking``), and its
+    ``T_w_o`` the robust mean over the tracked frames (``config.average``)."""
+    if not config.tracking.enabled:
+        return adj
+    s, sfm, stage1 = up["select_steady"].steady_from, up["reconstruct_hand"], up["register_object"]
+    hand, mesh = up["fit_hand"].mesh(), session.read_mesh()
+    frames = np.arange(s, s + len(sfm.T_w_c))
+    keypoints = _ideal_keypoints(session, up["detect_keypoints"].keypoints[frames])
+    T_o_w = inv_T(adj.T_w_o)
+    tracking = track_object.track_object(
+        np.stack([inv_T(T) @ adj.T_w_o for T in sfm.T_w_c]),
+        frames, session.grasp_depth_reader(), session.color_K, mesh,
+        (transform_points(T_o_w, hand.vertices), hand.faces), keypoints, config.tracking,
+        joints_o=transform_points(T_o_w, sfm.joints_w),
+    )
+    adj = replace(adj, tracking=tracking)
+    if not config.average.enabled:
+        return adj
+    average = tracked_average.average_object_pose(
+        sfm.T_w_c, tracking.T_c_o, tracking.tracked, np.asarray(mesh[0], float).mean(axis=0),
+        config.average,
+    )
+    if average.T_w_o is None:
+        return replace(adj, average=average)
+    return replace(adj, T_w_o=average.T_w_o, T_adj=average.T_w_o @ inv_T(stage1.T_w_o),
+                   T_w_o_first=adj.T_w_o, average=average)
 
 
 def _register_scan(session: Session, config, **up):
@@ -247,14 +286,10 @@ def _propagate_poses(session: Session, config, **up):
             joints_fit_w=joints_hand_w, config=config,
         )
 
-    read_depth = _depth_reader(session)  # tracking and validity read every frame
+    read_depth = session.grasp_depth_reader()  # the validity reads each frame once, in order
     prop, hand_o, mesh = carry(sfm.T_w_c), _final_hand(up).mesh_o, session.read_mesh()
-    if config.tracking.enabled:
-        tracking = track_object.track_object(
-            prop.T_c_o, frames, read_depth, session.color_K, mesh, hand_o,
-            keypoints, config.tracking,
-            joints_o=transform_points(inv_T(prop.T_c_o[0]), prop.joints_c[0]),
-        )
+    tracking = getattr(up["estimate_adjustment"], "tracking", None)
+    if tracking is not None:
         T_w_c = propagate_poses.tracked_cameras(sfm.T_w_c, T_adj @ T_w_o1, tracking)
         prop = replace(carry(T_w_c), tracking=tracking)
     validity = frame_validity.frame_validity(

@@ -60,8 +60,10 @@ from graspcap.tasks.object_pose.registration.point_clouds import (
 )
 from graspcap.tasks.object_pose.registration.symmetry import axes_ill_defined
 from graspcap.tasks.object_pose.registration.twin_search import search_twins
+from graspcap.tasks.object_pose.track_object import ObjectTracking, TrackObjectConfig
+from graspcap.tasks.object_pose.tracked_average import TrackedAverage, TrackedAverageConfig
 
-STAGE_VERSION = "estimate_adjustment/17"
+STAGE_VERSION = "estimate_adjustment/18"
 STAGE = "estimate_adjustment"
 
 
@@ -197,6 +199,12 @@ class EstimateAdjustmentConfig(StageConfig):
     """Global registration and ICP settings (a probe's first ICP level against a quarter of
     the model's points). RANSAC keeps 20000 iterations per restart: with 5000 the realistic
     carton [9000, 0] came out 180 deg off (its symmetric twin never found, not flagged)."""
+    tracking: TrackObjectConfig = TrackObjectConfig()
+    """The object tracked in every steady frame's depth from the registered pose (the stage's
+    glue, :mod:`track_object`); ``propagate_poses`` defines the tracked frames' cameras from
+    it. ``enabled=False``: no tracking, stage 2's cameras as they are."""
+    average: TrackedAverageConfig = TrackedAverageConfig()
+    """``T_w_o`` as the robust mean over the tracked frames (:mod:`tracked_average`)."""
 
 
 PRESETS: dict[str, EstimateAdjustmentConfig] = {
@@ -243,6 +251,14 @@ class Adjustment:
     stage1_hypothesis: Stage1Hypothesis = Stage1Hypothesis.BEST
     views: int = 1
     """Frames the pose was registered in and scored against (``fitness`` is over all)."""
+    tracking: ObjectTracking | None = None
+    """The object tracked in every steady frame's depth (the stage's glue; None: not tracked).
+    Its ``T_c_o`` where not tracked is the pose carried from ``T_w_o_first``."""
+    T_w_o_first: np.ndarray | None = None
+    """The pose registered in the first steady frame(s) when ``T_w_o`` is the mean over the
+    tracked frames (:mod:`tracked_average`); None when ``T_w_o`` is that pose."""
+    average: TrackedAverage | None = None
+    """The mean over the tracked frames, or why there is none (None: not tried)."""
 
 
 @single_threaded()

@@ -6,10 +6,11 @@ The static hand's joints are carried into each camera and projected, and compare
 frame's detected 2D keypoints. Pure numpy, vectorised over frames.
 
 Stage 2's cameras come from 2D hand keypoints alone and are degrees off at realistic detector
-noise; every frame's object pose inherits it. With ``config.tracking.enabled`` the stage's glue
-(``tasks/pipeline.py``) tracks the object in each steady frame's own depth
-(:mod:`track_object`, from the propagated pose, bounded corrections) and, hand and object being
-one rigid body after the onset, a tracked pose defines that frame's camera:
+noise; every frame's object pose inherits it. ``estimate_adjustment``'s glue
+(``tasks/pipeline.py``, ``estimate_adjustment.tracking``) tracks the object in each steady
+frame's own depth (:mod:`track_object`, from the registered pose, bounded corrections) and takes
+``T_w_o`` as the mean over the tracked frames (:mod:`tracked_average`); here, hand and object
+being one rigid body after the onset, a tracked pose defines that frame's camera:
 ``T_w_c[i]' = T_w_o @ inv(T_c_o_tracked[i])`` (:func:`tracked_cameras`); the palm and the
 joints are carried by the same corrected cameras (``PosePropagation.T_w_c``, the cameras
 used; ``reconstruct_hand``'s own ``T_w_c`` is not changed). A frame the depth does not
@@ -30,10 +31,10 @@ import numpy as np
 from graspcap.schemas.transforms import rigidity_problems
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.object_pose.track_object import ObjectTracking
 from graspcap.tasks.outputs.frame_validity import FrameValidity, FrameValidityConfig
-from graspcap.tasks.outputs.track_object import ObjectTracking, TrackObjectConfig
 
-STAGE_VERSION = "propagate_poses/4"
+STAGE_VERSION = "propagate_poses/5"
 STAGE = "propagate_poses"
 
 
@@ -58,10 +59,6 @@ class PropagatePosesConfig(StageConfig):
     """Tolerance of the rigidity check on the input poses (max |R^T R - I|)."""
     validity: FrameValidityConfig = FrameValidityConfig()
     """Tolerances of the per-frame validity (``frame_validity``)."""
-    tracking: TrackObjectConfig = TrackObjectConfig()
-    """Per-frame tracking of the object in each steady frame's depth, and its gates
-    (:mod:`track_object`; ``enabled=False``: stage 2's cameras as they are, as
-    ``propagate_poses/2``)."""
 
 
 PRESETS: dict[str, PropagatePosesConfig] = {
@@ -101,7 +98,7 @@ class PosePropagation:
         (:func:`tracked_cameras`); the catalog's ``frames.T_w_c``.
     tracking : ObjectTracking or None
         Per frame: whether the object was tracked in its depth, and why not (the stage's glue
-        adds it when ``config.tracking.enabled``; None otherwise).
+        adds ``estimate_adjustment``'s tracking; None when it did not track).
     """
 
     frame_indices: np.ndarray

@@ -1,7 +1,9 @@
-"""propagate_poses' per-frame object tracking (``track_object``) on a synthetic session: stage
-2's cameras perturbed by a few degrees, the object tracked in each frame's depth comes back
-near the truth, the hand is carried by the cameras it defines, and with tracking disabled the
-stage is the paper's formula with the cameras it was given."""
+"""The per-frame object tracking (``track_object``, run by ``estimate_adjustment``'s glue, used by
+``propagate_poses``) on a synthetic session: stage 2's cameras perturbed by a few degrees, the
+object tracked in each frame's depth comes back near the truth, the hand is carried by the
+cameras it defines, a ``T_w_o`` registered off comes back as the mean over the tracked frames,
+and with tracking disabled ``propagate_poses`` is the paper's formula with the cameras it was
+given."""
 
 from __future__ import annotations
 
@@ -16,8 +18,14 @@ from graspcap.tasks import pipeline
 from graspcap.tasks.core.geometry import from_rotvec, inv_T, make_T, pose_error
 from graspcap.tasks.hand import fit_hand
 from graspcap.tasks.hand.model import HandSide
+from graspcap.tasks.object_pose.estimate_adjustment import (
+    Adjustment,
+    AdjustmentPath,
+    EstimateAdjustmentConfig,
+)
+from graspcap.tasks.object_pose.track_object import TrackObjectConfig
+from graspcap.tasks.object_pose.tracked_average import TrackedAverageConfig
 from graspcap.tasks.outputs.propagate_poses import PropagatePosesConfig, propagate_poses
-from graspcap.tasks.outputs.track_object import TrackObjectConfig
 
 
 @pytest.fixture(scope="module")
@@ -61,16 +69,30 @@ def held(tmp_path_factory):
         ),
         "fit_hand": fit,
         "register_object": SimpleNamespace(T_w_o=truth["T_w_o_stage1"]),
-        "estimate_adjustment": SimpleNamespace(
-            T_adj=truth["T_adj"], T_w_o=truth["T_adj"] @ truth["T_w_o_stage1"]),
+        "estimate_adjustment": _adjustment(truth["T_adj"] @ truth["T_w_o_stage1"], truth),
         "refine_grasp": None,
     }
     return session, truth, up
 
 
-def _run(held, tracking: TrackObjectConfig):
-    session, _, up = held
-    return pipeline._propagate_poses(session, PropagatePosesConfig(tracking=tracking), **up)
+def _adjustment(T_w_o: np.ndarray, truth) -> Adjustment:
+    """``estimate_adjustment``'s result as if it had registered ``T_w_o``, not yet tracked."""
+    return Adjustment(T_adj=T_w_o @ inv_T(truth["T_w_o_stage1"]), T_w_o=T_w_o, fitness=1.0,
+                      inlier_rmse_m=0.0, n_points=0, path=AdjustmentPath.STAGE1_ICP,
+                      ambiguous=False)
+
+
+def _run(held, tracking: TrackObjectConfig, average: bool = False,
+         T_w_o: np.ndarray | None = None):
+    """``estimate_adjustment``'s tracking (and mean, with ``average``) from ``T_w_o`` (default:
+    the truth), then ``propagate_poses``."""
+    session, truth, up = held
+    config = EstimateAdjustmentConfig(tracking=tracking,
+                                      average=TrackedAverageConfig(enabled=average))
+    start = up["estimate_adjustment"] if T_w_o is None else _adjustment(T_w_o, truth)
+    adj = pipeline._track_adjustment(session, config, start, **up)
+    return pipeline._propagate_poses(session, PropagatePosesConfig(),
+                                     **{**up, "estimate_adjustment": adj})
 
 
 def _errors(truth, prop) -> np.ndarray:
@@ -125,10 +147,35 @@ def test_tracking_disabled_is_the_paper_formula_with_the_given_cameras(held):
         np.testing.assert_array_equal(getattr(prop, name), getattr(plain, name))
 
 
+def test_a_T_w_o_registered_off_comes_back_as_the_mean_over_tracked_frames(held):
+    """One frame's registration off by 4 deg and 1 cm (its camera's error, or the object still
+    settling): every tracked frame measures the object in the hand's world again through its
+    own (perturbed) camera, and their mean is much closer to the truth. The grasp stays one
+    rigid body with the new pose."""
+    session, truth, up = held
+    T_true = truth["T_adj"] @ truth["T_w_o_stage1"]
+    centre = np.asarray(session.read_mesh()[0], float).mean(axis=0)
+    c_w = T_true[:3, :3] @ centre + T_true[:3, 3]
+    off = (make_T(np.eye(3), c_w + np.array([0.01, 0.0, 0.0]))
+           @ from_rotvec(np.radians(4.0) * np.array([0.0, 0.6, 0.8]), np.zeros(3))
+           @ make_T(np.eye(3), -c_w))  # fmt: skip
+    start = off @ T_true
+    prop = _run(held, TrackObjectConfig(), average=True, T_w_o=start)
+    adj_error = pose_error(start, T_true)
+    assert adj_error[0] > 3.5 and adj_error[1] > 0.009
+    # the mean of the tracked frames, as propagate_poses carried it
+    T_w_o = prop.T_w_c[0] @ prop.T_c_o[0]
+    rot_deg, trans_m = pose_error(T_w_o, T_true)
+    assert rot_deg < 0.4 * adj_error[0] and trans_m < 0.4 * adj_error[1], (rot_deg, trans_m)
+    T_o_p = inv_T(T_w_o) @ up["fit_hand"].T_w_p
+    for T_c_o, T_c_p in zip(prop.T_c_o, prop.T_c_p, strict=True):
+        np.testing.assert_allclose(inv_T(T_c_o) @ T_c_p, T_o_p, atol=1e-9)
+
+
 def test_a_kept_first_start_spares_the_other(held, monkeypatch):
     """With ``first_start_suffices`` a frame whose first start's result is kept runs one ICP,
     not two; both modes track the perturbed frames back near the truth."""
-    from graspcap.tasks.outputs import track_object
+    from graspcap.tasks.object_pose import track_object
 
     _, truth, _ = held
     calls = []

@@ -1,4 +1,6 @@
-"""Per-frame object tracking in each steady frame's own depth (issue 19, ``propagate_poses``).
+"""Per-frame object tracking in each steady frame's own depth (issue 19; run by
+``estimate_adjustment``'s glue, whose ``T_w_o`` becomes the mean over the tracked frames
+(:mod:`tracked_average`), and used by ``propagate_poses``).
 
 After the steady onset the hand and the object are one rigid body, and the paper carries the
 object into every frame with stage 2's virtual cameras: ``T_c_o[i] = inv(T_w_c[i]) @ T_w_o``.
@@ -40,7 +42,8 @@ A near-symmetric object (a bottle, a can) cannot flip: every correction starts f
 propagated pose or the previous frame's tracked one and is bounded, far below a twin's
 half turn; a turn about the symmetry axis the depth cannot see stays where the start put it.
 
-Pure numpy and Open3D; no Prefect. The stage's glue (``tasks/pipeline.py``) reads the depth.
+Pure numpy and Open3D; no Prefect. ``estimate_adjustment``'s glue (``tasks/pipeline.py``) reads
+the depth.
 """
 
 from __future__ import annotations
