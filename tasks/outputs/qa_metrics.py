@@ -36,7 +36,7 @@ from graspcap.tasks.outputs.qa_measures import (
     window_outlier_share,
 )
 
-STAGE_VERSION = "qa_metrics/8"
+STAGE_VERSION = "qa_metrics/9"
 STAGE = "qa_metrics"
 
 
@@ -318,7 +318,25 @@ def stage_notes(results: Mapping[str, Any]) -> list[str]:
     notes += [f"build_contactmap: {n}" for n in _attr(results, "build_contactmap", "notes") or ()]
     if _attr(results, "fit_hand", "shape_note"):
         notes.append(f"fit_hand: {_attr(results, 'fit_hand', 'shape_note')}")
+    if _first_camera_copied(results) and _T_w_o_averaged(results):
+        # the flag's worry, T_adj registered through a copied camera, does not apply: T_w_o is
+        # the mean over the tracked frames; frames.camera_solved marks the frame itself
+        notes.append("reconstruct_hand: the first steady frame has no pose of its own (a "
+                     "neighbour's was copied onto it); T_w_o is the mean over the tracked "
+                     "frames, not that frame's registration")
     return notes
+
+
+def _first_camera_copied(results: Mapping[str, Any]) -> bool:
+    valid = _attr(results, "reconstruct_hand", "pose_valid")
+    return valid is not None and len(valid) > 0 and not valid[0]
+
+
+def _T_w_o_averaged(results: Mapping[str, Any]) -> bool:
+    """``estimate_adjustment``'s ``T_w_o`` is the mean over the tracked frames, not the first
+    steady frame's registration (``tracked_average``)."""
+    average = _attr(results, "estimate_adjustment", "average")
+    return average is not None and getattr(average, "T_w_o", None) is not None
 
 
 def stage_warnings(results: Mapping[str, Any]) -> list[str]:
@@ -334,8 +352,7 @@ def stage_warnings(results: Mapping[str, Any]) -> list[str]:
     uncertain = _attr(results, "select_steady", "uncertain")
     if uncertain:
         reasons.append(f"select_steady: steady onset uncertain: {uncertain}")
-    valid = _attr(results, "reconstruct_hand", "pose_valid")
-    if valid is not None and len(valid) and not valid[0]:
+    if _first_camera_copied(results) and not _T_w_o_averaged(results):
         reasons.append("reconstruct_hand: the first steady frame, whose camera is the world "
                        "frame, has no pose of its own (a neighbour's was copied onto it)")
     n_behind = _attr(results, "propagate_poses", "n_behind")

@@ -271,6 +271,16 @@ def test_stage_warnings_flag_the_session(scene):
     results["refine_grasp"] = SimpleNamespace(accepted=False, reason="penetrates deeper")
     report = run(results, scene)  # a note: the stage-3 fit is judged by its own agreement
     assert report.verdict == Verdict.OK and "refinement rejected" in report.notes[0]
+    # the first steady frame's copied camera: a flag while T_adj rests on that frame's
+    # registration, a note once T_w_o is the mean over the tracked frames
+    results = good_results(V, contact)
+    results["reconstruct_hand"].pose_valid = (False,) + (True,) * 19
+    results["estimate_adjustment"].average = SimpleNamespace(T_w_o=np.eye(4))
+    report = run(results, scene)
+    assert report.verdict == Verdict.OK and report.flags == ()
+    assert any("first steady frame has no pose of its own" in n for n in report.notes)
+    results["estimate_adjustment"].average = SimpleNamespace(T_w_o=None)  # too few tracked
+    assert run(results, scene).verdict == Verdict.FLAGGED
     for stage, note in (("register_object", "register_object: near-symmetric object"),
                         ("estimate_adjustment", "estimate_adjustment: ambiguous")):
         results = good_results(V, contact)  # resolved by the pipeline: a note, not a flag
