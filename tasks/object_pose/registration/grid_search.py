@@ -25,6 +25,7 @@ from graspcap.tasks.object_pose.registration.engine import (
     Candidate,
     Model,
     RegistrationConfig,
+    downsampled,
     rank,
     refine,
     strided,
@@ -98,7 +99,7 @@ def grid_candidates(
     else:
         view = centre - np.asarray(viewpoint, float)
         centroids = facing_centroids(model, rotations, view / max(np.linalg.norm(view), 1e-9))
-    coarse = strided(scene.voxel_down_sample(voxel_m) if voxel_m > 0 else scene, max_points)
+    coarse = strided(downsampled(scene, voxel_m) if voxel_m > 0 else scene, max_points)
     reach = max(cfg.icp_max_distance_m[0], reach_share * model.radius_m)
     levels = [cfg.model_copy(update={"icp_voxels_m": (0.0,), "icp_max_distance_m": (d,)})
               for d in (reach, cfg.icp_max_distance_m[0])]
