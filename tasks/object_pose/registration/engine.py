@@ -273,22 +273,20 @@ DOWNSAMPLED_KEPT = 8
 
 
 def downsampled(pcd: o3d.geometry.PointCloud, voxel_m: float) -> o3d.geometry.PointCloud:
-    """``pcd.voxel_down_sample(voxel_m)``, the cloud made before when this same cloud (the
-    object, held by the cache so that its id is not reused, with the same number of points
-    and the same sample of them) was downsampled at the same voxel on this thread (the result
-    is the same; nothing modifies it). A global search refines hundreds of starts and probes
-    on one scene, every ICP level downsampling it again: wild [9700, 2] spent 64 of 148 CPU s
-    so."""
+    """``pcd.voxel_down_sample(voxel_m)``, the cloud made before when a cloud with the same
+    points and normals was downsampled at the same voxel on this thread (the result is the
+    same; nothing modifies it). A global search refines hundreds of starts and probes on one
+    scene, every ICP level downsampling it again: wild [9700, 2] spent 64 of 148 CPU s so."""
     pts = np.asarray(pcd.points)
-    sample = np.ascontiguousarray(pts[:: max(len(pts) // 256, 1)])
-    key = (id(pcd), pts.shape, hashlib.sha1(sample).hexdigest(), pcd.has_normals(),
-           float(voxel_m))  # fmt: skip
+    nrm = np.asarray(pcd.normals) if pcd.has_normals() else np.zeros(0)
+    key = (pts.shape, hashlib.sha1(pts.tobytes()).hexdigest(), nrm.shape,
+           hashlib.sha1(nrm.tobytes()).hexdigest(), float(voxel_m))  # fmt: skip
     kept: OrderedDict = _DOWNSAMPLED.__dict__.setdefault("kept", OrderedDict())
     if key in kept:
         kept.move_to_end(key)
-        return kept[key][1]
+        return kept[key]
     out = pcd.voxel_down_sample(voxel_m)
-    kept[key] = (pcd, out)
+    kept[key] = out
     while len(kept) > DOWNSAMPLED_KEPT:
         kept.popitem(last=False)
     return out
