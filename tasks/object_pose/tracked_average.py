@@ -12,7 +12,7 @@ That pose is what the grasp is built on: the refined hand sits in the object fra
 and ``propagate_poses`` defines each tracked frame's camera as ``T_w_o @ inv(T_c_o[i])``, so the
 hand in a tracked frame is exactly as wrong as ``T_w_o``. On tuning seeds (real-detector
 [9700, i] i<6, ``docs/benchmarks.md``, session 12) the first frame's ``T_w_o`` put the hand in
-the tracked frames 19.9 and 12.4 mm off ([9700, 1], [9700, 4]); with this mean, 8.5 and 6.6 mm.
+the tracked frames 19.9 and 12.4 mm off ([9700, 1], [9700, 4]); with this mean, 8.7 and 6.6 mm.
 
 The mean: chordal mean rotation and median object centre, then the frames whose pose is more
 than ``outlier_factor`` median deviations from it (rotation, or the object centre's distance)
