@@ -270,8 +270,8 @@ def _refine_grasp(session: Session, config, **up):
 
 
 def _propagate_poses(session: Session, config, **up):
-    """The poses carried by stage 2's cameras; with ``config.tracking.enabled`` the object
-    tracked in each frame's depth and everything carried again by the cameras that defines
+    """The poses carried by stage 2's cameras, or on a frame where ``estimate_adjustment``
+    tracked the object in its depth by the camera that tracking defines
     (``propagate_poses.tracked_cameras``); then each frame's validity (its depth against the
     object at its pose)."""
     sfm, frames = up["reconstruct_hand"], np.arange(up["select_steady"].steady_from,
@@ -279,19 +279,15 @@ def _propagate_poses(session: Session, config, **up):
     T_w_p, _, joints_hand_w = final_pose(up["fit_hand"], up.get("refine_grasp"))
     keypoints = _ideal_keypoints(session, up["detect_keypoints"].keypoints[frames])
     T_adj, T_w_o1 = up["estimate_adjustment"].T_adj, up["register_object"].T_w_o
-
-    def carry(T_w_c: np.ndarray) -> propagate_poses.PosePropagation:
-        return propagate_poses.propagate_poses(
-            T_w_c, T_adj, T_w_o1, T_w_p, sfm.joints_w, session.color_K, frames, keypoints,
-            joints_fit_w=joints_hand_w, config=config,
-        )
-
-    read_depth = session.grasp_depth_reader()  # the validity reads each frame once, in order
-    prop, hand_o, mesh = carry(sfm.T_w_c), _final_hand(up).mesh_o, session.read_mesh()
     tracking = getattr(up["estimate_adjustment"], "tracking", None)
-    if tracking is not None:
-        T_w_c = propagate_poses.tracked_cameras(sfm.T_w_c, T_adj @ T_w_o1, tracking)
-        prop = replace(carry(T_w_c), tracking=tracking)
+    T_w_c = (sfm.T_w_c if tracking is None
+             else propagate_poses.tracked_cameras(sfm.T_w_c, T_adj @ T_w_o1, tracking))
+    prop = replace(propagate_poses.propagate_poses(
+        T_w_c, T_adj, T_w_o1, T_w_p, sfm.joints_w, session.color_K, frames, keypoints,
+        joints_fit_w=joints_hand_w, config=config,
+    ), tracking=tracking)
+    read_depth = session.grasp_depth_reader()  # the validity reads each frame once, in order
+    hand_o, mesh = _final_hand(up).mesh_o, session.read_mesh()
     validity = frame_validity.frame_validity(
         prop.frame_indices, keypoints, sfm.frames, sfm.pose_valid, sfm.inlier, prop.T_c_o,
         read_depth, session.color_K, mesh, hand_o, config.validity,

@@ -85,11 +85,12 @@ PREVIOUS = "previous"
 
 
 class TrackObjectConfig(StageConfig):
-    """Per-frame tracking of the object in each steady frame's depth (``propagate_poses``)."""
+    """Per-frame tracking of the object in each steady frame's depth
+    (``estimate_adjustment.tracking``)."""
 
     enabled: bool = True
-    """Track the object in every steady frame's depth and carry the hand with the corrected
-    cameras; False keeps stage 2's cameras, as ``propagate_poses/2`` did."""
+    """Track the object in every steady frame's depth (``propagate_poses`` carries the hand with
+    the cameras it defines); False keeps stage 2's cameras, as ``propagate_poses/2`` did."""
     max_range_m: float = 3.0
     """Depth beyond this is treated as invalid."""
     drop_flying: bool = True
