@@ -32,7 +32,7 @@ import numpy as np
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.core.geometry import inv_T
+from graspcap.tasks.core.geometry import inv_T, transform_points, umeyama
 from graspcap.tasks.hand import fit_hand as fit_hand_stage
 from graspcap.tasks.hand.fit_hand import FitHandConfig, HandFit
 from graspcap.tasks.hand.model import RIGID_PALM_POINTS, SURFACE_OFFSET_M, HandSide
@@ -52,6 +52,7 @@ from graspcap.tasks.hand_sfm.joint_frames import (
     residuals_px,
 )
 from graspcap.tasks.hand_sfm.metric_scale import DepthLookup, depth_lookup_from_frames
+from graspcap.tasks.hand_sfm.odometry_init import odometry_initialisation
 from graspcap.tasks.hand_sfm.reconstruct_hand import ReconstructConfig
 from graspcap.tasks.hand_sfm.result import HandReconstruction, SfmDiagnostics
 from graspcap.tasks.hand_sfm.solve import fill_poses, rotation_span_deg
@@ -61,7 +62,7 @@ from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 # gtsam: imported where used, so that importing the stage table stays cheap
 
 STAGE = "joint_solve"
-STAGE_VERSION = "joint_solve/4"
+STAGE_VERSION = "joint_solve/5"
 
 
 class HandPath(StrEnum):
@@ -120,6 +121,18 @@ class JointSolveConfig(StageConfig):
     """Sigma of the weak pull of every angle towards the rest pose."""
     scale_sigma: float = 0.5
     """Sigma of the log scale around its start (the range factors fix it)."""
+    chain_start: bool = True
+    """Where the detections are noisy (the staged solve measured more than
+    ``auto_noise_share`` of the hand's image size, or failed), start from the cameras chained
+    by the depth surfaces (``hand_sfm.odometry_init``: each steady frame's hand-and-object
+    surface registered onto its predecessor's, through frames without detections too, the
+    joints triangulated with those cameras and the hand fitted to them) when the chain poses
+    at least ``chain_min_share`` of the usable frames. Noisy detections pose the cameras to
+    several degrees at best (real-detector tuning sessions `[9700, i]`: 0.3-31 deg from the
+    staged start); the surfaces chain them to 0.5-1.5 deg, and the depth links hold them
+    there."""
+    chain_min_share: float = 0.5
+    """Least share of the usable frames the depth chain must pose to be the start."""
     start_references: int = 6
     """Reference frames tried by the depth start (when the staged path fails)."""
     start_min_share: float = 0.3
@@ -348,6 +361,49 @@ def _depth_start(uv, ok, K, readings, steady_from, side, cfg) -> _Start | str:
     return why if best is None else best[1]
 
 
+def _chain_start(surfaces, uv, ok, K, side, cfg, usable: int,
+                 fit: HandFit | None) -> _Start | None:
+    """The start from the cameras chained by the depth surfaces (``chain_start``), or None
+    where the chain poses fewer than ``chain_min_share`` of the ``usable`` frames. The hand is
+    the staged ``fit``'s (its articulation from every frame's detections) placed on the joints
+    triangulated with the chained cameras (rigid, robust), else fitted to those joints."""
+    init = odometry_initialisation(surfaces, uv, ok, K, cfg.depth_links,
+                                   ransac_px=cfg.ransac_px, min_points=cfg.min_points_per_frame,
+                                   min_frames=max(cfg.min_frames,
+                                                  int(np.ceil(cfg.chain_min_share * usable))))
+    if init is None:
+        return None
+    known = np.all(np.isfinite(init.points_w), axis=1)
+    if fit is not None:
+        T_w_p = _place(fit, init.points_w, known)
+        if T_w_p is not None:
+            return _Start(np.einsum("mab,bc->mac", init.T_c_w, T_w_p), fit.angles_rad,
+                          fit.scale, "chain")
+    try:
+        fit = fit_hand_stage.fit_hand(np.where(known[:, None], init.points_w, 0.0), side,
+                                      cfg.fit, weights=known.astype(float))
+    except StageError:
+        return None
+    return _Start(np.einsum("mab,bc->mac", init.T_c_w, fit.T_w_p), fit.angles_rad, fit.scale,
+                  "chain")
+
+
+def _place(fit: HandFit, points_w: np.ndarray, known: np.ndarray) -> np.ndarray | None:
+    """T_w_p placing ``fit``'s hand (its joints in its palm frame) on ``points_w`` (rigid
+    Umeyama over the ``known`` joints, refitted once without those beyond twice the median
+    distance); None with fewer than 4 known joints."""
+    J_p = transform_points(inv_T(fit.T_w_p), fit.joints_fit_w)
+    use = known.copy()
+    T = None
+    for _ in range(2):
+        if use.sum() < 4:
+            return T
+        T, _ = umeyama(J_p[use], points_w[use], with_scale=False)
+        d = np.linalg.norm(transform_points(T, J_p) - points_w, axis=1)
+        use = known & (d <= 2.0 * np.median(d[known]))
+    return T
+
+
 def _readings(depth_at: DepthLookup, uv, ok, conf, steady_from, min_conf) -> np.ndarray:
     """Depth (m, 21) at the confident detections (NaN elsewhere or without a reading)."""
     sample = ok & (conf >= min_conf)
@@ -389,7 +445,29 @@ def solve_from_start(
         raise fail(f"too few usable frames: fewer than {cfg.min_frames} frames from "
                    f"{steady_from} on have >= {cfg.min_points_per_frame} detected joints")
     readings = _readings(depth_at, uv, ok, conf, steady_from, cfg.depth_min_confidence)
-    if rec is not None and fit is not None:
+    usable = ok.sum(1) >= cfg.min_points_per_frame
+    surfaces: list = [None] * m
+    centred = np.full(m, -1)  # the frame whose detections place each frame's crop
+    confident = ok & (conf >= cfg.depth_min_confidence) & np.isfinite(readings)
+    if surface_at is not None:
+        for i in np.flatnonzero(usable & confident.any(1)):
+            surfaces[i] = surface_at(int(i), uv[i, confident[i]], readings[i, confident[i]])
+            centred[i] = i if surfaces[i] is not None else -1
+    chained = None
+    clean = rec is not None and not noisy(rec.diagnostics.noise_sigma_px,
+                                          rec.diagnostics.hand_size_px, cfg.auto_noise_share)
+    if cfg.chain_start and not clean and (centred >= 0).any():
+        # the chain also runs through frames without usable detections (a detector's runs of
+        # missed frames would break it), each cropped around its nearest detected neighbour
+        own = np.flatnonzero(centred >= 0)
+        chain_surfaces = list(surfaces)
+        for i in np.flatnonzero(centred < 0):
+            j = int(own[np.argmin(np.abs(own - i))])
+            chain_surfaces[i] = surface_at(int(i), uv[j, confident[j]], readings[j, confident[j]])
+        chained = _chain_start(chain_surfaces, uv, ok, K, side, cfg, int(usable.sum()), fit)
+    if chained is not None:
+        start = chained
+    elif rec is not None and fit is not None:
         start = _staged_start(rec, fit)
     else:
         found = _depth_start(uv, ok, K, readings, steady_from, side, cfg)
@@ -407,7 +485,6 @@ def solve_from_start(
             if pose is not None:
                 T_c_p[i] = pose
     posed = np.all(np.isfinite(T_c_p.reshape(m, -1)), axis=1)
-    usable = ok.sum(1) >= cfg.min_points_per_frame
     active = posed & usable
     offset = np.asarray(SURFACE_OFFSET_M)
     rejected = active & (depth_disagrees(T_c_p, J, start.scale * offset, readings, cfg)
@@ -418,13 +495,6 @@ def solve_from_start(
     priors = HandPriors(cfg.limit_sigma_rad, cfg.rest_sigma_rad, cfg.scale_sigma)
     gate = cfg.depth_gate_m
     frame_median = np.full(m, np.nan)
-    surfaces: list = [None] * m
-    if surface_at is not None:
-        confident = ok & (conf >= cfg.depth_min_confidence)
-        for i in np.flatnonzero(usable & confident.any(1)):
-            c = confident[i] & np.isfinite(readings[i])
-            if c.sum():
-                surfaces[i] = surface_at(int(i), uv[i, c], readings[i, c])
     sol: GraphSolve | None = None
     range_used = np.zeros((m, 21), bool)
     rounds = 0

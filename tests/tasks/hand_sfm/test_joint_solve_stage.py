@@ -90,14 +90,18 @@ def test_modes_pick_the_path(upstream):
 def test_auto_takes_the_staged_result_on_clean_detections_and_the_joint_solve_on_noisy(upstream):
     """``auto`` decides by the noise the staged solve measured: the easy session's detections
     are clean (well under 2.5 % of the hand), so the staged result stands; with a limit below
-    any measured noise the same session goes to the joint solve, from the staged start."""
+    any measured noise the same session goes to the joint solve, from the cameras the depth
+    surfaces chain (``chain_start``: noisy detections do not start the cameras)."""
     session, results = upstream
     clean = _path(session, results, HandPath.AUTO)["joint_solve"]
     diag = clean.reconstruction.diagnostics
     assert diag.noise_sigma_px < 0.025 * diag.hand_size_px
     assert clean.path == "staged" and clean.staged_error == ""
     strict = _path(session, results, HandPath.AUTO, auto_noise_share=0.0)["joint_solve"]
-    assert strict.path == "joint" and strict.start == "staged"
+    assert strict.path == "joint" and strict.start == "chain"
+    staged = _path(session, results, HandPath.AUTO, auto_noise_share=0.0,
+                   chain_start=False)["joint_solve"]
+    assert staged.path == "joint" and staged.start == "staged"
 
 
 @pytest.mark.parametrize(("sigma", "hand", "share", "expected"), [
