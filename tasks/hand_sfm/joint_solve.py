@@ -10,7 +10,8 @@ as whole frames before the solve is repeated. The range readings of the aligned 
 keypoints fix the metric scale, as in ``reconstruct_hand``.
 
 It starts from the staged solution when the staged path succeeds, else from the depth
-(``hand_sfm.depth_init``, the hand fitted to its backprojected joints). ``mode`` says what the
+(``hand_sfm.depth_init``, the hand fitted to its backprojected joints); on noisy detections the
+start's cameras are the depth surfaces' chain (``chain_start``). ``mode`` says what the
 stage returns: ``off`` nothing (``reconstruct_hand`` and ``fit_hand`` run the staged path),
 ``fallback`` the staged result where it succeeds and the joint solve where it fails,
 ``auto`` the staged result where its detections are clean (measured noise at most
@@ -125,12 +126,12 @@ class JointSolveConfig(StageConfig):
     """Where the detections are noisy (the staged solve measured more than
     ``auto_noise_share`` of the hand's image size, or failed), start from the cameras chained
     by the depth surfaces (``hand_sfm.odometry_init``: each steady frame's hand-and-object
-    surface registered onto its predecessor's, through frames without detections too, the
-    joints triangulated with those cameras and the hand fitted to them) when the chain poses
-    at least ``chain_min_share`` of the usable frames. Noisy detections pose the cameras to
-    several degrees at best (real-detector tuning sessions `[9700, i]`: 0.3-31 deg from the
-    staged start); the surfaces chain them to 0.5-1.5 deg, and the depth links hold them
-    there."""
+    surface registered onto its predecessor's, through frames without detections too; the
+    staged fit's hand placed on the joints those cameras triangulate, or fitted to them where
+    the staged path failed) when the chain poses at least ``chain_min_share`` of the usable
+    frames. Noisy detections pose the cameras to several degrees at best (real-detector
+    tuning sessions `[9700, i]`: 0.3-31 deg from the staged start); the surfaces chain them to
+    0.4-1.7 deg, and the depth links hold them there (`docs/hand_solver.md`, "Session 13")."""
     chain_min_share: float = 0.5
     """Least share of the usable frames the depth chain must pose to be the start."""
     start_references: int = 6
