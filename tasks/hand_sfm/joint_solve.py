@@ -63,7 +63,7 @@ from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 # gtsam: imported where used, so that importing the stage table stays cheap
 
 STAGE = "joint_solve"
-STAGE_VERSION = "joint_solve/5"
+STAGE_VERSION = "joint_solve/6"
 
 
 class HandPath(StrEnum):
@@ -286,10 +286,22 @@ def joint_solve(
             stride_px=link_cfg.stride_px, min_height_m=link_cfg.min_height_m,
         )
 
+    def solve(rec=None, fit=None, staged_error=""):
+        """The joint solve; where it fails from the depth chain's start, once more from the
+        start it would have had without it (a chain that slid can leave no depth reading
+        agreeing with the hand it places)."""
+        args = (keypoints, K, steady_from, depth_at, side)
+        try:
+            return solve_from_start(*args, cfg, rec, fit, staged_error, surface_at)
+        except StageError:
+            if not cfg.chain_start:
+                raise
+            unchained = cfg.model_copy(update={"chain_start": False})
+            return solve_from_start(*args, unchained, rec, fit, staged_error, surface_at)
+
     found = staged(cfg.staged)
     if isinstance(found, str):  # the joint solve starts from the depth
-        return solve_from_start(keypoints, K, steady_from, depth_at, side, cfg,
-                                staged_error=found, surface_at=surface_at)
+        return solve(staged_error=found)
     rec, fit = found
     diag = rec.diagnostics
     if cfg.mode is HandPath.FALLBACK or (cfg.mode is HandPath.AUTO and not noisy(
@@ -297,8 +309,7 @@ def joint_solve(
         m = len(rec.frames)
         return JointSolve(rec, fit, "staged", "", "", np.ones(20), np.zeros(m, bool),
                           np.full(m, np.nan), 0, 0)
-    return solve_from_start(keypoints, K, steady_from, depth_at, side, cfg, rec, fit,
-                            surface_at=surface_at)
+    return solve(rec, fit)
 
 
 def noisy(sigma_px: float, hand_px: float, share: float) -> bool:
