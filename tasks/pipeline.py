@@ -29,6 +29,7 @@ from graspcap.tasks.hand import fit_hand, refine_grasp
 from graspcap.tasks.hand.final import FinalHand, final_hand, final_pose
 from graspcap.tasks.hand.model import SURFACE_OFFSET_M, HandSide
 from graspcap.tasks.hand_sfm import crosscheck_sfm, joint_solve, reconstruct_hand, select_steady
+from graspcap.tasks.hand_sfm.frame_screen import hand_size_px
 from graspcap.tasks.hand_sfm.metric_scale import depth_lookup
 from graspcap.tasks.keypoints import detect_keypoints
 from graspcap.tasks.keypoints.detect_keypoints import why_missing
@@ -301,8 +302,14 @@ def _final_hand(up: Mapping[str, Any]) -> FinalHand:
 
 
 def _qa_metrics(session: Session, config, **up):
+    """QA of the session; the hand's image size (median over the steady frames of the
+    detections' bounding-box diagonal) tells noisy detections from clean ones."""
+    frames = up["reconstruct_hand"].frames if up.get("reconstruct_hand") is not None else []
+    kp = np.asarray(up["detect_keypoints"].keypoints, dtype=float)[np.asarray(frames, int)]
+    sizes = hand_size_px(kp[..., :2], (kp[..., 2] > 0) & np.all(np.isfinite(kp), axis=2))
+    size = float(np.nanmedian(sizes)) if np.isfinite(sizes).any() else None
     return qa_metrics.qa_metrics(up, config, object_mesh=session.read_mesh(),
-                                 hand_mesh_o=_final_hand(up).mesh_o)
+                                 hand_mesh_o=_final_hand(up).mesh_o, hand_size_px=size)
 
 
 def _pictures(session: Session, config, **up):

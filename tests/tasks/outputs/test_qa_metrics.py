@@ -394,3 +394,34 @@ def test_a_hand_our_model_does_not_fit_is_not_flagged(scene):
     assert run(results, scene, PRESETS["default"]).verdict == Verdict.OK
     results["fit_hand"].rmse_mm = 24.0  # the SfM hand itself is wrong
     assert run(results, scene, PRESETS["default"]).verdict == Verdict.FAILED
+
+
+def test_noisy_detections_are_judged_by_what_does_not_depend_on_the_pixels(scene):
+    """A real detector's reprojection RMSE (10 % of a 200 px hand) and what follows from it
+    (a pixels-only cross-check far off, the joint solve's ray residual) are noted, not
+    failed; the session then stands on its registrations and contact; beyond
+    ``noisy_fail_share`` no hand explains the detections and it fails."""
+    V, F, hand, contact = scene
+    noisy = good_results(V, contact)
+    noisy["reconstruct_hand"].reproj_rmse_px = 20.0
+    noisy["reconstruct_hand"].inlier_ratio = 0.8
+    noisy["crosscheck_sfm"].max_rgbd_joint_discrepancy_m = 0.05
+    noisy["fit_hand"].rmse_mm = 19.0
+    clean_size = run(noisy, scene)  # without the hand's size: judged as before
+    assert clean_size.verdict == Verdict.FAILED
+    default_hand = scene[2]
+    report = qa_metrics(noisy, PRESETS["default"], object_mesh=(V, F), hand_mesh_o=default_hand,
+                        hand_size_px=200.0)
+    assert report.verdict == Verdict.OK, report.summary()
+    assert any(n.startswith("noisy detections: reprojection RMSE 20.0 px is 10.0%")
+               for n in report.notes)
+    assert report.metrics["reproj_rmse_px"] == 20.0  # still measured and stored
+    big = qa_metrics(noisy, PRESETS["default"], object_mesh=(V, F), hand_mesh_o=default_hand,
+                     hand_size_px=60.0)  # 33 % of the hand
+    assert big.verdict == Verdict.FAILED and "no one hand explains" in big.failures[0]
+    wrong = good_results(V, contact)  # noisy and the scan registration is off: still caught
+    wrong["reconstruct_hand"].reproj_rmse_px = 20.0
+    wrong["register_scan"].fitness = 0.5
+    caught = qa_metrics(wrong, PRESETS["default"], object_mesh=(V, F), hand_mesh_o=default_hand,
+                        hand_size_px=200.0)
+    assert caught.verdict == Verdict.FAILED and any("scan" in f for f in caught.failures)
