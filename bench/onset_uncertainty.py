@@ -71,7 +71,7 @@ def run(d: Path, out: Path) -> dict:
         "scores_px": [None if not np.isfinite(v) else float(v) for v in sel.scores_px],
         "depth_share": [None if not np.isfinite(v) else float(v) for v in sel.depth_share],
     }
-    for key in ("depth_contrast", "late_share"):
+    for key in ("depth_moving_to",):
         if hasattr(sel, key):
             row[key] = getattr(sel, key)
     out.write_text(json.dumps(row))
@@ -111,8 +111,10 @@ def report(rows: list[tuple[str, dict]]) -> None:
         err = row["steady_from"] - row["truth"]
         sig = signals(row)
         sig_s = " ".join(f"{k} {v:.2f}" for k, v in sig.items())
-        print(f"{profile:14s} {row['name']:28s} err {err:+3d} kp {row['keypoint_from'] - row['truth']:+3d} "
-              f"depth {row['depth_from']:3d} truth {row['truth']:3d} {sig_s} "
+        kp = row["keypoint_from"] - row["truth"]
+        print(f"{profile:14s} {row['name']:28s} err {err:+3d} kp {kp:+3d} "
+              f"moving to {row.get('depth_moving_to', -1):3d} depth {row['depth_from']:3d} "
+              f"truth {row['truth']:3d} {sig_s} "
               f"{'WRONG' if abs(err) > 3 else 'ok   '} unc: {row['uncertain'][:90]!r}")
     print()
     print(f"{'profile':14s} {'sessions':>8s} {'within 3':>9s} {'wrong marked':>13s} "
