@@ -41,8 +41,9 @@ Detection, a change point in how rigid the hand is:
    not fall (a misfit the depth cannot tell from a settling hand), frames without a surface
    or without the hand detected between them leave the onset anywhere in that span. A surface
    that turned rigid and deformed again (two candidate ends), or a change on the searched
-   window's last frame (the deformation goes on past it), are ambiguous too. Each marks the
-   selection uncertain with its reason.
+   window's last frame (the deformation goes on past it), are ambiguous too, and so is a
+   change with no deformation seen before it. Each marks the selection uncertain with its
+   reason.
 """
 
 from __future__ import annotations
@@ -156,7 +157,8 @@ class SelectSteadyConfig(StageConfig):
     """The depth onset is moved this many frames later: the last frames of a settling grasp
     move the surface by less than ``depth_far_m`` in all, so the share reaches the steady
     level 1-2 frames before the motion ends (tuning: 60-frame realistic onsets -1 to -4,
-    median -2, without it)."""
+    median -2, without it). Never past a frame without the hand detected: the change point
+    itself is kept then."""
     depth_strong_share: float = 0.2
     """A frame whose share is at least this is seen deforming (the fingers closing, the
     object lifted: 0.3-1 of the surface), above the misfits of a rigid surface (0-0.12 on
@@ -467,6 +469,9 @@ def _depth_doubt(share, z, depth_from, onset, at_end, cfg) -> tuple[str, int]:
     last frame seen deforming)."""
     drift = cfg.depth_drift_sigmas
     last = steady_depth.last_deforming(share, z, depth_from, cfg.depth_strong_share, drift)
+    if last < 0:
+        return (f"the depth sees no deformation before its change point (frame {depth_from}): "
+                "the adjustment phase is not seen; set grasp.steady_from in session.json"), last
     if at_end:
         return (f"the surface still deforms at frame {depth_from}, the last searched frame: "
                 "the grasp's end lies later or the depth misfits a rigid surface; set "
@@ -560,8 +565,10 @@ def select_steady(
     if cfg.depth_onset and depth_frame is not None and T_color_turntable is not None:
         depth_from, share_of, z_depth, at_end = _depth_onset(
             uv, ok, K, onset, depth_frame, np.asarray(T_color_turntable, float), cfg)
-        if depth_from >= 0:
-            onset = min(depth_from + cfg.depth_lag_frames, n - 1)
+        if depth_from >= 0:  # the lag never carries the onset past frames without the hand
+            want = min(depth_from + cfg.depth_lag_frames, n - 1)
+            near = detected[(detected >= depth_from) & (detected <= want)]
+            onset = int(near[-1]) if len(near) else want
     onset = int(detected[np.searchsorted(detected, onset)]) if onset <= detected[-1] else n
     if onset >= n - 2:
         raise StageError(

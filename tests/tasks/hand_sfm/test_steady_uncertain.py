@@ -109,3 +109,9 @@ def test_two_candidate_ends_are_marked():
 def test_a_change_on_the_last_searched_frame_is_marked():
     why, _ = _doubt([0.6, 0.6, 0.6, 0.6, 0.5], 4, onset=4, at_end=True)
     assert why.startswith("the surface still deforms at frame 4, the last searched frame")
+
+
+def test_a_change_with_no_deformation_before_it_is_marked():
+    why, last = _doubt([0.8, 0.0, 0.0, 0.0, 0.0], 0)
+    assert last == -1
+    assert why.startswith("the depth sees no deformation before its change point (frame 0)")
