@@ -4,10 +4,14 @@ instead of a silently wrong onset."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from graspcap.synth import config_for, generate_session
+from graspcap.synth.evaluate import load_truth
 from graspcap.synth.hand_video import make_hand_video
 from graspcap.tasks.hand_sfm.select_steady import SelectSteadyConfig, select_steady
 from graspcap.tasks.outputs.qa_metrics import stage_warnings
+from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
 
 
 def test_a_clear_onset_is_not_marked():
@@ -115,3 +119,17 @@ def test_a_change_with_no_deformation_before_it_is_marked():
     why, last = _doubt([0.8, 0.0, 0.0, 0.0, 0.0], 0)
     assert last == -1
     assert why.startswith("the depth sees no deformation before its change point (frame 0)")
+
+
+@pytest.mark.slow
+def test_a_wild_session_with_two_candidate_ends_is_marked(tmp_path):
+    """Tuning session wild [9700, 11], 40 frames: the surface turns rigid at the true onset
+    (frame 10) and deforms again in frames 12-17 (a misfit of the rigid surface); the depth's
+    change point is the later end, 8-9 frames late, and the selection says so."""
+    d = generate_session(tmp_path, [9700, 11], config_for("wild", 40))
+    res: dict = {}
+    for name in ("load_session", "detect_keypoints", "select_steady"):
+        res[name] = run_stage(STAGES[name], d, configs_for()[name], res)
+    sel, truth = res["select_steady"], int(load_truth(d)["steady_from"])
+    assert sel.depth_from >= 0 and sel.steady_from - truth > 3
+    assert sel.uncertain.startswith(f"the surface is rigid at frame {truth}")
