@@ -32,8 +32,18 @@ Detection, a change point in how rigid the hand is:
    frame's surface rigidly onto the one ``depth_gap`` frames later and measures the share of
    it that the other frame sees through; that share's change point (a CUSUM standardised by
    the last known frames), searched from ``depth_before`` frames before the keypoint onset to
-   ``depth_after`` frames after it, replaces the keypoint onset when enough frames have a
-   surface (``depth_min_share``).
+   ``depth_after`` frames after it (from the first frame when the change lands on the
+   window's first frame: the keypoint onset was late), moved ``depth_lag_frames`` later,
+   replaces the keypoint onset when enough frames have a surface (``depth_min_share``).
+6. Whether the depth's onset can be trusted: the last frame the grasp is seen deforming in
+   (a share of at least ``depth_strong_share``, or still falling towards the steady level)
+   and the onset must be at most ``depth_max_span`` frames apart; weak non-rigidity that does
+   not fall (a misfit the depth cannot tell from a settling hand), frames without a surface
+   or without the hand detected between them leave the onset anywhere in that span. A surface
+   that turned rigid and deformed again (two candidate ends), or a change on the searched
+   window's last frame (the deformation goes on past it), are ambiguous too, and so is a
+   change with no deformation seen before it. Each marks the selection uncertain with its
+   reason.
 """
 
 from __future__ import annotations
@@ -54,7 +64,7 @@ from graspcap.tasks.hand_sfm.steady_stats import cusum, matched_filter, standard
 from graspcap.tasks.hand_sfm.two_view_init import initialise
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/7"
+STAGE_VERSION = "select_steady/8"
 
 
 class SteadyMethod(StrEnum):
@@ -143,6 +153,25 @@ class SelectSteadyConfig(StageConfig):
     frames after the keypoint onset."""
     depth_min_share: float = 0.5
     """The depth onset is used only when at least this share of the frames has a share."""
+    depth_lag_frames: int = 1
+    """The depth onset is moved this many frames later: the last frames of a settling grasp
+    move the surface by less than ``depth_far_m`` in all, so the share reaches the steady
+    level 1-2 frames before the motion ends (tuning: 60-frame realistic onsets -1 to -4,
+    median -2, without it). Never past a frame without the hand detected: the change point
+    itself is kept then."""
+    depth_strong_share: float = 0.2
+    """A frame whose share is at least this is seen deforming (the fingers closing, the
+    object lifted: 0.3-1 of the surface), above the misfits of a rigid surface (0-0.12 on
+    the steady frames of wild sessions: a symmetric object slid by the registration, the
+    turn hiding or uncovering surface). Frames after the last such frame whose share keeps
+    falling are the settling tail (a decelerating motion deforms less every frame)."""
+    depth_max_span: int = 3
+    """The depth onset is marked uncertain when it lies more than this many frames (besides
+    ``depth_lag_frames``) after the last frame seen deforming: the frames between are weak
+    non-rigidity that is not a settling tail, frames without a surface, or frames without the
+    hand detected, and the end of the grasp can lie anywhere among them; also when the
+    surface is rigid more than this many frames before the last frame seen deforming (two
+    candidate ends)."""
     depth_radius_m: float = 0.15
     """Radius of the sphere around the hand's centre that cuts each frame's surface."""
     depth_stride_px: int = 3
@@ -189,7 +218,10 @@ class SteadySelection:
     depth_share : (n,) float, per frame the share of its surface that no rigid motion onto
         the frame ``depth_gap`` later explains (step 5; NaN where unknown; empty without
         depth or from the manifest).
-    depth_from : the depth's onset (step 5), -1 when not used.
+    depth_from : the depth's change point (step 5, before ``depth_lag_frames``), -1 when
+        not used.
+    depth_moving_to : the last frame the depth sees the grasp deforming in (step 6), -1 when
+        none or the depth is not used.
     """
 
     steady_from: int
@@ -205,6 +237,7 @@ class SteadySelection:
     keypoint_from: int = -1
     depth_share: np.ndarray = field(default_factory=lambda: np.empty(0))
     depth_from: int = -1
+    depth_moving_to: int = -1
 
 
 def _bundle(uv, ok, K, cfg, frames, T_c_w, X, anchor, scale_ref):
@@ -406,7 +439,8 @@ def _detect(uv, ok, K, cfg):
 
 
 def _depth_onset(uv, ok, K, onset, depth_frame, T_color_turntable, cfg):
-    """(depth onset or -1, share (n,)) of step 5."""
+    """Step 5: (depth onset or -1, share (n,), its standardised values z (n,) or None, whether
+    the onset is the searched window's last frame)."""
     share_of = steady_depth.deformation(
         depth_frame, K,
         steady_depth.hand_centres(depth_frame, K, uv, ok, below_skin_m=0.01,
@@ -417,11 +451,42 @@ def _depth_onset(uv, ok, K, onset, depth_frame, T_color_turntable, cfg):
         iterations=cfg.depth_iterations, far_m=cfg.depth_far_m,
     )  # fmt: skip
     if np.isfinite(share_of).mean() < cfg.depth_min_share:
-        return -1, share_of
-    found, _ = steady_depth.depth_onset(share_of, onset, cfg.depth_before, cfg.depth_after,
+        return -1, share_of, None, False
+
+    def search(before):
+        return steady_depth.depth_onset(share_of, onset, before, cfg.depth_after,
                                         cfg.depth_drift_sigmas, onset + cfg.depth_ref_after,
                                         min_spread=cfg.depth_min_spread)  # fmt: skip
-    return found, share_of
+
+    found, z = search(cfg.depth_before)
+    if found == onset - cfg.depth_before > 0:  # rigid from the window's start: search before
+        found, z = search(onset)
+    return found, share_of, z, found >= min(onset + cfg.depth_after, len(share_of) - 1)
+
+
+def _depth_doubt(share, z, depth_from, onset, at_end, cfg) -> tuple[str, int]:
+    """Step 6: (why the depth's ``onset`` may be wrong by more than a few frames or "", the
+    last frame seen deforming)."""
+    drift = cfg.depth_drift_sigmas
+    last = steady_depth.last_deforming(share, z, depth_from, cfg.depth_strong_share, drift)
+    if last < 0:
+        return (f"the depth sees no deformation before its change point (frame {depth_from}): "
+                "the adjustment phase is not seen; set grasp.steady_from in session.json"), last
+    if at_end:
+        return (f"the surface still deforms at frame {depth_from}, the last searched frame: "
+                "the grasp's end lies later or the depth misfits a rigid surface; set "
+                "grasp.steady_from in session.json"), last
+    if onset - cfg.depth_lag_frames - (last + 1) > cfg.depth_max_span:
+        return (f"the depth sees the grasp deforming up to frame {last}, the onset is frame "
+                f"{onset}: the frames between (weak non-rigidity, no surface or no hand "
+                "detected) leave the end of the grasp anywhere among them; set "
+                "grasp.steady_from in session.json"), last
+    rigid = steady_depth.rigid_between(share, z, last, cfg.depth_strong_share, drift)
+    if rigid >= 0 and last + 1 - rigid > cfg.depth_max_span:
+        return (f"the surface is rigid at frame {rigid} and deforms again up to frame {last}: "
+                f"two candidate onsets ({rigid} and {onset}); set grasp.steady_from in "
+                "session.json"), last
+    return "", last
 
 
 def _uncertainty(uv, ok, scores, onset, detected, cfg, by_depth=False) -> str:
@@ -496,11 +561,14 @@ def select_steady(
     # (dropped detection) has no pose of its own, so the onset moves to the next detected one
     detected = np.flatnonzero(ok.sum(1) >= cfg.min_points)
     keypoint_from, depth_from, share_of = onset, -1, np.empty(0)
+    z_depth, at_end = None, False
     if cfg.depth_onset and depth_frame is not None and T_color_turntable is not None:
-        depth_from, share_of = _depth_onset(uv, ok, K, onset, depth_frame,
-                                            np.asarray(T_color_turntable, float), cfg)
-        if depth_from >= 0:
-            onset = depth_from
+        depth_from, share_of, z_depth, at_end = _depth_onset(
+            uv, ok, K, onset, depth_frame, np.asarray(T_color_turntable, float), cfg)
+        if depth_from >= 0:  # the lag never carries the onset past frames without the hand
+            want = min(depth_from + cfg.depth_lag_frames, n - 1)
+            near = detected[(detected >= depth_from) & (detected <= want)]
+            onset = int(near[-1]) if len(near) else want
     onset = int(detected[np.searchsorted(detected, onset)]) if onset <= detected[-1] else n
     if onset >= n - 2:
         raise StageError(
@@ -508,9 +576,13 @@ def select_steady(
             "cannot detect the steady phase: the final frames are not explained by "
             "one rigid hand; set grasp.steady_from in session.json",
         )
+    uncertain, moving_to = _uncertainty(uv, ok, scores, onset, detected, cfg,
+                                        depth_from >= 0), -1
+    if depth_from >= 0 and not uncertain:
+        uncertain, moving_to = _depth_doubt(share_of, z_depth, depth_from, onset, at_end, cfg)
     return SteadySelection(
         steady_from=onset,
-        uncertain=_uncertainty(uv, ok, scores, onset, detected, cfg, depth_from >= 0),
+        uncertain=uncertain,
         method=SteadyMethod.DETECTED,
         scores_px=scores,
         threshold_px=threshold,
@@ -522,4 +594,5 @@ def select_steady(
         keypoint_from=keypoint_from,
         depth_share=share_of,
         depth_from=depth_from,
+        depth_moving_to=moving_to,
     )

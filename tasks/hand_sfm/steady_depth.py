@@ -160,3 +160,39 @@ def depth_onset(z_signal: np.ndarray, kp_onset: int, before: int, after: int, dr
     # the last of tied maxima: NaN frames count 0, so a change inside a run of frames without
     # a surface lands at the run's end (a later onset loses frames; an early one spoils them)
     return int(len(sums) - 1 - np.argmax(sums[::-1])), z
+
+
+def last_deforming(share: np.ndarray, z: np.ndarray, onset: int, strong: float,
+                   drift: float) -> int:
+    """The last frame before ``onset`` that the grasp is seen deforming in (-1 if none): the
+    last frame whose ``share`` is at least ``strong`` (a frame without a share keeps the state
+    of the last frame with one), extended over the frames after it whose share keeps falling
+    while still above the steady frames' (``z > drift``): a settling motion decelerates, so
+    its residual deformation shrinks frame by frame.
+
+    share, z : (n,) float, the share and its standardised values (``depth_onset``), NaN where
+        unknown.
+    """
+    last, moving = -1, False
+    for i in range(min(onset, len(share))):
+        if np.isfinite(share[i]):
+            moving = share[i] >= strong
+        if moving:
+            last = i
+    while (last + 1 < onset and np.isfinite(share[last + 1]) and z[last + 1] > drift
+           and (last < 0 or not np.isfinite(share[last]) or share[last + 1] <= share[last])):
+        last += 1
+    return last
+
+
+def rigid_between(share: np.ndarray, z: np.ndarray, last: int, strong: float,
+                  drift: float) -> int:
+    """The first frame before ``last`` (the last deforming frame) whose surface is rigid
+    (finite ``z <= drift``) after a frame with a ``strong`` share: the surface turned rigid
+    and deformed again later; -1 if none."""
+    seen = False
+    for i in range(max(last, 0)):
+        if seen and np.isfinite(z[i]) and z[i] <= drift:
+            return i
+        seen = seen or bool(share[i] >= strong)
+    return -1
