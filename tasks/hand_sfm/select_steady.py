@@ -64,7 +64,7 @@ from graspcap.tasks.hand_sfm.steady_stats import cusum, matched_filter, standard
 from graspcap.tasks.hand_sfm.two_view_init import initialise
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/8"
+STAGE_VERSION = "select_steady/9"
 
 
 class SteadyMethod(StrEnum):
@@ -159,6 +159,18 @@ class SelectSteadyConfig(StageConfig):
     level 1-2 frames before the motion ends (tuning: 60-frame realistic onsets -1 to -4,
     median -2, without it). Never past a frame without the hand detected: the change point
     itself is kept then."""
+    later_of_both: bool = True
+    """Where the keypoints are clean (noise within ``max_noise_share`` of the hand), the onset
+    is the later of the keypoints' and the depth's: both change points can only be early by
+    missing motion below their sensitivity (the keypoints' by a settling that their noise
+    hides, the depth's by the last frames moving the surface less than ``depth_far_m`` over
+    ``depth_gap`` frames: at 120 frames the same grasp settles over twice the frames, and
+    the depth's onset came 4 frames early on 8 of 10 realistic tuning sessions while the
+    keypoints' was within 3 on 9), and a hand either sees moving is not steady. Noisy
+    keypoints move their change point at random, late as well: the depth's stands alone.
+    Where the keypoints' onset stands this way, the depth's own doubts (step 6: deformation
+    last seen several frames before the onset) are not raised: they describe the depth's
+    change point, which was not taken."""
     depth_strong_share: float = 0.2
     """A frame whose share is at least this is seen deforming (the fingers closing, the
     object lifted: 0.3-1 of the surface), above the misfits of a rigid surface (0-0.12 on
@@ -489,14 +501,20 @@ def _depth_doubt(share, z, depth_from, onset, at_end, cfg) -> tuple[str, int]:
     return "", last
 
 
-def _uncertainty(uv, ok, scores, onset, detected, cfg, by_depth=False) -> str:
-    """Why the detected ``onset`` may be wrong by more than a few frames, "" if not."""
+def _keypoint_noise(uv, ok, scores, onset, detected) -> tuple[float, float, float]:
+    """(noise px, hand px, noise share): the steady frames' median residual score from
+    ``onset`` on, the hand's image size (median bounding-box diagonal of the detections)."""
     steady = scores[onset:][np.isfinite(scores[onset:])]
     noise = float(np.median(steady)) if len(steady) else float("nan")
     sizes = [float(np.linalg.norm(p.max(0) - p.min(0)))
              for p in (uv[i, ok[i]] for i in detected)]  # fmt: skip
     hand = float(np.median(sizes)) if sizes else float("nan")
-    share = noise / hand if hand > 0 else float("nan")
+    return noise, hand, noise / hand if hand > 0 else float("nan")
+
+
+def _uncertainty(uv, ok, scores, onset, detected, cfg, by_depth=False) -> str:
+    """Why the detected ``onset`` may be wrong by more than a few frames, "" if not."""
+    noise, hand, share = _keypoint_noise(uv, ok, scores, onset, detected)
     if onset <= detected[0]:
         return (f"no frame before {onset} stands out as moving above the keypoint noise "
                 f"({noise:.1f} px, {share:.1%} of the hand's {hand:.0f} px): the adjustment "
@@ -561,6 +579,7 @@ def select_steady(
     # (dropped detection) has no pose of its own, so the onset moves to the next detected one
     detected = np.flatnonzero(ok.sum(1) >= cfg.min_points)
     keypoint_from, depth_from, share_of = onset, -1, np.empty(0)
+    by_keypoints = False  # the clean keypoints' onset stood against an earlier depth one
     z_depth, at_end = None, False
     if cfg.depth_onset and depth_frame is not None and T_color_turntable is not None:
         depth_from, share_of, z_depth, at_end = _depth_onset(
@@ -569,6 +588,10 @@ def select_steady(
             want = min(depth_from + cfg.depth_lag_frames, n - 1)
             near = detected[(detected >= depth_from) & (detected <= want)]
             onset = int(near[-1]) if len(near) else want
+            clean = _keypoint_noise(uv, ok, scores, keypoint_from, detected)[2] <= (
+                cfg.max_noise_share)
+            if cfg.later_of_both and clean and keypoint_from > onset:
+                onset, by_keypoints = keypoint_from, True
     onset = int(detected[np.searchsorted(detected, onset)]) if onset <= detected[-1] else n
     if onset >= n - 2:
         raise StageError(
@@ -578,7 +601,7 @@ def select_steady(
         )
     uncertain, moving_to = _uncertainty(uv, ok, scores, onset, detected, cfg,
                                         depth_from >= 0), -1
-    if depth_from >= 0 and not uncertain:
+    if depth_from >= 0 and not uncertain and not by_keypoints:
         uncertain, moving_to = _depth_doubt(share_of, z_depth, depth_from, onset, at_end, cfg)
     return SteadySelection(
         steady_from=onset,

@@ -155,3 +155,30 @@ def test_refine_poses_matches_opencv_on_inliers():
     assert np.sqrt(np.mean(np.sum(res[clean] ** 2, axis=1))) == pytest.approx(
         2.5 * np.sqrt(2), rel=0.2
     )
+
+
+def test_clean_keypoints_keep_the_later_of_their_onset_and_the_depths(monkeypatch):
+    """A depth change point 8 frames early (the settling too slow for the depth's gap, as at
+    120 frames) does not pull a clean keypoint onset early: the later of the two stands
+    (``later_of_both``); without the rule, or with noisy keypoints, the depth's stands."""
+    import graspcap.tasks.hand_sfm.select_steady as module
+
+    kp, K = _slowing_hand(0)
+    n = len(kp)
+    early = ONSET - 8
+
+    def depth_onset(uv, ok, K_, onset, depth_frame, T, cfg):
+        return early, np.zeros(n), np.zeros(n), False
+
+    monkeypatch.setattr(module, "_depth_onset", depth_onset)
+    args = dict(depth_frame=lambda i: np.zeros((4, 4)), T_color_turntable=np.eye(4))
+    keypoints_only = select_steady(kp, K, None, SelectSteadyConfig(depth_onset=False))
+    assert abs(keypoints_only.steady_from - ONSET) <= 3
+    both = select_steady(kp, K, None, **args)
+    assert both.depth_from == early and both.steady_from == keypoints_only.steady_from
+    depth_alone = select_steady(kp, K, None, SelectSteadyConfig(later_of_both=False), **args)
+    assert depth_alone.steady_from == early + SelectSteadyConfig().depth_lag_frames
+    noisy = kp.copy()
+    seen = noisy[..., 2] > 0
+    noisy[seen, :2] += np.random.default_rng(1).normal(0, 12.0, (seen.sum(), 2))
+    assert select_steady(noisy, K, None, **args).steady_from <= early + 1
