@@ -36,7 +36,7 @@ from graspcap.tasks.outputs.qa_measures import (
     window_outlier_share,
 )
 
-STAGE_VERSION = "qa_metrics/10"
+STAGE_VERSION = "qa_metrics/11"
 STAGE = "qa_metrics"
 
 
@@ -154,9 +154,12 @@ class QaMetricsConfig(StageConfig):
     (:data:`PIXEL_CONSISTENCY`) measure the detector, not the output: the cameras come from
     the depth (``joint_solve``'s chain start) and a session whose every other output was good
     had 12.8-25.9 px (real-detector ``[82332, i]``, tuning since session 13). They are then
-    not judged by their limits (a note says so) but by ``noisy_fail_share`` alone, and the
-    session's verdict rests on the measurements that do not depend on the pixels' noise
-    (registrations, fit residual, penetration, the contact agreements)."""
+    not judged by their limits but by ``noisy_fail_share`` alone, and the session is
+    flagged, never ``ok``: nothing here measures its cameras and hand then (real-detector
+    ``[56705, i]``, held out at qa_metrics/10, which let such sessions be ``ok``: 2 of 3
+    ``ok`` were not good, cameras 1.4-2.5 deg off). Failures still come from the
+    measurements that do not depend on the pixels' noise (registrations, penetration, the
+    contact agreements)."""
     noisy_fail_share: float = 0.25
     """With noisy detections, a reprojection RMSE beyond this share of the hand's image size
     fails the session: no one hand explains the detections (real-detector tuning sessions
@@ -462,9 +465,10 @@ def qa_metrics(
              if hand_size_px is not None and hand_size_px > 0 else math.nan)
     noisy = math.isfinite(share) and share > config.noisy_share
     if noisy:
-        notes.append(f"noisy detections: reprojection RMSE {metrics['reproj_rmse_px']:.1f} px "
+        flags.append(f"noisy detections: reprojection RMSE {metrics['reproj_rmse_px']:.1f} px "
                      f"is {share:.1%} of the hand's {hand_size_px:.0f} px (> "
-                     f"{config.noisy_share:.1%}); the pixel-consistency metrics are not judged")
+                     f"{config.noisy_share:.1%}): no check here vouches for the cameras and "
+                     "the hand, the pixel-consistency metrics are not judged")
         if share > config.noisy_fail_share:
             failures.append(f"reprojection RMSE {share:.1%} of the hand's image size > "
                             f"{config.noisy_fail_share:.1%}: no one hand explains the detections")
