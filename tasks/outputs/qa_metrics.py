@@ -460,7 +460,7 @@ def qa_metrics(
             metrics["fit_contact_agreement"] = measured["contact_agreement"]
         elif "contact_agreement" in why:
             missing["fit_contact_agreement"] = why["contact_agreement"]
-    failures, flags, notes = [], [], list(stage_notes(results))
+    failures, flags = [], []
     share = (metrics.get("reproj_rmse_px", math.nan) / hand_size_px
              if hand_size_px is not None and hand_size_px > 0 else math.nan)
     noisy = math.isfinite(share) and share > config.noisy_share
@@ -482,7 +482,7 @@ def qa_metrics(
     verdict = Verdict.FAILED if failures else Verdict.FLAGGED if flags else Verdict.OK
     ordered = {n: metrics[n] for n in METRICS if n in metrics}
     return QaReport(verdict, tuple(failures), tuple(flags), ordered,
-                    {n: missing[n] for n in METRICS if n in missing}, tuple(notes))
+                    {n: missing[n] for n in METRICS if n in missing}, tuple(stage_notes(results)))
 
 
 __all__ = [
