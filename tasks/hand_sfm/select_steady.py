@@ -34,7 +34,8 @@ Detection, a change point in how rigid the hand is:
    the last known frames), searched from ``depth_before`` frames before the keypoint onset to
    ``depth_after`` frames after it (from the first frame when the change lands on the
    window's first frame: the keypoint onset was late), moved ``depth_lag_frames`` later,
-   replaces the keypoint onset when enough frames have a surface (``depth_min_share``).
+   replaces the keypoint onset when enough frames have a surface (``depth_min_share``);
+   with clean keypoints the later of the two stands (``later_of_both``).
 6. Whether the depth's onset can be trusted: the last frame the grasp is seen deforming in
    (a share of at least ``depth_strong_share``, or still falling towards the steady level)
    and the onset must be at most ``depth_max_span`` frames apart; weak non-rigidity that does
