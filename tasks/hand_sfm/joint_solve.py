@@ -33,12 +33,11 @@ import numpy as np
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.core.geometry import inv_T, transform_points, umeyama
+from graspcap.tasks.core.geometry import inv_T
 from graspcap.tasks.hand import fit_hand as fit_hand_stage
 from graspcap.tasks.hand.fit_hand import FitHandConfig, HandFit
 from graspcap.tasks.hand.model import RIGID_PALM_POINTS, SURFACE_OFFSET_M, HandSide
 from graspcap.tasks.hand_sfm import reconstruct_hand as reconstruct_stage
-from graspcap.tasks.hand_sfm.depth_init import depth_initialisation
 from graspcap.tasks.hand_sfm.depth_links import DepthLinkConfig, depth_links
 from graspcap.tasks.hand_sfm.hand_graph import (
     GraphSolve,
@@ -52,8 +51,13 @@ from graspcap.tasks.hand_sfm.joint_frames import (
     off_smooth_path,
     residuals_px,
 )
+from graspcap.tasks.hand_sfm.joint_starts import (
+    chain_start,
+    depth_readings,
+    depth_start,
+    staged_start,
+)
 from graspcap.tasks.hand_sfm.metric_scale import DepthLookup, depth_lookup_from_frames
-from graspcap.tasks.hand_sfm.odometry_init import odometry_initialisation
 from graspcap.tasks.hand_sfm.reconstruct_hand import ReconstructConfig
 from graspcap.tasks.hand_sfm.result import HandReconstruction, SfmDiagnostics
 from graspcap.tasks.hand_sfm.solve import fill_poses, rotation_span_deg
@@ -319,113 +323,6 @@ def noisy(sigma_px: float, hand_px: float, share: float) -> bool:
                 and sigma_px > share * hand_px)
 
 
-@dataclass(frozen=True)
-class _Start:
-    T_c_p: np.ndarray
-    angles: np.ndarray
-    scale: float
-    name: str
-
-
-def _staged_start(rec: HandReconstruction, fit: HandFit) -> _Start:
-    T_c_p = np.full((len(rec.frames), 4, 4), np.nan)
-    for i in np.flatnonzero(rec.pose_valid):
-        T_c_p[i] = inv_T(rec.T_w_c[i]) @ fit.T_w_p
-    return _Start(T_c_p, fit.angles_rad, fit.scale, "staged")
-
-
-def _depth_start(uv, ok, K, readings, steady_from, side, cfg) -> _Start | str:
-    """The start from the depth, or why there is none: ``hand_sfm.depth_init`` from each of
-    up to ``start_references`` reference frames (spread over those with the most readings),
-    the hand fitted to its joints; the start that the most frames agree with (the frame
-    tests: depth agreement and the smooth turn) wins. A reference on another hand, or
-    before the hand settled, poses few frames that agree."""
-    offset = np.asarray(SURFACE_OFFSET_M)
-    n = np.isfinite(readings).sum(1)
-    rich = np.flatnonzero(n >= cfg.min_points_per_frame)
-    if not len(rich):
-        return "no frame has depth readings at enough detected joints"
-    picks = rich[np.unique(np.linspace(0, len(rich) - 1, cfg.start_references).round()
-                           .astype(int))]
-    best: tuple[int, _Start] | None = None
-    why = "the depth initialisation posed fewer than two frames"
-    for ref in picks:
-        init = depth_initialisation(uv, ok, K, readings, offset, steady_from,
-                                    ransac_px=cfg.ransac_px, min_points=cfg.min_points_per_frame,
-                                    reference=int(ref))
-        if init is None:
-            continue
-        known = np.all(np.isfinite(init.points_w), axis=1)
-        try:
-            fit = fit_hand_stage.fit_hand(np.where(known[:, None], init.points_w, 0.0), side,
-                                          cfg.fit, weights=known.astype(float))
-        except StageError as exc:
-            why = f"the hand fitted to the depth initialisation's joints: {exc.reason}"
-            continue
-        T_c_p = np.einsum("mab,bc->mac", init.T_c_w, fit.T_w_p)
-        posed = np.all(np.isfinite(T_c_p.reshape(len(T_c_p), -1)), axis=1)
-        J = fit.joints_fit_w @ fit.T_w_p[:3, :3] - fit.T_w_p[:3, 3] @ fit.T_w_p[:3, :3]
-        agree = posed & ~depth_disagrees(T_c_p, J, fit.scale * offset, readings, cfg)
-        agree &= ~off_smooth_path(T_c_p, agree, cfg)
-        score = int(agree.sum())
-        if best is None or score > best[0]:
-            best = (score, _Start(T_c_p, fit.angles_rad, fit.scale, "depth"))
-    return why if best is None else best[1]
-
-
-def _chain_start(surfaces, uv, ok, K, side, cfg, usable: int,
-                 fit: HandFit | None) -> _Start | None:
-    """The start from the cameras chained by the depth surfaces (``chain_start``), or None
-    where the chain poses fewer than ``chain_min_share`` of the ``usable`` frames. The hand is
-    the staged ``fit``'s (its articulation from every frame's detections) placed on the joints
-    triangulated with the chained cameras (rigid, robust), else fitted to those joints."""
-    init = odometry_initialisation(surfaces, uv, ok, K, cfg.depth_links,
-                                   ransac_px=cfg.ransac_px, min_points=cfg.min_points_per_frame,
-                                   min_frames=max(cfg.min_frames,
-                                                  int(np.ceil(cfg.chain_min_share * usable))))
-    if init is None:
-        return None
-    known = np.all(np.isfinite(init.points_w), axis=1)
-    if fit is not None:
-        T_w_p = _place(fit, init.points_w, known)
-        if T_w_p is not None:
-            return _Start(np.einsum("mab,bc->mac", init.T_c_w, T_w_p), fit.angles_rad,
-                          fit.scale, "chain")
-    try:
-        fit = fit_hand_stage.fit_hand(np.where(known[:, None], init.points_w, 0.0), side,
-                                      cfg.fit, weights=known.astype(float))
-    except StageError:
-        return None
-    return _Start(np.einsum("mab,bc->mac", init.T_c_w, fit.T_w_p), fit.angles_rad, fit.scale,
-                  "chain")
-
-
-def _place(fit: HandFit, points_w: np.ndarray, known: np.ndarray) -> np.ndarray | None:
-    """T_w_p placing ``fit``'s hand (its joints in its palm frame) on ``points_w`` (rigid
-    Umeyama over the ``known`` joints, refitted once without those beyond twice the median
-    distance); None with fewer than 4 known joints."""
-    J_p = transform_points(inv_T(fit.T_w_p), fit.joints_fit_w)
-    use = known.copy()
-    T = None
-    for _ in range(2):
-        if use.sum() < 4:
-            return T
-        T, _ = umeyama(J_p[use], points_w[use], with_scale=False)
-        d = np.linalg.norm(transform_points(T, J_p) - points_w, axis=1)
-        use = known & (d <= 2.0 * np.median(d[known]))
-    return T
-
-
-def _readings(depth_at: DepthLookup, uv, ok, conf, steady_from, min_conf) -> np.ndarray:
-    """Depth (m, 21) at the confident detections (NaN elsewhere or without a reading)."""
-    sample = ok & (conf >= min_conf)
-    out = np.full(ok.shape, np.nan)
-    for i in np.flatnonzero(sample.any(1)):
-        d = np.asarray(depth_at(steady_from + int(i), uv[i, sample[i]]), dtype=float)
-        out[i, sample[i]] = np.where(np.isfinite(d) & (d > 0), d, np.nan)
-    return out
-
-
 def solve_from_start(
     keypoints: np.ndarray,
     K: np.ndarray,
@@ -453,36 +350,28 @@ def solve_from_start(
         staged = f"; the staged path: {staged_error}" if staged_error else ""
         return StageError(STAGE, reason + staged)
 
-    if int((ok.sum(1) >= cfg.min_points_per_frame).sum()) < cfg.min_frames:
+    usable = ok.sum(1) >= cfg.min_points_per_frame
+    if int(usable.sum()) < cfg.min_frames:
         raise fail(f"too few usable frames: fewer than {cfg.min_frames} frames from "
                    f"{steady_from} on have >= {cfg.min_points_per_frame} detected joints")
-    readings = _readings(depth_at, uv, ok, conf, steady_from, cfg.depth_min_confidence)
-    usable = ok.sum(1) >= cfg.min_points_per_frame
+    readings = depth_readings(depth_at, uv, ok, conf, steady_from, cfg.depth_min_confidence)
     surfaces: list = [None] * m
-    centred = np.full(m, -1)  # the frame whose detections place each frame's crop
     confident = ok & (conf >= cfg.depth_min_confidence) & np.isfinite(readings)
     if surface_at is not None:
         for i in np.flatnonzero(usable & confident.any(1)):
             surfaces[i] = surface_at(int(i), uv[i, confident[i]], readings[i, confident[i]])
-            centred[i] = i if surfaces[i] is not None else -1
     chained = None
     clean = rec is not None and not noisy(rec.diagnostics.noise_sigma_px,
                                           rec.diagnostics.hand_size_px, cfg.auto_noise_share)
-    if cfg.chain_start and not clean and (centred >= 0).any():
-        # the chain also runs through frames without usable detections (a detector's runs of
-        # missed frames would break it), each cropped around its nearest detected neighbour
-        own = np.flatnonzero(centred >= 0)
-        chain_surfaces = list(surfaces)
-        for i in np.flatnonzero(centred < 0):
-            j = int(own[np.argmin(np.abs(own - i))])
-            chain_surfaces[i] = surface_at(int(i), uv[j, confident[j]], readings[j, confident[j]])
-        chained = _chain_start(chain_surfaces, uv, ok, K, side, cfg, int(usable.sum()), fit)
+    if cfg.chain_start and not clean and surface_at is not None:
+        chained = chain_start(surfaces, surface_at, uv, ok, confident, readings, K, side, cfg,
+                              int(usable.sum()), fit)
     if chained is not None:
         start = chained
     elif rec is not None and fit is not None:
-        start = _staged_start(rec, fit)
+        start = staged_start(rec, fit)
     else:
-        found = _depth_start(uv, ok, K, readings, steady_from, side, cfg)
+        found = depth_start(uv, ok, K, readings, steady_from, side, cfg)
         if isinstance(found, str):
             raise fail(f"no start for the joint solve: {found}")
         start = found

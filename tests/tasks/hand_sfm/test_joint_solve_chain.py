@@ -13,7 +13,7 @@ from graspcap.synth.evaluate import evaluate
 from graspcap.tasks.core.geometry import make_T, transform_points
 from graspcap.tasks.hand.fit_hand import fit_hand
 from graspcap.tasks.hand.model import HandModel, HandSide
-from graspcap.tasks.hand_sfm.joint_solve import _place
+from graspcap.tasks.hand_sfm.joint_starts import place_hand
 from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
 
 
@@ -29,14 +29,14 @@ def test_place_puts_the_fitted_hand_on_triangulated_joints_despite_stray_ones():
     known = np.ones(21, bool)
     known[[12, 20]] = False  # not triangulated
     points[~known] = np.nan
-    T_w2_p = _place(fit, points, known)
+    T_w2_p = place_hand(fit, points, known)
     placed = transform_points(T_w2_p, transform_points(np.linalg.inv(fit.T_w_p),
                                                        fit.joints_fit_w))
     good = known.copy()
     good[[4, 8, 16]] = False
     err = np.linalg.norm(placed - transform_points(T_w2_w, fit.joints_fit_w), axis=1)
     assert err[good].max() < 0.004  # the two noisy millimetres, not the strays' centimetres
-    assert _place(fit, points, np.arange(21) < 3) is None  # too few joints to place a hand
+    assert place_hand(fit, points, np.arange(21) < 3) is None  # too few joints to place a hand
 
 
 def _joint_solve(d, **update):

@@ -137,6 +137,7 @@ def test_a_chain_start_whose_solve_fails_falls_back_to_the_staged_start(upstream
     scale"): the solve is then run once more from the start it would have had without the
     chain, and the session builds."""
     import graspcap.tasks.hand_sfm.joint_solve as js_module
+    from graspcap.tasks.hand_sfm.joint_starts import Start
 
     session, results = upstream
 
@@ -145,7 +146,7 @@ def test_a_chain_start_whose_solve_fails_falls_back_to_the_staged_start(upstream
         assert start is not None  # the easy session's surfaces chain
         T_c_p = start.T_c_p.copy()
         T_c_p[:, :3, 3] += [0.0, 0.0, 0.5]  # every camera half a metre off in depth
-        return js_module._Start(T_c_p, start.angles, start.scale, start.name)
+        return Start(T_c_p, start.angles, start.scale, start.name)
 
     outcomes: list = []
 
@@ -158,8 +159,8 @@ def test_a_chain_start_whose_solve_fails_falls_back_to_the_staged_start(upstream
         outcomes.append(out.start)
         return out
 
-    real, real_solve = js_module._chain_start, js_module.solve_from_start
-    monkeypatch.setattr(js_module, "_chain_start", slid)
+    real, real_solve = js_module.chain_start, js_module.solve_from_start
+    monkeypatch.setattr(js_module, "chain_start", slid)
     monkeypatch.setattr(js_module, "solve_from_start", recorded)
     solved = _path(session, results, HandPath.AUTO, auto_noise_share=0.0)["joint_solve"]
     assert solved.path == "joint" and solved.start == "staged"
