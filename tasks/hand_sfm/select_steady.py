@@ -60,6 +60,7 @@ from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import umeyama
 from graspcap.tasks.hand_sfm import steady_depth
 from graspcap.tasks.hand_sfm.batch_pnp import ransac_poses, refine_poses, residual_vectors
+from graspcap.tasks.hand_sfm.frame_screen import hand_size_px
 from graspcap.tasks.hand_sfm.graph import bundle_adjust
 from graspcap.tasks.hand_sfm.steady_stats import cusum, matched_filter, standardise, window_scores
 from graspcap.tasks.hand_sfm.two_view_init import initialise
@@ -451,65 +452,13 @@ def _detect(uv, ok, K, cfg):
     return onset, scores, threshold, matched, model
 
 
-def _depth_onset(uv, ok, K, onset, depth_frame, T_color_turntable, cfg):
-    """Step 5: (depth onset or -1, share (n,), its standardised values z (n,) or None, whether
-    the onset is the searched window's last frame)."""
-    share_of = steady_depth.deformation(
-        depth_frame, K,
-        steady_depth.hand_centres(depth_frame, K, uv, ok, below_skin_m=0.01,
-                                  min_points=cfg.min_points),
-        T_color_turntable, gap=cfg.depth_gap, radius_m=cfg.depth_radius_m,
-        stride_px=cfg.depth_stride_px, min_height_m=cfg.depth_min_height_m,
-        max_points=cfg.depth_max_points, max_distance_m=0.01, huber_m=0.003,
-        iterations=cfg.depth_iterations, far_m=cfg.depth_far_m,
-    )  # fmt: skip
-    if np.isfinite(share_of).mean() < cfg.depth_min_share:
-        return -1, share_of, None, False
-
-    def search(before):
-        return steady_depth.depth_onset(share_of, onset, before, cfg.depth_after,
-                                        cfg.depth_drift_sigmas, onset + cfg.depth_ref_after,
-                                        min_spread=cfg.depth_min_spread)  # fmt: skip
-
-    found, z = search(cfg.depth_before)
-    if found == onset - cfg.depth_before > 0:  # rigid from the window's start: search before
-        found, z = search(onset)
-    return found, share_of, z, found >= min(onset + cfg.depth_after, len(share_of) - 1)
-
-
-def _depth_doubt(share, z, depth_from, onset, at_end, cfg) -> tuple[str, int]:
-    """Step 6: (why the depth's ``onset`` may be wrong by more than a few frames or "", the
-    last frame seen deforming)."""
-    drift = cfg.depth_drift_sigmas
-    last = steady_depth.last_deforming(share, z, depth_from, cfg.depth_strong_share, drift)
-    if last < 0:
-        return (f"the depth sees no deformation before its change point (frame {depth_from}): "
-                "the adjustment phase is not seen; set grasp.steady_from in session.json"), last
-    if at_end:
-        return (f"the surface still deforms at frame {depth_from}, the last searched frame: "
-                "the grasp's end lies later or the depth misfits a rigid surface; set "
-                "grasp.steady_from in session.json"), last
-    if onset - cfg.depth_lag_frames - (last + 1) > cfg.depth_max_span:
-        return (f"the depth sees the grasp deforming up to frame {last}, the onset is frame "
-                f"{onset}: the frames between (weak non-rigidity, no surface or no hand "
-                "detected) leave the end of the grasp anywhere among them; set "
-                "grasp.steady_from in session.json"), last
-    rigid = steady_depth.rigid_between(share, z, last, cfg.depth_strong_share, drift)
-    if rigid >= 0 and last + 1 - rigid > cfg.depth_max_span:
-        return (f"the surface is rigid at frame {rigid} and deforms again up to frame {last}: "
-                f"two candidate onsets ({rigid} and {onset}); set grasp.steady_from in "
-                "session.json"), last
-    return "", last
-
-
 def _keypoint_noise(uv, ok, scores, onset, detected) -> tuple[float, float, float]:
     """(noise px, hand px, noise share): the steady frames' median residual score from
     ``onset`` on, the hand's image size (median bounding-box diagonal of the detections)."""
     steady = scores[onset:][np.isfinite(scores[onset:])]
     noise = float(np.median(steady)) if len(steady) else float("nan")
-    sizes = [float(np.linalg.norm(p.max(0) - p.min(0)))
-             for p in (uv[i, ok[i]] for i in detected)]  # fmt: skip
-    hand = float(np.median(sizes)) if sizes else float("nan")
+    sizes = hand_size_px(uv[detected], ok[detected], min_points=1)
+    hand = float(np.median(sizes)) if len(sizes) else float("nan")
     return noise, hand, noise / hand if hand > 0 else float("nan")
 
 
@@ -583,7 +532,7 @@ def select_steady(
     by_keypoints = False  # the clean keypoints' onset stood against an earlier depth one
     z_depth, at_end = None, False
     if cfg.depth_onset and depth_frame is not None and T_color_turntable is not None:
-        depth_from, share_of, z_depth, at_end = _depth_onset(
+        depth_from, share_of, z_depth, at_end = steady_depth.onset_from_depth(
             uv, ok, K, onset, depth_frame, np.asarray(T_color_turntable, float), cfg)
         if depth_from >= 0:  # the lag never carries the onset past frames without the hand
             want = min(depth_from + cfg.depth_lag_frames, n - 1)
@@ -603,7 +552,8 @@ def select_steady(
     uncertain, moving_to = _uncertainty(uv, ok, scores, onset, detected, cfg,
                                         depth_from >= 0), -1
     if depth_from >= 0 and not uncertain and not by_keypoints:
-        uncertain, moving_to = _depth_doubt(share_of, z_depth, depth_from, onset, at_end, cfg)
+        uncertain, moving_to = steady_depth.depth_doubt(share_of, z_depth, depth_from, onset,
+                                                        at_end, cfg)
     return SteadySelection(
         steady_from=onset,
         uncertain=uncertain,

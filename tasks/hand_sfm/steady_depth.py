@@ -18,6 +18,7 @@ surface that no rigid motion explains.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from graspcap.tasks.hand_sfm.depth_links import icp_batch
 from graspcap.tasks.hand_sfm.metric_scale import window_median
 from graspcap.tasks.hand_sfm.steady_stats import cusum, standardise
 from graspcap.tasks.hand_sfm.surface_clouds import SurfaceCloud, hand_centre, surface_cloud
+
+if TYPE_CHECKING:
+    from graspcap.tasks.hand_sfm.select_steady import SelectSteadyConfig
 
 
 def hand_centres(
@@ -196,3 +200,57 @@ def rigid_between(share: np.ndarray, z: np.ndarray, last: int, strong: float,
             return i
         seen = seen or bool(share[i] >= strong)
     return -1
+
+
+def onset_from_depth(uv, ok, K, onset, depth_frame, T_color_turntable,
+                     cfg: SelectSteadyConfig):
+    """``select_steady``'s step 5 around the keypoint ``onset``: (depth onset or -1, share
+    (n,), its standardised values z (n,) or None, whether the onset is the searched window's
+    last frame)."""
+    share_of = deformation(
+        depth_frame, K,
+        hand_centres(depth_frame, K, uv, ok, below_skin_m=0.01,
+                                  min_points=cfg.min_points),
+        T_color_turntable, gap=cfg.depth_gap, radius_m=cfg.depth_radius_m,
+        stride_px=cfg.depth_stride_px, min_height_m=cfg.depth_min_height_m,
+        max_points=cfg.depth_max_points, max_distance_m=0.01, huber_m=0.003,
+        iterations=cfg.depth_iterations, far_m=cfg.depth_far_m,
+    )  # fmt: skip
+    if np.isfinite(share_of).mean() < cfg.depth_min_share:
+        return -1, share_of, None, False
+
+    def search(before):
+        return depth_onset(share_of, onset, before, cfg.depth_after,
+                                        cfg.depth_drift_sigmas, onset + cfg.depth_ref_after,
+                                        min_spread=cfg.depth_min_spread)  # fmt: skip
+
+    found, z = search(cfg.depth_before)
+    if found == onset - cfg.depth_before > 0:  # rigid from the window's start: search before
+        found, z = search(onset)
+    return found, share_of, z, found >= min(onset + cfg.depth_after, len(share_of) - 1)
+
+
+def depth_doubt(share, z, depth_from, onset, at_end,
+                cfg: SelectSteadyConfig) -> tuple[str, int]:
+    """``select_steady``'s step 6: (why the depth's ``onset`` may be wrong by more than a few
+    frames or "", the last frame seen deforming)."""
+    drift = cfg.depth_drift_sigmas
+    last = last_deforming(share, z, depth_from, cfg.depth_strong_share, drift)
+    if last < 0:
+        return (f"the depth sees no deformation before its change point (frame {depth_from}): "
+                "the adjustment phase is not seen; set grasp.steady_from in session.json"), last
+    if at_end:
+        return (f"the surface still deforms at frame {depth_from}, the last searched frame: "
+                "the grasp's end lies later or the depth misfits a rigid surface; set "
+                "grasp.steady_from in session.json"), last
+    if onset - cfg.depth_lag_frames - (last + 1) > cfg.depth_max_span:
+        return (f"the depth sees the grasp deforming up to frame {last}, the onset is frame "
+                f"{onset}: the frames between (weak non-rigidity, no surface or no hand "
+                "detected) leave the end of the grasp anywhere among them; set "
+                "grasp.steady_from in session.json"), last
+    rigid = rigid_between(share, z, last, cfg.depth_strong_share, drift)
+    if rigid >= 0 and last + 1 - rigid > cfg.depth_max_span:
+        return (f"the surface is rigid at frame {rigid} and deforms again up to frame {last}: "
+                f"two candidate onsets ({rigid} and {onset}); set grasp.steady_from in "
+                "session.json"), last
+    return "", last

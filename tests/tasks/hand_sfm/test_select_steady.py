@@ -161,7 +161,7 @@ def test_clean_keypoints_keep_the_later_of_their_onset_and_the_depths(monkeypatc
     """A depth change point 8 frames early (the settling too slow for the depth's gap, as at
     120 frames) does not pull a clean keypoint onset early: the later of the two stands
     (``later_of_both``); without the rule, or with noisy keypoints, the depth's stands."""
-    import graspcap.tasks.hand_sfm.select_steady as module
+    from graspcap.tasks.hand_sfm import steady_depth
 
     kp, K = _slowing_hand(0)
     n = len(kp)
@@ -170,7 +170,7 @@ def test_clean_keypoints_keep_the_later_of_their_onset_and_the_depths(monkeypatc
     def depth_onset(uv, ok, K_, onset, depth_frame, T, cfg):
         return early, np.zeros(n), np.zeros(n), False
 
-    monkeypatch.setattr(module, "_depth_onset", depth_onset)
+    monkeypatch.setattr(steady_depth, "onset_from_depth", depth_onset)
     args = dict(depth_frame=lambda i: np.zeros((4, 4)), T_color_turntable=np.eye(4))
     keypoints_only = select_steady(kp, K, None, SelectSteadyConfig(depth_onset=False))
     assert abs(keypoints_only.steady_from - ONSET) <= 3

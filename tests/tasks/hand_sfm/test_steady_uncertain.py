@@ -68,12 +68,12 @@ def test_the_manifest_onset_is_never_marked():
 # 0.01: z = share / 0.01), the depth's change point ``t`` and the final onset.
 
 def _doubt(share, t, onset=None, at_end=False, cfg=None):
-    from graspcap.tasks.hand_sfm.select_steady import _depth_doubt
+    from graspcap.tasks.hand_sfm.steady_depth import depth_doubt
 
     cfg = cfg or SelectSteadyConfig()
     share = np.array(share, dtype=float)
     onset = t + cfg.depth_lag_frames if onset is None else onset
-    return _depth_doubt(share, share / 0.01, t, onset, at_end, cfg)
+    return depth_doubt(share, share / 0.01, t, onset, at_end, cfg)
 
 
 def test_a_sharp_or_settling_end_is_not_marked():
