@@ -1,4 +1,4 @@
-"""The hand's own depth surface in the joint solve's last step (``JointSolveConfig.hand_depth``).
+"""The hand's own depth surface in the joint solve's last step (``JointSolveConfig.depth_refine``).
 
 During the steady window the hand is static in the world (the first steady camera) and the
 joint solve's cameras ``T_w_c`` are held: the depth pixels near the solved hand in a few
@@ -13,7 +13,12 @@ per-session surface offset solved with the rest (under a weak prior), and a Cauc
 the points that belong to the object, a flying pixel or another part of the hand; points
 outside the surface (where the held object lies) under a tighter one than points inside.
 
-Not called by ``joint_solve`` yet. Measured on the cached joint solves of the tuning sessions
+``joint_solve`` runs it (``refine_solved_hand``) on its final hand where the detections are
+noisy (the staged result did not stand clean); the result keeps the unrefined hand when the
+refinement fails (too few points, a non-finite result, an exception of the solver) or when it
+makes the keypoints' median reprojection residual over the kept frames grow by more than
+``max_reproj_growth`` (the depth pulled the hand off what the detections see). Measured
+before wiring on the cached joint solves of the tuning sessions
 real-detector ``[82100, i]`` and wild ``[9700, i]``, i < 8, 60 frames (experiment script
 /tmp/handdepth/exp.py, outside the repository): the hand in each frame 12.7 -> 10.3 mm (median
 of 16; better on 12, worse on wild ``[9700, 2]`` 7.0 -> 10.6 and ``[9700, 3]`` 12.0 -> 14.0),
@@ -86,6 +91,22 @@ class HandDepthConfig(StageConfig):
     """Sigma of the log scale around the joint solve's."""
     max_nfev: int = 40
     """Most residual evaluations (Jacobians by finite differences) of one round."""
+    free_space_weight: float = 0.0
+    """Weight of the free-space term (0 = off): the depth camera saw through the space in
+    front of every cloud point within ``free_space_near_m`` of the start's surface, so the
+    points ``free_space_steps_m`` before it along its ray must lie outside the hand (a hinge
+    on their signed distance, ``free_space_margin_m`` allowed): the hand is not pulled
+    forward onto the held object's points in front of the fingers."""
+    free_space_steps_m: tuple[float, ...] = (0.005, 0.01, 0.02)
+    """Distances before each cloud point (towards its camera) of the free samples."""
+    free_space_near_m: float = 0.03
+    """Only cloud points within this of the start's surface carve free space."""
+    free_space_margin_m: float = 0.002
+    """A free sample may lie this far inside the surface unpenalised (depth noise)."""
+    max_reproj_growth: float = 1.25
+    """The refined hand is kept only when the median reprojection residual (pixels) of the
+    detections in the kept frames grows by at most this factor (else the unrefined hand
+    stands)."""
 
 
 @dataclass(frozen=True)
@@ -107,6 +128,31 @@ class DepthRefinement:
     rms_after_m: float
 
 
+@dataclass(frozen=True)
+class DepthRefineReport:
+    """What the depth refinement did in ``joint_solve`` (``JointSolve.depth_refine``).
+
+    kept : the refined hand is the result's; note : why not (empty when kept).
+    cloud_points : fused depth points; points : points in the last round (0 without one).
+    offset_m : the per-session surface offset (NaN without a refinement).
+    rms_before_m, rms_after_m : robust spread of the last round's distances.
+    reproj_before_px, reproj_after_px : median reprojection residual of the kept frames'
+        detections before and after (the guard's test; NaN where not measured).
+    joints_w_before : (21, 3) the unrefined hand's keypoints (the world of the result).
+    """
+
+    kept: bool
+    note: str
+    cloud_points: int
+    points: int
+    offset_m: float
+    rms_before_m: float
+    rms_after_m: float
+    reproj_before_px: float
+    reproj_after_px: float
+    joints_w_before: np.ndarray
+
+
 def capsule_distance(points: np.ndarray, caps: Capsules) -> np.ndarray:
     """Signed distance (n,) of points (n, 3) to the union of capsules (negative inside)."""
     a, b = caps.start, caps.end
@@ -120,12 +166,13 @@ def capsule_distance(points: np.ndarray, caps: Capsules) -> np.ndarray:
 def hand_cloud(
     depth_frame: Callable[[int], np.ndarray], K: np.ndarray, first_frame: int,
     rows: np.ndarray, T_w_c: np.ndarray, joints_w: np.ndarray,
-    T_color_turntable: np.ndarray | None, cfg: HandDepthConfig,
-) -> np.ndarray:
+    T_color_turntable: np.ndarray | None, cfg: HandDepthConfig, with_origins: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """World points (n, 3) of the depth around the hand in solve rows ``rows`` (video frames
     ``first_frame + row``; cameras ``T_w_c`` (m, 4, 4)): each frame's pixels in the window of
-    the projected ``joints_w`` (21, 3), without flying pixels and the static scene."""
-    out = []
+    the projected ``joints_w`` (21, 3), without flying pixels and the static scene; with
+    ``with_origins`` also each point's camera centre (n, 3)."""
+    out, origins = [], []
     for i in rows:
         T_c_w = inv_T(T_w_c[i])
         Jc = transform_points(T_c_w, joints_w)
@@ -152,7 +199,11 @@ def hand_cloud(
             T_tt_c = inv_T(T_color_turntable)
             P = P[P @ T_tt_c[2, :3] + T_tt_c[2, 3] > cfg.min_height_m]
         out.append(transform_points(T_w_c[i], P))
-    return np.concatenate(out) if out else np.zeros((0, 3))
+        origins.append(np.broadcast_to(T_w_c[i][:3, 3], out[-1].shape))
+    cloud = np.concatenate(out) if out else np.zeros((0, 3))
+    if with_origins:
+        return cloud, np.concatenate(origins) if origins else np.zeros((0, 3))
+    return cloud
 
 
 def _even(n: int, k: int) -> np.ndarray:
@@ -169,12 +220,15 @@ def refine_with_depth(
     cloud_w: np.ndarray, uv: np.ndarray, ok: np.ndarray, sigma_px: np.ndarray, K: np.ndarray,
     T_w_c: np.ndarray, active: np.ndarray, side: HandSide, T_w_p: np.ndarray,
     angles: np.ndarray, bone_scale: np.ndarray, scale: float, cfg: HandDepthConfig,
+    origins_w: np.ndarray | None = None,
 ) -> DepthRefinement | None:
     """The hand refined against the cloud ``cloud_w`` (n, 3) and the detections ``uv``
     (m, 21, 2) (``ok`` (m, 21), sigmas ``sigma_px`` (m, 21)) of the ``active`` (m,) frames,
     cameras ``T_w_c`` (m, 4, 4) held; bone factors ``bone_scale`` (20,) held. Two rounds: the
     points within ``gate_m`` of the start's surface, then within ``gate_sigmas`` robust
-    sigmas of the first result's. None with fewer than ``min_points`` points."""
+    sigmas of the first result's. None with fewer than ``min_points`` points. With
+    ``origins_w`` (n, 3), each point's camera centre, and ``free_space_weight`` > 0, the
+    free-space term (see ``HandDepthConfig``)."""
     from scipy.optimize import least_squares
 
     model = HandModel(side)
@@ -203,6 +257,14 @@ def refine_with_depth(
     x = np.concatenate([np.zeros(6), a0, [0.0, 0.0]])
     start_d = distances(x, cloud_w)
     pts = cloud_w[np.abs(start_d) <= cfg.gate_m]
+    free = np.zeros((0, 3))
+    if origins_w is not None and cfg.free_space_weight > 0:
+        near = np.flatnonzero(np.abs(start_d) <= cfg.free_space_near_m)
+        near = near[_even(len(near), cfg.max_points)]
+        ray = origins_w[near] - cloud_w[near]
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+        free = np.concatenate([cloud_w[near] + step * ray for step in cfg.free_space_steps_m])
+    w_free = cfg.free_space_weight * np.sqrt(min(1.0, cfg.effective_points / max(len(free), 1)))
     before = after = float("nan")
     for rnd in range(2):
         if rnd == 1:
@@ -221,6 +283,9 @@ def refine_with_depth(
                 w * np.where(d > 0, _robust(d / cfg.sigma_m, cfg.outside_cauchy_k),
                              _robust(d / cfg.sigma_m, cfg.cauchy_k)),
                 cfg.keypoint_weight * _robust(reproj(T, ang, np.exp(ls)), cfg.cauchy_k),
+                w_free * np.minimum(0.0, capsule_distance(free, model.capsules(
+                    ang, T, np.exp(ls), bone_scale)) - off + cfg.free_space_margin_m)
+                / cfg.sigma_m,
                 (x[6:26] - a0) / cfg.angle_sigma_rad,
                 [x[26] / cfg.scale_sigma, x[27] / cfg.offset_sigma_m],
             ])
@@ -238,5 +303,69 @@ def refine_with_depth(
     return DepthRefinement(T, ang, float(np.exp(ls)), float(off), len(pts), before, after)
 
 
-__all__ = ["DepthRefinement", "HandDepthConfig", "capsule_distance", "hand_cloud",
-           "refine_with_depth"]
+def _median_reproj_px(model, T_w_p, angles, scale, bone_scale, T_w_c, active, uv, ok, K):
+    """Median pixel residual of the detections ``ok`` in the ``active`` frames."""
+    J = model.keypoints(angles, T_w_p, scale, bone_scale)
+    rows = np.flatnonzero(active)
+    T_c_w = np.stack([inv_T(T_w_c[i]) for i in rows])
+    Jc = np.einsum("fab,jb->fja", T_c_w[:, :3, :3], J) + T_c_w[:, None, :3, 3]
+    p = Jc[..., :2] / Jc[..., 2:] * np.diag(K)[:2] + K[:2, 2]
+    sel = ok[rows]
+    return float(np.median(np.linalg.norm(p[sel] - uv[rows][sel], axis=1))) if sel.any() \
+        else float("nan")
+
+
+def refine_solved_hand(
+    depth_frame: Callable[[int], np.ndarray], K: np.ndarray, steady_from: int,
+    T_c_p: np.ndarray, active: np.ndarray, uv: np.ndarray, ok: np.ndarray,
+    sigma_px: np.ndarray, side: HandSide, angles: np.ndarray, bone_scale: np.ndarray,
+    scale: float, T_color_turntable: np.ndarray | None, cfg: HandDepthConfig,
+) -> tuple[np.ndarray, np.ndarray, float, DepthRefineReport]:
+    """The joint solve's final hand refined against its fused depth, cameras held.
+
+    T_c_p : (m, 4, 4) the palm in every solve frame's camera (filled, ``fill_poses``; the
+    world is camera 0's, as the result's); active : (m,) the kept frames; uv, ok, sigma_px :
+    (m, 21, 2), (m, 21), (m, 21) detections; angles (20,), bone_scale (20,), scale : the hand.
+    Returns ``T_c_p``, angles and scale, refined where kept (else the inputs), and the report.
+    """
+    model = HandModel(side)
+    T_w_p = T_c_p[0].copy()
+    T_w_c = np.stack([T_w_p @ inv_T(T) for T in T_c_p])
+    T_w_c[0] = np.eye(4)
+    J0 = model.keypoints(angles, T_w_p, scale, bone_scale)
+    args = (T_w_c, active, uv, ok, K)
+    before_px = _median_reproj_px(model, T_w_p, angles, scale, bone_scale, *args)
+
+    def unrefined(note, cloud=0, ref=None, after_px=float("nan")):
+        nan = float("nan")
+        return T_c_p, angles, scale, DepthRefineReport(
+            False, note, cloud, 0 if ref is None else ref.points,
+            nan if ref is None else ref.offset_m, nan if ref is None else ref.rms_before_m,
+            nan if ref is None else ref.rms_after_m, before_px, after_px, J0)
+
+    rows = np.flatnonzero(active)
+    rows = rows[_even(len(rows), cfg.frames)]
+    try:
+        cloud, origins = hand_cloud(depth_frame, K, steady_from, rows, T_w_c, J0,
+                                    T_color_turntable, cfg, with_origins=True)
+        ref = refine_with_depth(cloud, uv, ok, sigma_px, K, T_w_c, active, side, T_w_p, angles,
+                                bone_scale, scale, cfg, origins)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return unrefined(f"failed: {exc}"[:200])
+    if ref is None:
+        return unrefined(f"too few points near the hand (of {len(cloud)})", len(cloud))
+    if not (np.all(np.isfinite(ref.T_w_p)) and np.all(np.isfinite(ref.angles_rad))
+            and np.isfinite(ref.scale)):
+        return unrefined("non-finite result", len(cloud))
+    after_px = _median_reproj_px(model, ref.T_w_p, ref.angles_rad, ref.scale, bone_scale, *args)
+    if not after_px <= cfg.max_reproj_growth * before_px:
+        return unrefined(f"reprojection {before_px:.2f} -> {after_px:.2f} px", len(cloud), ref,
+                         after_px)
+    T_c_p_new = np.stack([inv_T(T) @ ref.T_w_p for T in T_w_c])
+    report = DepthRefineReport(True, "", len(cloud), ref.points, ref.offset_m, ref.rms_before_m,
+                               ref.rms_after_m, before_px, after_px, J0)
+    return T_c_p_new, ref.angles_rad, ref.scale, report
+
+
+__all__ = ["DepthRefineReport", "DepthRefinement", "HandDepthConfig", "capsule_distance",
+           "hand_cloud", "refine_solved_hand", "refine_with_depth"]
