@@ -22,7 +22,11 @@ before wiring on the cached joint solves of the tuning sessions
 real-detector ``[82100, i]`` and wild ``[9700, i]``, i < 8, 60 frames (experiment script
 /tmp/handdepth/exp.py, outside the repository): the hand in each frame 12.7 -> 10.3 mm (median
 of 16; better on 12, worse on wild ``[9700, 2]`` 7.0 -> 10.6 and ``[9700, 3]`` 12.0 -> 14.0),
-SfM joints 10.5 -> 8.9 mm, about 5 CPU s per session; short of the 5-7 mm asked for.
+SfM joints 10.5 -> 8.9 mm, about 5 CPU s per session; short of the 5-7 mm asked for. The
+same numbers from the wired stage (joint_solve/7, /tmp/handdepth/wired.py). Tried and not
+kept: a free-space term (samples 5/10/20 mm before each cloud point along its ray held outside
+the hand, weight 1) moved wild ``[9700, 2]`` 10.6 -> 9.9 mm but ``[9700, 3]`` 14.0 -> 14.2 and
+real-detector ``[82100, 0]``, ``[82100, 4]`` not at all, at 2-3x the CPU (4 sessions only).
 """
 
 from __future__ import annotations
@@ -91,18 +95,6 @@ class HandDepthConfig(StageConfig):
     """Sigma of the log scale around the joint solve's."""
     max_nfev: int = 40
     """Most residual evaluations (Jacobians by finite differences) of one round."""
-    free_space_weight: float = 0.0
-    """Weight of the free-space term (0 = off): the depth camera saw through the space in
-    front of every cloud point within ``free_space_near_m`` of the start's surface, so the
-    points ``free_space_steps_m`` before it along its ray must lie outside the hand (a hinge
-    on their signed distance, ``free_space_margin_m`` allowed): the hand is not pulled
-    forward onto the held object's points in front of the fingers."""
-    free_space_steps_m: tuple[float, ...] = (0.005, 0.01, 0.02)
-    """Distances before each cloud point (towards its camera) of the free samples."""
-    free_space_near_m: float = 0.03
-    """Only cloud points within this of the start's surface carve free space."""
-    free_space_margin_m: float = 0.002
-    """A free sample may lie this far inside the surface unpenalised (depth noise)."""
     max_reproj_growth: float = 1.25
     """The refined hand is kept only when the median reprojection residual (pixels) of the
     detections in the kept frames grows by at most this factor (else the unrefined hand
@@ -166,13 +158,12 @@ def capsule_distance(points: np.ndarray, caps: Capsules) -> np.ndarray:
 def hand_cloud(
     depth_frame: Callable[[int], np.ndarray], K: np.ndarray, first_frame: int,
     rows: np.ndarray, T_w_c: np.ndarray, joints_w: np.ndarray,
-    T_color_turntable: np.ndarray | None, cfg: HandDepthConfig, with_origins: bool = False,
-) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    T_color_turntable: np.ndarray | None, cfg: HandDepthConfig,
+) -> np.ndarray:
     """World points (n, 3) of the depth around the hand in solve rows ``rows`` (video frames
     ``first_frame + row``; cameras ``T_w_c`` (m, 4, 4)): each frame's pixels in the window of
-    the projected ``joints_w`` (21, 3), without flying pixels and the static scene; with
-    ``with_origins`` also each point's camera centre (n, 3)."""
-    out, origins = [], []
+    the projected ``joints_w`` (21, 3), without flying pixels and the static scene."""
+    out = []
     for i in rows:
         T_c_w = inv_T(T_w_c[i])
         Jc = transform_points(T_c_w, joints_w)
@@ -199,11 +190,7 @@ def hand_cloud(
             T_tt_c = inv_T(T_color_turntable)
             P = P[P @ T_tt_c[2, :3] + T_tt_c[2, 3] > cfg.min_height_m]
         out.append(transform_points(T_w_c[i], P))
-        origins.append(np.broadcast_to(T_w_c[i][:3, 3], out[-1].shape))
-    cloud = np.concatenate(out) if out else np.zeros((0, 3))
-    if with_origins:
-        return cloud, np.concatenate(origins) if origins else np.zeros((0, 3))
-    return cloud
+    return np.concatenate(out) if out else np.zeros((0, 3))
 
 
 def _even(n: int, k: int) -> np.ndarray:
@@ -220,15 +207,12 @@ def refine_with_depth(
     cloud_w: np.ndarray, uv: np.ndarray, ok: np.ndarray, sigma_px: np.ndarray, K: np.ndarray,
     T_w_c: np.ndarray, active: np.ndarray, side: HandSide, T_w_p: np.ndarray,
     angles: np.ndarray, bone_scale: np.ndarray, scale: float, cfg: HandDepthConfig,
-    origins_w: np.ndarray | None = None,
 ) -> DepthRefinement | None:
     """The hand refined against the cloud ``cloud_w`` (n, 3) and the detections ``uv``
     (m, 21, 2) (``ok`` (m, 21), sigmas ``sigma_px`` (m, 21)) of the ``active`` (m,) frames,
     cameras ``T_w_c`` (m, 4, 4) held; bone factors ``bone_scale`` (20,) held. Two rounds: the
     points within ``gate_m`` of the start's surface, then within ``gate_sigmas`` robust
-    sigmas of the first result's. None with fewer than ``min_points`` points. With
-    ``origins_w`` (n, 3), each point's camera centre, and ``free_space_weight`` > 0, the
-    free-space term (see ``HandDepthConfig``)."""
+    sigmas of the first result's. None with fewer than ``min_points`` points."""
     from scipy.optimize import least_squares
 
     model = HandModel(side)
@@ -257,14 +241,6 @@ def refine_with_depth(
     x = np.concatenate([np.zeros(6), a0, [0.0, 0.0]])
     start_d = distances(x, cloud_w)
     pts = cloud_w[np.abs(start_d) <= cfg.gate_m]
-    free = np.zeros((0, 3))
-    if origins_w is not None and cfg.free_space_weight > 0:
-        near = np.flatnonzero(np.abs(start_d) <= cfg.free_space_near_m)
-        near = near[_even(len(near), cfg.max_points)]
-        ray = origins_w[near] - cloud_w[near]
-        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
-        free = np.concatenate([cloud_w[near] + step * ray for step in cfg.free_space_steps_m])
-    w_free = cfg.free_space_weight * np.sqrt(min(1.0, cfg.effective_points / max(len(free), 1)))
     before = after = float("nan")
     for rnd in range(2):
         if rnd == 1:
@@ -283,9 +259,6 @@ def refine_with_depth(
                 w * np.where(d > 0, _robust(d / cfg.sigma_m, cfg.outside_cauchy_k),
                              _robust(d / cfg.sigma_m, cfg.cauchy_k)),
                 cfg.keypoint_weight * _robust(reproj(T, ang, np.exp(ls)), cfg.cauchy_k),
-                w_free * np.minimum(0.0, capsule_distance(free, model.capsules(
-                    ang, T, np.exp(ls), bone_scale)) - off + cfg.free_space_margin_m)
-                / cfg.sigma_m,
                 (x[6:26] - a0) / cfg.angle_sigma_rad,
                 [x[26] / cfg.scale_sigma, x[27] / cfg.offset_sigma_m],
             ])
@@ -346,10 +319,9 @@ def refine_solved_hand(
     rows = np.flatnonzero(active)
     rows = rows[_even(len(rows), cfg.frames)]
     try:
-        cloud, origins = hand_cloud(depth_frame, K, steady_from, rows, T_w_c, J0,
-                                    T_color_turntable, cfg, with_origins=True)
+        cloud = hand_cloud(depth_frame, K, steady_from, rows, T_w_c, J0, T_color_turntable, cfg)
         ref = refine_with_depth(cloud, uv, ok, sigma_px, K, T_w_c, active, side, T_w_p, angles,
-                                bone_scale, scale, cfg, origins)
+                                bone_scale, scale, cfg)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return unrefined(f"failed: {exc}"[:200])
     if ref is None:
