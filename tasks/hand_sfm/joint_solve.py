@@ -20,12 +20,18 @@ staged path fails, ``always`` the joint solve (from the staged start where there
 With a result, ``reconstruct_hand`` and ``fit_hand`` pass on its ``reconstruction`` and
 ``fit``, so every stage downstream (cross-check, adjustment, poses, QA, pictures, catalog rows)
 reads the same types as from the staged path.
+
+Where the joint solve ran from noisy detections (the staged result did not stand clean), its
+final hand is refined against the hand's own depth fused over the kept frames, the cameras
+held (``hand_sfm.hand_depth``, ``depth_refine``); the refined hand is the result's
+(``joints_w``, the fit's pose, scale and angles, the residuals) and ``JointSolve.depth_refine``
+records what the step did.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 from typing import Any
 
@@ -39,6 +45,11 @@ from graspcap.tasks.hand.fit_hand import FitHandConfig, HandFit
 from graspcap.tasks.hand.model import RIGID_PALM_POINTS, SURFACE_OFFSET_M, HandSide
 from graspcap.tasks.hand_sfm import reconstruct_hand as reconstruct_stage
 from graspcap.tasks.hand_sfm.depth_links import DepthLinkConfig, depth_links
+from graspcap.tasks.hand_sfm.hand_depth import (
+    DepthRefineReport,
+    HandDepthConfig,
+    refine_solved_hand,
+)
 from graspcap.tasks.hand_sfm.hand_graph import (
     GraphSolve,
     HandKinematics,
@@ -67,7 +78,7 @@ from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 # gtsam: imported where used, so that importing the stage table stays cheap
 
 STAGE = "joint_solve"
-STAGE_VERSION = "joint_solve/6"
+STAGE_VERSION = "joint_solve/7"
 
 
 class HandPath(StrEnum):
@@ -198,6 +209,13 @@ class JointSolveConfig(StageConfig):
     """Levenberg-Marquardt iterations per solve."""
     relative_tol: float = 1e-5
     """Levenberg-Marquardt stops when an iteration lowers the error by less than this share."""
+    depth_refine: HandDepthConfig = HandDepthConfig()
+    """The last step where the detections are noisy (the staged result did not stand clean:
+    the staged path failed or measured more than ``auto_noise_share``): the solved hand's
+    pose, scale and angles refined against its own depth fused over the kept frames, cameras
+    and bone factors held (``hand_sfm.hand_depth``). The unrefined hand stands where the step
+    fails or grows the median reprojection residual by more than its ``max_reproj_growth``.
+    Needs the depth frames. ``enabled = false``: the hand of ``joint_solve/6``."""
 
 
 PRESETS: dict[str, JointSolveConfig] = {
@@ -226,6 +244,8 @@ class JointSolve:
     frame_median_px : (m,) each frame's median residual at the last solve it was in (NaN
         where never solved).
     rounds, iterations : solve rounds and the LM iterations of the last.
+    depth_refine : what the depth refinement did (``hand_sfm.hand_depth.DepthRefineReport``;
+        None where it did not run: a staged result, clean detections, disabled, no depth).
     """
 
     reconstruction: HandReconstruction
@@ -238,6 +258,7 @@ class JointSolve:
     frame_median_px: np.ndarray
     rounds: int
     iterations: int
+    depth_refine: DepthRefineReport | None = None
 
 
 def joint_solve(
@@ -295,13 +316,15 @@ def joint_solve(
         start it would have had without it (a chain that slid can leave no depth reading
         agreeing with the hand it places)."""
         args = (keypoints, K, steady_from, depth_at, side)
+        extra = {"depth_frame": depth_frame, "T_color_turntable": T_color_turntable}
         try:
-            return solve_from_start(*args, cfg, rec, fit, staged_error, surface_at)
+            return solve_from_start(*args, cfg, rec, fit, staged_error, surface_at, **extra)
         except StageError:
             if not cfg.chain_start:
                 raise
             unchained = cfg.model_copy(update={"chain_start": False})
-            return solve_from_start(*args, unchained, rec, fit, staged_error, surface_at)
+            return solve_from_start(*args, unchained, rec, fit, staged_error, surface_at,
+                                    **extra)
 
     found = staged(cfg.staged)
     if isinstance(found, str):  # the joint solve starts from the depth
@@ -334,11 +357,15 @@ def solve_from_start(
     fit: HandFit | None = None,
     staged_error: str = "",
     surface_at: Callable[[int, np.ndarray, np.ndarray], Any] | None = None,
+    *,
+    depth_frame: DepthFrame | None = None,
+    T_color_turntable: np.ndarray | None = None,
 ) -> JointSolve:
     """The joint solve from the staged solution (``rec``, ``fit``) or, without it, from the
     depth; whole-frame rejection rounds; the result in the staged path's types.
     ``surface_at(i, uv, depth) -> SurfaceCloud | None`` gives solve frame i's surface for the
-    dense depth links (None: no links)."""
+    dense depth links (None: no links). ``depth_frame(video frame) -> (h, w)`` metres (and
+    ``T_color_turntable``, which drops the platter) feed ``depth_refine`` (none without)."""
     import gtsam
 
     kp = np.asarray(keypoints, dtype=float)[steady_from:]
@@ -460,15 +487,25 @@ def solve_from_start(
     if span < cfg.min_rotation_deg:
         raise fail(f"the kept cameras turn at most {span:.1f} deg < {cfg.min_rotation_deg} "
                    "deg: too little motion to solve the hand from")
-    return _assemble(kin, K, steady_from, uv, ok, T_c_p, start, angles, log_bone, log_scale,
-                     range_used, frame_median, rejected, sol, rounds, staged_error, cfg)
-
-
-def _assemble(kin, K, steady_from, uv, ok, T_c_p, start, angles, log_bone, log_scale,
-              range_used, frame_median, rejected, sol, rounds, staged_error, cfg) -> JointSolve:
-    """The result in the staged path's types, world = the first steady camera."""
-    m = len(uv)
     T_c_p_filled, pose_valid = fill_poses(T_c_p)  # also works on T_c_p: a rigid map
+    report = None
+    if cfg.depth_refine.enabled and not clean and depth_frame is not None:
+        T_c_p_filled, angles, scale, report = refine_solved_hand(
+            depth_frame, K, steady_from, T_c_p_filled, pose_valid, uv, ok, sigma, side, angles,
+            np.exp(log_bone), scale, T_color_turntable, cfg.depth_refine)
+        log_scale = float(np.log(scale))
+    out = _assemble(kin, K, steady_from, uv, ok, T_c_p_filled, pose_valid, start, angles,
+                    log_bone, log_scale, range_used, frame_median, rejected, sol, rounds,
+                    staged_error, cfg)
+    return out if report is None else replace(out, depth_refine=report)
+
+
+def _assemble(kin, K, steady_from, uv, ok, T_c_p_filled, pose_valid, start, angles, log_bone,
+              log_scale, range_used, frame_median, rejected, sol, rounds, staged_error,
+              cfg) -> JointSolve:
+    """The result in the staged path's types, world = the first steady camera; the palm in
+    every frame's camera ``T_c_p_filled`` (m, 4, 4) filled, ``pose_valid`` (m,) where solved."""
+    m = len(uv)
     J = kin.keypoints(angles, log_bone, log_scale)
     T_w_p = T_c_p_filled[0].copy()  # world = camera 0: the palm in it is T_c0_p
     T_w_c = np.stack([T_w_p @ inv_T(T) for T in T_c_p_filled])

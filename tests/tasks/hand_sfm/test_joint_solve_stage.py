@@ -166,3 +166,34 @@ def test_a_chain_start_whose_solve_fails_falls_back_to_the_staged_start(upstream
     assert solved.path == "joint" and solved.start == "staged"
     assert len(outcomes) == 2 and outcomes[1] == "staged"  # the chain's solve failed first
     assert any(w in outcomes[0] for w in ("no metric scale", "implausible", "too few"))
+
+
+def test_the_depth_refinement_moves_the_noisy_paths_hand_and_nothing_else_when_off(upstream):
+    """``depth_refine`` runs where the joint solve's result is used on noisy detections (here
+    forced by ``auto_noise_share = 0``): the cameras stay, the hand (pose, scale, angles, the
+    joints of the reconstruction and the fit) moves, and the report records it. Disabled, the
+    result is the unrefined solve's, the hand the report names as ``joints_w_before``."""
+    session, results = upstream
+    off_cfg = CONFIGS["joint_solve"].depth_refine.model_copy(update={"enabled": False})
+    off = _path(session, results, HandPath.AUTO, auto_noise_share=0.0,
+                depth_refine=off_cfg)["joint_solve"]
+    on = _path(session, results, HandPath.AUTO, auto_noise_share=0.0)["joint_solve"]
+    assert off.path == on.path == "joint" and off.depth_refine is None
+    report = on.depth_refine
+    assert report is not None and report.kept, report.note
+    assert report.points >= CONFIGS["joint_solve"].depth_refine.min_points
+    assert np.isfinite(report.offset_m)
+    np.testing.assert_allclose(report.joints_w_before, off.fit.joints_fit_w, atol=1e-12)
+    np.testing.assert_allclose(on.reconstruction.T_w_c, off.reconstruction.T_w_c, atol=1e-12)
+    assert np.array_equal(on.frame_rejected, off.frame_rejected)
+    assert not np.allclose(on.fit.joints_fit_w, off.fit.joints_fit_w, atol=1e-5)
+    assert not np.allclose(on.fit.angles_rad, off.fit.angles_rad)
+    # the refined hand is the result's everywhere the solve's hand was
+    np.testing.assert_array_equal(on.reconstruction.joints_w, on.fit.joints_fit_w)
+    from graspcap.tasks.hand.model import HandModel
+
+    posed = HandModel(on.fit.side).keypoints(on.fit.angles_rad, on.fit.T_w_p, on.fit.scale,
+                                             on.bone_scale)
+    np.testing.assert_allclose(posed, on.fit.joints_fit_w, atol=1e-9)
+    # the staged result of clean detections does not run it
+    assert _path(session, results, HandPath.AUTO)["joint_solve"].depth_refine is None
