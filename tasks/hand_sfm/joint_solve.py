@@ -319,12 +319,21 @@ def joint_solve(
         extra = {"depth_frame": depth_frame, "T_color_turntable": T_color_turntable}
         try:
             return solve_from_start(*args, cfg, rec, fit, staged_error, surface_at, **extra)
-        except StageError:
+        except StageError as chained:
             if not cfg.chain_start:
                 raise
             unchained = cfg.model_copy(update={"chain_start": False})
-            return solve_from_start(*args, unchained, rec, fit, staged_error, surface_at,
-                                    **extra)
+            try:
+                return solve_from_start(*args, unchained, rec, fit, staged_error, surface_at,
+                                        **extra)
+            except StageError as exc:  # both reasons (the chain's was hidden), the staged once
+                last, _, tail = exc.reason.partition("; the staged path: ")
+                first = chained.reason.partition("; the staged path: ")[0]
+                if first == last:  # no chain start: the same start failed twice
+                    raise
+                staged_part = f"; the staged path: {tail}" if tail else ""
+                raise StageError(STAGE, f"{last}; from the depth chain's start: {first}"
+                                        f"{staged_part}") from exc
 
     found = staged(cfg.staged)
     if isinstance(found, str):  # the joint solve starts from the depth

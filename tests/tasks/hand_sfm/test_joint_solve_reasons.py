@@ -1,0 +1,64 @@
+"""When the solve from the depth chain's start fails and so does the retry without the
+chain, the refusal names both reasons (the chain's was hidden: wild [80625, 16] read only
+"no start for the joint solve") and the staged path's once."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graspcap.tasks.core.errors import StageError
+from graspcap.tasks.hand.model import HandSide
+from graspcap.tasks.hand_sfm import joint_solve as js
+
+
+def test_both_starts_failing_name_both_reasons(monkeypatch):
+    def staged_fails(*args, **kwargs):
+        raise StageError("reconstruct_hand", "too noisy")
+
+    def solve_fails(*args, **kwargs):
+        cfg, staged = args[5], args[8]
+        why = "no metric scale (chain)" if cfg.chain_start else "no start (depth)"
+        raise StageError(js.STAGE, f"{why}; the staged path: {staged}")
+
+    monkeypatch.setattr(js.reconstruct_stage, "reconstruct_hand", staged_fails)
+    monkeypatch.setattr(js, "solve_from_start", solve_fails)
+    with pytest.raises(StageError) as exc:
+        js.joint_solve(np.zeros((8, 21, 3)), np.eye(3), 0, lambda i, uv: np.zeros(len(uv)),
+                       HandSide.RIGHT)
+    reason = exc.value.reason
+    assert reason.startswith("no start (depth); from the depth chain's start: no metric "
+                             "scale (chain); the staged path: ")
+    assert reason.count("too noisy") == 1
+
+
+def test_without_the_chain_the_one_reason_stands(monkeypatch):
+    def staged_fails(*args, **kwargs):
+        raise StageError("reconstruct_hand", "too noisy")
+
+    def solve_fails(*args, **kwargs):
+        raise StageError(js.STAGE, "no start (depth)")
+
+    monkeypatch.setattr(js.reconstruct_stage, "reconstruct_hand", staged_fails)
+    monkeypatch.setattr(js, "solve_from_start", solve_fails)
+    cfg = js.JointSolveConfig(chain_start=False)
+    with pytest.raises(StageError) as exc:
+        js.joint_solve(np.zeros((8, 21, 3)), np.eye(3), 0, lambda i, uv: np.zeros(len(uv)),
+                       HandSide.RIGHT, cfg)
+    assert exc.value.reason == "no start (depth)"
+
+
+def test_the_same_reason_twice_is_told_once(monkeypatch):
+    def staged_fails(*args, **kwargs):
+        raise StageError("reconstruct_hand", "too noisy")
+
+    def solve_fails(*args, **kwargs):  # no chain start: the depth start fails both times
+        raise StageError(js.STAGE, f"no start (depth); the staged path: {args[8]}")
+
+    monkeypatch.setattr(js.reconstruct_stage, "reconstruct_hand", staged_fails)
+    monkeypatch.setattr(js, "solve_from_start", solve_fails)
+    with pytest.raises(StageError) as exc:
+        js.joint_solve(np.zeros((8, 21, 3)), np.eye(3), 0, lambda i, uv: np.zeros(len(uv)),
+                       HandSide.RIGHT)
+    assert exc.value.reason.startswith("no start (depth); the staged path: ")
+    assert "chain" not in exc.value.reason
