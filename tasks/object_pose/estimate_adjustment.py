@@ -148,7 +148,11 @@ class EstimateAdjustmentConfig(StageConfig):
     accept_fitness: float = 0.85
     """ICP from register_object's pose is accepted at this fitness."""
     min_fitness: float = 0.5
-    """A final fitness below this fails the stage."""
+    """A final fitness below this fails the stage..."""
+    ambiguous_min_fitness: float = 0.85
+    """...and an ``ambiguous`` one below this: poses far apart that explain only part of the
+    depth equally well are a guess, not an object's symmetry (wild [82664, 20], a 6 cm box:
+    149 deg off at 0.75, ambiguous; the ambiguous right poses measured 0.90-1.00)."""
     other_views: int = 6
     """Other steady frames (evenly spread) the pipeline offers as ``other_views`` (rig seed
     9000 #5, a mug from an onset 2 frames early: 3 views 4.7 deg, 6 views 0.9 deg)."""
@@ -589,11 +593,12 @@ def _from_hypothesis(
     T_w_o = inv_T(chosen.T_o_s)
     fit, rmse, n = _agreement(views, K, mesh, T_w_o, config)
     needed = _needed(views, K, model, ctx.area_m2, T_w_o, config)
-    if n < needed or fit < config.min_fitness:
+    least = config.ambiguous_min_fitness if ambiguous else config.min_fitness
+    if n < needed or fit < least:
         raise StageError(
             STAGE,
             f"object not found near the hand: fitness {fit:.2f} over {n} points "
-            f"(need {config.min_fitness:.2f} over {needed})",
+            f"(need {least:.2f} over {needed}{', ambiguous' if ambiguous else ''})",
         )
     return Adjustment(
         T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.NEAR_HAND_GLOBAL, ambiguous,
