@@ -63,7 +63,7 @@ from graspcap.tasks.object_pose.registration.twin_search import search_twins
 from graspcap.tasks.object_pose.track_object import ObjectTracking, TrackObjectConfig
 from graspcap.tasks.object_pose.tracked_average import TrackedAverage, TrackedAverageConfig
 
-STAGE_VERSION = "estimate_adjustment/18"
+STAGE_VERSION = "estimate_adjustment/19"
 STAGE = "estimate_adjustment"
 
 
@@ -127,7 +127,16 @@ class EstimateAdjustmentConfig(StageConfig):
     cluster_eps_m: float = 0.012
     """Clustering neighbour distance: pieces of the object closer than this stay together."""
     min_points: int = 150
-    """Fewer unmasked pixels than this where the posed object is seen: the pose is not supported."""
+    """Fewer judged pixels than this where the posed object is seen: the pose is not supported;
+    for an object that covers few pixels (small, far) ``min_visible_share`` of them."""
+    min_visible_share: float = 0.15
+    """The least judged pixels a pose needs is this share of the pixels the object covers at
+    that pose (its mean silhouette, a quarter of its surface area by Cauchy's formula, at its
+    distance in every view, at ``agree_stride_px``) when that is below ``min_points``: a 7 cm
+    ball at 0.8 m covers ~1800 pixels, 450 judged, and with two thirds of it inside the hand
+    shows ~100 (wild [80625, 21]: 0.92 over 104 judged pixels was refused)."""
+    min_points_floor: int = 40
+    """...but never fewer than this many judged pixels."""
     agree_tol_m: float = 0.006
     """A pixel agrees with the posed object when its depth is within this of the rendered depth."""
     agree_stride_px: int = 2
@@ -139,7 +148,11 @@ class EstimateAdjustmentConfig(StageConfig):
     accept_fitness: float = 0.85
     """ICP from register_object's pose is accepted at this fitness."""
     min_fitness: float = 0.5
-    """A final fitness below this fails the stage."""
+    """A final fitness below this fails the stage..."""
+    ambiguous_min_fitness: float = 0.85
+    """...and an ``ambiguous`` one below this: poses far apart that explain only part of the
+    depth equally well are a guess, not an object's symmetry (wild [82664, 20], a 6 cm box:
+    149 deg off at 0.75, ambiguous; the ambiguous right poses measured 0.90-1.00)."""
     other_views: int = 6
     """Other steady frames (evenly spread) the pipeline offers as ``other_views`` (rig seed
     9000 #5, a mug from an onset 2 frames early: 3 views 4.7 deg, 6 views 0.9 deg)."""
@@ -312,6 +325,7 @@ def estimate_adjustment(
         raise StageError(STAGE, f"only {n} depth points outside the hand mask")
     model = prepare_model(mesh_vertices, mesh_faces, cfg)
     mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
+    area = _surface_area_m2(*mesh)
     T_w_o1 = np.asarray(T_w_o_stage1, float)
     hypotheses = [(Stage1Hypothesis.BEST, T_w_o1)]
     if T_w_o_stage1_alt is not None:
@@ -324,7 +338,7 @@ def estimate_adjustment(
                     for (d, _, T), m in zip(views, hands, strict=True)]  # fmt: skip
         pts, hand_all = np.concatenate(points), np.concatenate(hand_pts)
         ctx = _Context(views, K, _within_reach(pts, hand_all, hypotheses, model, config),
-                       hand_all, model, mesh)
+                       hand_all, model, mesh, area)
         results: list[Adjustment] = []
         errors: list[StageError] = []
         for which, T_start in hypotheses:
@@ -395,6 +409,29 @@ def _within_reach(
     grow = 2 * (model.radius_m + config.region_margin_m) + 2 * config.cluster_voxel_m
     keep |= np.all((points >= hand.min(0) - grow) & (points <= hand.max(0) + grow), axis=1)
     return points[keep]
+
+
+def _needed(
+    views: list, K: np.ndarray, model: Model, area_m2: float, T_w_o: np.ndarray,
+    config: EstimateAdjustmentConfig,
+) -> int:
+    """The judged pixels a pose ``T_w_o`` needs (``min_points``, ``min_visible_share``): the
+    object's mean silhouette (``area_m2`` / 4, its surface area's quarter) at its centroid's
+    distance in every view, at the agreement's stride."""
+    f2 = float(K[0, 0] * K[1, 1]) / max(config.agree_stride_px, 1) ** 2
+    centre = T_w_o[:3, :3] @ model.centroid + T_w_o[:3, 3]
+    expected = 0.0
+    for _, _, T_ref_c in views:
+        z = float((inv_T(T_ref_c)[:3, :3] @ centre + inv_T(T_ref_c)[:3, 3])[2])
+        expected += area_m2 / 4 * f2 / max(z, 0.05) ** 2
+    share = int(np.ceil(config.min_visible_share * expected))
+    return max(config.min_points_floor, min(config.min_points, share))
+
+
+def _surface_area_m2(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Surface area of a triangle mesh (vertices (n, 3) metres, faces (m, 3))."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    return 0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
 
 
 def _depth(depth_m: np.ndarray, K: np.ndarray, config: EstimateAdjustmentConfig) -> np.ndarray:
@@ -496,6 +533,8 @@ class _Context:
     hand_pts: np.ndarray
     model: Model
     mesh: tuple[np.ndarray, np.ndarray]
+    area_m2: float
+    """The mesh's surface area (:func:`_needed`)."""
     cache: dict = field(default_factory=dict)
     """What every hypothesis shares: the region around the hand, the global step's
     candidates, the grid's and the candidates' scores."""
@@ -525,8 +564,8 @@ def _from_hypothesis(
     if fit >= config.stage1_coarse_min:  # the finer levels only for a pose that may pass
         first = refine(scene_all, model, first.T_o_s, cfg, "stage1", first=1)
         fit, rmse, n = _agreement(views, K, mesh, inv_T(first.T_o_s), config)
-    if n >= config.min_points and fit >= config.accept_fitness:
-        T_w_o = inv_T(first.T_o_s)
+    T_w_o = inv_T(first.T_o_s)
+    if n >= _needed(views, K, model, ctx.area_m2, T_w_o, config) and fit >= config.accept_fitness:
         return Adjustment(
             T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.STAGE1_ICP, False, which
         )
@@ -553,11 +592,13 @@ def _from_hypothesis(
     )  # fmt: skip
     T_w_o = inv_T(chosen.T_o_s)
     fit, rmse, n = _agreement(views, K, mesh, T_w_o, config)
-    if n < config.min_points or fit < config.min_fitness:
+    needed = _needed(views, K, model, ctx.area_m2, T_w_o, config)
+    least = config.ambiguous_min_fitness if ambiguous else config.min_fitness
+    if n < needed or fit < least:
         raise StageError(
             STAGE,
             f"object not found near the hand: fitness {fit:.2f} over {n} points "
-            f"(need {config.min_fitness:.2f} over {config.min_points})",
+            f"(need {least:.2f} over {needed}{', ambiguous' if ambiguous else ''})",
         )
     return Adjustment(
         T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.NEAR_HAND_GLOBAL, ambiguous,
