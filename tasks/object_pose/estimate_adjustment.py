@@ -63,7 +63,7 @@ from graspcap.tasks.object_pose.registration.twin_search import search_twins
 from graspcap.tasks.object_pose.track_object import ObjectTracking, TrackObjectConfig
 from graspcap.tasks.object_pose.tracked_average import TrackedAverage, TrackedAverageConfig
 
-STAGE_VERSION = "estimate_adjustment/19"
+STAGE_VERSION = "estimate_adjustment/20"
 STAGE = "estimate_adjustment"
 
 
@@ -208,7 +208,9 @@ class EstimateAdjustmentConfig(StageConfig):
     """Grid starts (the best by fitness times depth agreement) refined through every level.
     They run only while the global step's best of its first three scores below
     ``reprobe_below``."""
-    registration: RegistrationConfig = RegistrationConfig(coarse_model_points=5000)
+    registration: RegistrationConfig = RegistrationConfig(
+        coarse_model_points=5000, round_spread=0.03
+    )
     """Global registration and ICP settings (a probe's first ICP level against a quarter of
     the model's points). RANSAC keeps 20000 iterations per restart: with 5000 the realistic
     carton [9000, 0] came out 180 deg off (its symmetric twin never found, not flagged)."""
@@ -224,7 +226,7 @@ PRESETS: dict[str, EstimateAdjustmentConfig] = {
     "default": EstimateAdjustmentConfig(),
     "fast": EstimateAdjustmentConfig(
         check_ambiguity=False,
-        registration=RegistrationConfig(n_restarts=2, coarse_model_points=5000),
+        registration=RegistrationConfig(n_restarts=2, coarse_model_points=5000, round_spread=0.03),
     ),
     "always_global": EstimateAdjustmentConfig(accept_fitness=1.1),
 }
