@@ -66,3 +66,19 @@ def off_smooth_path(T_c_p, active, cfg: JointSolveConfig) -> np.ndarray:
         on[n], n = True, back[n]
     out[idx[~on]] = True
     return out
+
+
+def frames_to_drop(judged, depth_bad, other_bad, least: int) -> np.ndarray | None:
+    """(m,) judged frames to drop: those failing the depth test or the other tests, or where
+    that keeps fewer than ``least`` frames, those failing the other tests alone (the depth test
+    condemns nearly every frame where most readings land on the object in front of the hand or
+    the start's scale is off: real-detector [90137, 1], 0.00-0.33 of the readings agree on right
+    frames, and dropping no frame at all let one mirrored detection turn the cameras 177 deg);
+    None when that too keeps fewer.
+
+    judged, depth_bad, other_bad : (m,) bool
+    """
+    for bad in (depth_bad | other_bad, other_bad):
+        if (judged & ~bad).sum() >= least:
+            return judged & bad
+    return None

@@ -59,6 +59,7 @@ from graspcap.tasks.hand_sfm.hand_graph import (
 from graspcap.tasks.hand_sfm.joint_frames import (
     depth_disagrees,
     frame_medians,
+    frames_to_drop,
     off_smooth_path,
     residuals_px,
 )
@@ -78,7 +79,7 @@ from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 # gtsam: imported where used, so that importing the stage table stays cheap
 
 STAGE = "joint_solve"
-STAGE_VERSION = "joint_solve/7"
+STAGE_VERSION = "joint_solve/8"
 
 
 class HandPath(StrEnum):
@@ -424,9 +425,10 @@ def solve_from_start(
     posed = np.all(np.isfinite(T_c_p.reshape(m, -1)), axis=1)
     active = posed & usable
     offset = np.asarray(SURFACE_OFFSET_M)
-    rejected = active & (depth_disagrees(T_c_p, J, start.scale * offset, readings, cfg)
-                         | off_smooth_path(T_c_p, active, cfg))
-    if (active & ~rejected).sum() >= max(cfg.min_frames, cfg.start_min_share * active.sum()):
+    rejected = frames_to_drop(active, depth_disagrees(T_c_p, J, start.scale * offset, readings,
+                                                      cfg), off_smooth_path(T_c_p, active, cfg),
+                              max(cfg.min_frames, int(np.ceil(cfg.start_min_share * active.sum()))))
+    if rejected is not None:
         active &= ~rejected  # else the start is too poor to judge frames by: solve them all
     sigma = cfg.sigma_px / np.maximum(conf, cfg.min_sigma_confidence)
     priors = HandPriors(cfg.limit_sigma_rad, cfg.rest_sigma_rad, cfg.scale_sigma)
@@ -471,9 +473,11 @@ def solve_from_start(
         frame_median = np.where(judged, med, frame_median)
         with np.errstate(invalid="ignore"):
             bad = med > max(cfg.frame_reject_factor * level, cfg.frame_reject_min_px)
-        bad |= depth_disagrees(cand, J, np.exp(log_scale) * offset, readings, cfg)
-        bad |= off_smooth_path(cand, judged, cfg)
-        keep = judged & ~bad
+        drop = frames_to_drop(judged, depth_disagrees(cand, J, np.exp(log_scale) * offset,
+                                                      readings, cfg),
+                              bad | off_smooth_path(cand, judged, cfg),
+                              max(cfg.min_frames, int(np.ceil(cfg.start_min_share * judged.sum()))))
+        keep = judged & ~(judged if drop is None else drop)
         if np.array_equal(keep, active) or rounds == cfg.frame_rounds or (
                 keep.sum() < cfg.min_frames):
             break
