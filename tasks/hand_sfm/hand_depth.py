@@ -198,6 +198,14 @@ def _even(n: int, k: int) -> np.ndarray:
     return np.arange(n) if n <= k else np.linspace(0, n - 1, k).round().astype(int)
 
 
+def _pixels(K: np.ndarray, T_c_w: np.ndarray, J_w: np.ndarray) -> np.ndarray:
+    """Pixels (f, 21, 2) of world keypoints ``J_w`` (21, 3) in cameras ``T_c_w`` (f, 4, 4)
+    (``hand_graph.project_hand`` without its NaN for points behind a camera, which the least
+    squares here must not see)."""
+    Jc = np.einsum("fab,jb->fja", T_c_w[:, :3, :3], J_w) + T_c_w[:, None, :3, 3]
+    return Jc[..., :2] / Jc[..., 2:] * np.diag(K)[:2] + K[:2, 2]
+
+
 def _robust(r: np.ndarray, k: float) -> np.ndarray:
     """Residuals whose squares are the Cauchy loss: sign(r) sqrt(k^2 log(1 + (r/k)^2))."""
     return np.sign(r) * k * np.sqrt(np.log1p((r / k) ** 2))
@@ -229,9 +237,7 @@ def refine_with_depth(
         return T_w_p @ from_rotvec(x[:3], x[3:6]), x[6:26], log_s0 + x[26], x[27]
 
     def reproj(T, ang, s):
-        J = model.keypoints(ang, T, s, bone_scale)
-        Jc = np.einsum("fab,jb->fja", T_c_w[:, :3, :3], J) + T_c_w[:, None, :3, 3]
-        p = Jc[..., :2] / Jc[..., 2:] * np.diag(K)[:2] + K[:2, 2]
+        p = _pixels(K, T_c_w, model.keypoints(ang, T, s, bone_scale))
         return ((p[sel] - target) * inv_sigma[:, None]).ravel()
 
     def distances(x, pts):
@@ -278,11 +284,9 @@ def refine_with_depth(
 
 def _median_reproj_px(model, T_w_p, angles, scale, bone_scale, T_w_c, active, uv, ok, K):
     """Median pixel residual of the detections ``ok`` in the ``active`` frames."""
-    J = model.keypoints(angles, T_w_p, scale, bone_scale)
     rows = np.flatnonzero(active)
     T_c_w = np.stack([inv_T(T_w_c[i]) for i in rows])
-    Jc = np.einsum("fab,jb->fja", T_c_w[:, :3, :3], J) + T_c_w[:, None, :3, 3]
-    p = Jc[..., :2] / Jc[..., 2:] * np.diag(K)[:2] + K[:2, 2]
+    p = _pixels(K, T_c_w, model.keypoints(angles, T_w_p, scale, bone_scale))
     sel = ok[rows]
     return float(np.median(np.linalg.norm(p[sel] - uv[rows][sel], axis=1))) if sel.any() \
         else float("nan")
