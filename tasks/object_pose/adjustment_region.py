@@ -7,13 +7,18 @@ keypoints and grown.
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from graspcap.tasks.core.geometry import inv_T
 from graspcap.tasks.core.render import render
 from graspcap.tasks.hand.image_masks import hand_mask_from_keypoints
 from graspcap.tasks.object_pose.registration.point_clouds import to_pcd
+
+if TYPE_CHECKING:
+    from graspcap.tasks.object_pose.estimate_adjustment import EstimateAdjustmentConfig
+    from graspcap.tasks.object_pose.registration.engine import Model
 
 # scipy: imported where used, so that importing the stage table stays cheap
 
@@ -112,3 +117,26 @@ def hand_mask(
     rendered = render([hand_mesh_w], [T_c_w], K, w, h)
     bones = hand_mask_from_keypoints(keypoints[:, :2], keypoints[:, 2], (h, w), bone_radius_px)
     return (rendered.mesh_index >= 0) | bones
+
+
+def needed_pixels(
+    views: list, K: np.ndarray, model: Model, area_m2: float, T_w_o: np.ndarray,
+    config: EstimateAdjustmentConfig,
+) -> int:
+    """The judged pixels a pose ``T_w_o`` needs (``min_points``, ``min_visible_share``): the
+    object's mean silhouette (``area_m2`` / 4, its surface area's quarter) at its centroid's
+    distance in every view, at the agreement's stride."""
+    f2 = float(K[0, 0] * K[1, 1]) / max(config.agree_stride_px, 1) ** 2
+    centre = T_w_o[:3, :3] @ model.centroid + T_w_o[:3, 3]
+    expected = 0.0
+    for _, _, T_ref_c in views:
+        z = float((inv_T(T_ref_c)[:3, :3] @ centre + inv_T(T_ref_c)[:3, 3])[2])
+        expected += area_m2 / 4 * f2 / max(z, 0.05) ** 2
+    share = int(np.ceil(config.min_visible_share * expected))
+    return max(config.min_points_floor, min(config.min_points, share))
+
+
+def surface_area_m2(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Surface area of a triangle mesh (vertices (n, 3) metres, faces (m, 3))."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    return 0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())

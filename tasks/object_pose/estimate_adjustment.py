@@ -40,7 +40,13 @@ from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T
 from graspcap.tasks.hand.image_masks import grow_mask
-from graspcap.tasks.object_pose.adjustment_region import hand_cluster, hand_mask, near_hand
+from graspcap.tasks.object_pose.adjustment_region import (
+    hand_cluster,
+    hand_mask,
+    near_hand,
+    needed_pixels,
+    surface_area_m2,
+)
 from graspcap.tasks.object_pose.registration.depth_agreement import views_agreement
 from graspcap.tasks.object_pose.registration.engine import (
     Model,
@@ -327,7 +333,7 @@ def estimate_adjustment(
         raise StageError(STAGE, f"only {n} depth points outside the hand mask")
     model = prepare_model(mesh_vertices, mesh_faces, cfg)
     mesh = (np.asarray(mesh_vertices, float), np.asarray(mesh_faces, np.int64))
-    area = _surface_area_m2(*mesh)
+    area = surface_area_m2(*mesh)
     T_w_o1 = np.asarray(T_w_o_stage1, float)
     hypotheses = [(Stage1Hypothesis.BEST, T_w_o1)]
     if T_w_o_stage1_alt is not None:
@@ -411,29 +417,6 @@ def _within_reach(
     grow = 2 * (model.radius_m + config.region_margin_m) + 2 * config.cluster_voxel_m
     keep |= np.all((points >= hand.min(0) - grow) & (points <= hand.max(0) + grow), axis=1)
     return points[keep]
-
-
-def _needed(
-    views: list, K: np.ndarray, model: Model, area_m2: float, T_w_o: np.ndarray,
-    config: EstimateAdjustmentConfig,
-) -> int:
-    """The judged pixels a pose ``T_w_o`` needs (``min_points``, ``min_visible_share``): the
-    object's mean silhouette (``area_m2`` / 4, its surface area's quarter) at its centroid's
-    distance in every view, at the agreement's stride."""
-    f2 = float(K[0, 0] * K[1, 1]) / max(config.agree_stride_px, 1) ** 2
-    centre = T_w_o[:3, :3] @ model.centroid + T_w_o[:3, 3]
-    expected = 0.0
-    for _, _, T_ref_c in views:
-        z = float((inv_T(T_ref_c)[:3, :3] @ centre + inv_T(T_ref_c)[:3, 3])[2])
-        expected += area_m2 / 4 * f2 / max(z, 0.05) ** 2
-    share = int(np.ceil(config.min_visible_share * expected))
-    return max(config.min_points_floor, min(config.min_points, share))
-
-
-def _surface_area_m2(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Surface area of a triangle mesh (vertices (n, 3) metres, faces (m, 3))."""
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    return 0.5 * float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
 
 
 def _depth(depth_m: np.ndarray, K: np.ndarray, config: EstimateAdjustmentConfig) -> np.ndarray:
@@ -536,7 +519,7 @@ class _Context:
     model: Model
     mesh: tuple[np.ndarray, np.ndarray]
     area_m2: float
-    """The mesh's surface area (:func:`_needed`)."""
+    """The mesh's surface area (:func:`adjustment_region.needed_pixels`)."""
     cache: dict = field(default_factory=dict)
     """What every hypothesis shares: the region around the hand, the global step's
     candidates, the grid's and the candidates' scores."""
@@ -567,7 +550,8 @@ def _from_hypothesis(
         first = refine(scene_all, model, first.T_o_s, cfg, "stage1", first=1)
         fit, rmse, n = _agreement(views, K, mesh, inv_T(first.T_o_s), config)
     T_w_o = inv_T(first.T_o_s)
-    if n >= _needed(views, K, model, ctx.area_m2, T_w_o, config) and fit >= config.accept_fitness:
+    needed = needed_pixels(views, K, model, ctx.area_m2, T_w_o, config)
+    if n >= needed and fit >= config.accept_fitness:
         return Adjustment(
             T_w_o @ inv_T(T_w_o1), T_w_o, fit, rmse, n, AdjustmentPath.STAGE1_ICP, False, which
         )
@@ -594,7 +578,7 @@ def _from_hypothesis(
     )  # fmt: skip
     T_w_o = inv_T(chosen.T_o_s)
     fit, rmse, n = _agreement(views, K, mesh, T_w_o, config)
-    needed = _needed(views, K, model, ctx.area_m2, T_w_o, config)
+    needed = needed_pixels(views, K, model, ctx.area_m2, T_w_o, config)
     least = config.ambiguous_min_fitness if ambiguous else config.min_fitness
     if n < needed or fit < least:
         raise StageError(

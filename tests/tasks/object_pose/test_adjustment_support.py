@@ -10,8 +10,12 @@ import trimesh
 
 from graspcap.tasks.core.geometry import inv_T, make_T, pose_error
 from graspcap.tasks.core.render import render
-from graspcap.tasks.object_pose.adjustment_region import hand_cluster
-from graspcap.tasks.object_pose.estimate_adjustment import PRESETS, _needed, _surface_area_m2
+from graspcap.tasks.object_pose.adjustment_region import (
+    hand_cluster,
+    needed_pixels,
+    surface_area_m2,
+)
+from graspcap.tasks.object_pose.estimate_adjustment import PRESETS
 from graspcap.tasks.object_pose.registration.engine import prepare_model
 from tests.registration_rig import HEIGHT, WIDTH, K
 
@@ -22,7 +26,7 @@ def _model(mesh: trimesh.Trimesh):
 
 def test_the_mean_silhouette_is_a_quarter_of_the_surface_area():
     box = trimesh.creation.box([0.06, 0.04, 0.1])
-    area = _surface_area_m2(box.vertices, box.faces)
+    area = surface_area_m2(box.vertices, box.faces)
     assert np.isclose(area, box.area)
     rng = np.random.default_rng(3)
     counts = []
@@ -38,17 +42,17 @@ def test_a_small_far_object_needs_fewer_judged_pixels_a_large_one_min_points():
     cfg = PRESETS["default"]
     views = [(None, None, np.eye(4))]
     ball = trimesh.creation.icosphere(3, radius=0.035)
-    model, area = _model(ball), _surface_area_m2(ball.vertices, ball.faces)
+    model, area = _model(ball), surface_area_m2(ball.vertices, ball.faces)
     at = [make_T(np.eye(3), [0.0, 0.0, z]) for z in (0.5, 0.85, 3.0)]
-    near, far, very_far = (_needed(views, K, model, area, T, cfg) for T in at)
+    near, far, very_far = (needed_pixels(views, K, model, area, T, cfg) for T in at)
     # a 7 cm ball at 0.85 m covers ~1900 pixels, ~480 judged at stride 2: 15 % of them
     assert cfg.min_points_floor < far < near <= cfg.min_points
     assert 60 <= far <= 80, far
     assert very_far == cfg.min_points_floor
     mug = trimesh.creation.cylinder(radius=0.045, height=0.15)
-    assert _needed(views, K, _model(mug), mug.area, at[1], cfg) == cfg.min_points
+    assert needed_pixels(views, K, _model(mug), mug.area, at[1], cfg) == cfg.min_points
     # every view adds the pixels the object covers in it
-    two = _needed(views * 2, K, model, area, at[1], cfg)
+    two = needed_pixels(views * 2, K, model, area, at[1], cfg)
     assert two == min(cfg.min_points, 2 * far) or abs(two - 2 * far) <= 1
 
 
