@@ -59,17 +59,22 @@ def _depth_of(points_t: np.ndarray, T_c_t: np.ndarray) -> np.ndarray:
     return d
 
 
-def test_a_raised_platter_is_not_kept_as_the_object():
-    platter, cube = _scene(0.0045, 0.5, 0.0012, seed=1)
-    # camera 0.8 m away looking down at the platter by 45 deg
+def _crops(platter: np.ndarray, cube: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(calibrated crop, crop on the measured platter, T_t_c) of the scene's depth seen by a
+    camera 0.8 m away looking down at the platter by 45 deg."""
     R = np.array([[1.0, 0.0, 0.0], [0.0, -np.sqrt(0.5), -np.sqrt(0.5)],
                   [0.0, np.sqrt(0.5), -np.sqrt(0.5)]])
     T_c_t = make_T(R, np.array([0.0, 0.0, 0.8]))
     depth = _depth_of(np.r_[platter, cube], T_c_t)
-    T_t_c = np.linalg.inv(T_c_t)
     calibrated = crop_platter(depth, K, T_c_t, PlatterCrop(drop_flying=False), prepared=True)
     measured = crop_platter(depth, K, T_c_t, PlatterCrop(drop_flying=False, fit_platter=True),
                             prepared=True)
+    return calibrated, measured, np.linalg.inv(T_c_t)
+
+
+def test_a_raised_platter_is_not_kept_as_the_object():
+    calibrated, measured, T_t_c = _crops(*_scene(0.0045, 0.5, 0.0012, seed=1))
+
     def height(p: np.ndarray) -> np.ndarray:  # over the true (raised, tilted) platter top
         q = transform_points(T_t_c, p)
         return q[:, 2] - 0.0045 - np.tan(np.radians(0.5)) * q[:, 1]
@@ -82,12 +87,5 @@ def test_a_raised_platter_is_not_kept_as_the_object():
 
 def test_a_platter_where_calibrated_keeps_the_calibrated_crop():
     # the depth confirms the calibration (within its noise): the crop is the calibrated one
-    platter, cube = _scene(0.0, 0.0, 0.0012, seed=2)
-    R = np.array([[1.0, 0.0, 0.0], [0.0, -np.sqrt(0.5), -np.sqrt(0.5)],
-                  [0.0, np.sqrt(0.5), -np.sqrt(0.5)]])
-    T_c_t = make_T(R, np.array([0.0, 0.0, 0.8]))
-    depth = _depth_of(np.r_[platter, cube], T_c_t)
-    calibrated = crop_platter(depth, K, T_c_t, PlatterCrop(drop_flying=False), prepared=True)
-    measured = crop_platter(depth, K, T_c_t, PlatterCrop(drop_flying=False, fit_platter=True),
-                            prepared=True)
+    calibrated, measured, _ = _crops(*_scene(0.0, 0.0, 0.0012, seed=2))
     np.testing.assert_array_equal(measured, calibrated)
