@@ -40,13 +40,22 @@ SEED = 9000
 """The default seed; the reported runs in docs/benchmarks.md use it unless they say."""
 
 # metric -> (target, "<=" or ">=") from the issue's target table
+# (the raw object pose errors and the anchored camera / joint errors are the older tables';
+# ``_sym_`` / ``_mssd_`` / ``_adds_`` are over the object's symmetries and ``_aligned_`` after one
+# robust alignment of the whole trajectory: graspcap.synth.evaluate, docs/qa.md)
 TARGETS = {
     "object_stage1_rot_deg": (1.0, "<="),
+    "object_stage1_rot_sym_deg": (1.0, "<="),
     "object_stage1_trans_mm": (3.0, "<="),
+    "object_stage1_trans_sym_mm": (3.0, "<="),
+    "object_stage1_mssd_mm": (None, ""),
     "steady_from_err_frames": (3.0, "<="),
     "joints_mpjpe_mm": (3.0, "<="),
+    "joints_aligned_mm": (3.0, "<="),
     "camera_rot_deg": (0.5, "<="),
+    "camera_rot_aligned_deg": (0.5, "<="),
     "camera_trans_mm": (5.0, "<="),
+    "camera_trans_aligned_mm": (5.0, "<="),
     # stage 2's own cameras and joints (the rows above: the catalog's frames.T_w_c, which the
     # object tracking in each frame's depth corrects where it can)
     "sfm_camera_rot_deg": (None, ""),
@@ -56,11 +65,19 @@ TARGETS = {
     "crosscheck_max_mm": (1.0, "<="),
     "fit_joints_mm": (6.0, "<="),
     "frame_object_rot_deg": (2.0, "<="),
+    "frame_object_rot_sym_deg": (2.0, "<="),
     "frame_object_trans_mm": (6.0, "<="),
+    "frame_object_trans_sym_mm": (6.0, "<="),
+    "frame_object_mssd_mm": (None, ""),
+    "frame_object_adds_mm": (None, ""),
     "T_adj_rot_deg": (None, ""),
+    "T_adj_rot_sym_deg": (None, ""),
     "T_adj_trans_mm": (None, ""),
+    "T_adj_trans_sym_mm": (None, ""),
     "object_scan_rot_deg": (1.0, "<="),
+    "object_scan_rot_sym_deg": (1.0, "<="),
     "object_scan_trans_mm": (3.0, "<="),
+    "object_scan_trans_sym_mm": (3.0, "<="),
     "reproj_rmse_px": (None, ""),
     "contact_mae": (0.06, "<="),
     "contact_iou": (0.85, ">="),
@@ -71,12 +88,13 @@ TARGETS = {
     "penetration_max_mm_fit": (None, ""),
     "penetration_max_mm_refined": (2.0, "<="),
     "refined_joints_mm": (None, ""),
+    "refined_joints_aligned_mm": (None, ""),
     "refine_time_s": (5.0, "<="),
 }
 
 
-OFF_LIMITS = {"object_stage1_rot_deg": 5.0, "joints_mpjpe_mm": 10.0, "camera_rot_deg": 2.0,
-              "frame_object_rot_deg": 5.0, "frame_object_trans_mm": 15.0}
+OFF_LIMITS = {"object_stage1_rot_sym_deg": 5.0, "joints_mpjpe_mm": 10.0, "camera_rot_deg": 2.0,
+              "frame_object_rot_sym_deg": 5.0, "frame_object_trans_sym_mm": 15.0}
 """A session beyond any of these (several times its target) is off: QA must not pass it."""
 
 POSE_STAGES = ("register_object", "select_steady", "reconstruct_hand", "crosscheck_sfm",
@@ -157,10 +175,14 @@ def run(profile: str, sessions: int, frames: tuple[int, ...], root: Path, seed: 
         per_session.append(
             f"| {r['name']} | {steady_errors[-1]} | {m.get('joints_mpjpe_mm', np.nan):.2f} "
             f"| {m.get('camera_rot_deg', np.nan):.2f} / {m.get('camera_trans_mm', np.nan):.1f} "
+            f"| {m.get('camera_rot_aligned_deg', np.nan):.2f} "
+            f"/ {m.get('camera_trans_aligned_mm', np.nan):.1f} "
             f"| {m.get('sfm_camera_rot_deg', np.nan):.2f} "
             f"| {m.get('frame_joints_mm', np.nan):.1f} "
             f"| {m.get('frame_object_rot_deg', np.nan):.2f} "
             f"/ {m.get('frame_object_trans_mm', np.nan):.1f} "
+            f"| {m.get('frame_object_rot_sym_deg', np.nan):.2f} "
+            f"/ {m.get('frame_object_trans_sym_mm', np.nan):.1f} "
             f"| {sum(t[n] for n in POSE_STAGES):.2f} | {r['verdict']} "
             f"| {'good' if good else why[:60]} |"
         )
@@ -216,10 +238,11 @@ def run(profile: str, sessions: int, frames: tuple[int, ...], root: Path, seed: 
     for reason, n in failures.items():
         print(f"\nfailed x{n}: {reason}")
     print(
-        "\n| session | steady error | MPJPE mm | cameras deg / mm | stage 2 cameras deg "
-        "| per-frame hand mm | T_c_o deg / mm | pose stages s | QA | good |"
+        "\n| session | steady error | MPJPE mm | cameras deg / mm | aligned cameras deg / mm "
+        "| stage 2 cameras deg | per-frame hand mm | T_c_o deg / mm | T_c_o sym deg / mm "
+        "| pose stages s | QA | good |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(per_session))
 
 

@@ -54,6 +54,8 @@ SEEDS = {"realistic": 9400, "hard": 9401, "wild": 9700}
 TRUTH_COLUMNS = ("steady_from_err_frames", "joints_mpjpe_mm", "fit_joints_mm",
                  "refined_joints_mm", "camera_rot_deg", "camera_trans_mm",
                  "frame_object_rot_deg", "frame_object_trans_mm", "object_stage1_rot_deg",
+                 "frame_object_rot_sym_deg", "frame_object_trans_sym_mm",
+                 "object_stage1_rot_sym_deg", "camera_rot_aligned_deg", "joints_aligned_mm",
                  "contact_near_hand_refined", "contact_iou")  # fmt: skip
 
 
@@ -147,8 +149,8 @@ def _line(r: dict[str, Any]) -> str:
     t = {k: r.get(f"truth_{k}", float("nan")) for k in TRUTH_COLUMNS}
     return (f"{r['session'][:34]:34} {r['profile'][:4]} {r['frames']:3d} {r['label']:8} "
             f"{r['verdict']:7} cam {t['camera_rot_deg']:.2f}d/{t['camera_trans_mm']:.1f}mm "
-            f"mpjpe {t['joints_mpjpe_mm']:.1f} obj {t['frame_object_rot_deg']:.1f}d/"
-            f"{t['frame_object_trans_mm']:.1f}mm onset {t['steady_from_err_frames']:.0f} | "
+            f"mpjpe {t['joints_mpjpe_mm']:.1f} obj {t['frame_object_rot_sym_deg']:.1f}d/"
+            f"{t['frame_object_trans_sym_mm']:.1f}mm onset {t['steady_from_err_frames']:.0f} | "
             f"{r['reasons'][:150]}")
 
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 from graspcap.synth.evaluate import GOOD_IF, confusion_markdown, good_session, qa_confusion
 
 GOOD = {"refined_joints_mm": 4.0, "fit_joints_mm": 9.0, "camera_rot_deg": 0.5,
-        "camera_trans_mm": 3.0, "frame_object_rot_deg": 1.0, "frame_object_trans_mm": 2.0,
-        "object_stage1_rot_deg": 0.3, "contact_near_hand_refined": 0.9}
+        "camera_trans_mm": 3.0, "frame_object_rot_sym_deg": 1.0,
+        "frame_object_trans_sym_mm": 2.0, "object_stage1_rot_sym_deg": 0.3,
+        "contact_near_hand_refined": 0.9}
 
 
 def test_a_session_within_every_tolerance_is_good_and_the_final_hand_is_the_refined_one():
