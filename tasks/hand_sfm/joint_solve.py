@@ -79,7 +79,7 @@ from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 # gtsam: imported where used, so that importing the stage table stays cheap
 
 STAGE = "joint_solve"
-STAGE_VERSION = "joint_solve/8"
+STAGE_VERSION = "joint_solve/9"
 
 
 class HandPath(StrEnum):
@@ -161,10 +161,17 @@ class JointSolveConfig(StageConfig):
     medians is dropped as a whole (no pose of the hand explains its detections)..."""
     frame_reject_min_px: float = 12.0
     """...and exceeds this many pixels."""
-    depth_links: DepthLinkConfig = DepthLinkConfig()
+    depth_links: DepthLinkConfig = DepthLinkConfig(stride_px=2)
     """Dense depth links between the kept frames (as in ``reconstruct_hand``: keypoints alone
     leave each camera's tilt a degree loose, the registered surface pins it); measured from
-    the last solve's cameras each round. Needs whole depth frames and the turntable pose."""
+    the last solve's cameras each round, and the surfaces the chain start registers. Needs
+    whole depth frames and the turntable pose. The surfaces are sampled every 2 pixels, not
+    ``reconstruct_hand``'s 3 (``joint_solve/9``): on the wild rig the hand stands 0.4-1.2 m
+    from the camera and holds objects down to 5 cm, so a 3-pixel lattice left a frame 150-260
+    points (4-5 mm apart at 0.9 m), each neighbour registration of the chain was 1-3 deg off
+    and the chain drifted with the turn. Every 2 pixels, stage 2's cameras on wild tuning
+    sessions ``[22921, 1 / 4 / 9]``: 3.69 / 1.96 / 2.85 deg -> 1.25 / 0.70 / 1.21 deg
+    (``docs/benchmarks.md``, "Session 15"). The clean path (the staged result) is untouched."""
     motion_sigma_rad: float = 0.0
     """Constant-velocity prior of the virtual cameras: sigma of the change of the per-frame
     rotation (radians) between consecutive kept frames (Cauchy loss; 0 = no motion prior).

@@ -62,3 +62,21 @@ def test_chain_start_holds_the_cameras_at_real_detector_noise(tmp_path):
     assert e_staged["camera_rot_deg"] > 3.0  # else this session shows nothing
     assert e_chain["camera_rot_deg"] < 1.0 and e_chain["camera_trans_mm"] < 8.0
     assert e_chain["joints_mpjpe_mm"] < e_staged["joints_mpjpe_mm"]
+
+
+@pytest.mark.slow
+def test_chain_holds_the_cameras_of_a_small_object_on_the_wild_rig(tmp_path):
+    """A wild tuning session (`[22921, 4]`, a 125 mm can at 0.58 m, 40 frames): on a 3-pixel
+    lattice a frame's surface has too few points for the neighbour registrations of the chain,
+    which drift 2 deg over a 31 deg turn; on the 2-pixel lattice of ``joint_solve/9`` they
+    hold (0.70 deg)."""
+    from graspcap.tasks.hand_sfm.joint_solve import JointSolveConfig
+
+    assert JointSolveConfig().depth_links.stride_px == 2
+    d = generate_session(tmp_path, [22921, 4], config_for("wild", 40))
+    fine, e_fine = _joint_solve(d)
+    assert fine.path == "joint" and fine.start == "chain"
+    coarse = JointSolveConfig().depth_links.model_copy(update={"stride_px": 3})
+    _, e_coarse = _joint_solve(d, depth_links=coarse)
+    assert e_coarse["camera_rot_deg"] > 1.5  # else this session shows nothing
+    assert e_fine["camera_rot_deg"] < 1.0 and e_fine["camera_trans_mm"] < 10.0
