@@ -58,6 +58,22 @@ def axes_ill_defined(model: Model, ratio: float) -> bool:
     return bool(np.any(s[1:] >= ratio * s[:-1]))
 
 
+def revolution_axis(model: Model, tolerance_m: float, points: int = 800) -> np.ndarray | None:
+    """The model's axis of (near) revolution (3,), object frame, through its centroid, or None:
+    the principal axis about which turns of 30, 60, ... 330 deg move none of ``points``
+    surface samples further than ``tolerance_m`` from the surface (the evaluation's test,
+    ``graspcap.synth.symmetry``, on the principal axes alone: a can with its tab, a bulb, a
+    ball; not a bottle with its cap off the axis, a mug, a box)."""
+    pts = np.asarray(strided(model.dense, points).points)
+    for k in range(3):
+        axis = model.axes[:, k]
+        moved = np.concatenate([transform_points(about_axis(model, axis, np.radians(a)), pts)
+                                for a in range(30, 360, 30)])
+        if float(surface_distance(model, moved).max()) <= tolerance_m:
+            return axis / np.linalg.norm(axis)
+    return None
+
+
 _FLIPS: dict[int, tuple[Model, np.ndarray]] = {}
 """Recent :func:`self_flip_axes` results by model (the model kept alive beside them)."""
 
