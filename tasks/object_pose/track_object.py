@@ -1,5 +1,5 @@
 """Per-frame object tracking in each steady frame's own depth (issue 19; run by
-``estimate_adjustment``'s glue, whose ``T_w_o`` becomes the mean over the tracked frames
+``estimate_adjustment``'s glue, whose ``T_w_o`` becomes the mean over the registered frames
 (:mod:`tracked_average`), and used by ``propagate_poses``).
 
 After the steady onset the hand and the object are one rigid body, and the paper carries the
