@@ -198,7 +198,7 @@ def _fit_hand(session: Session, config, **up):
 def _estimate_adjustment(session: Session, config, **up):
     """``T_adj`` registered in the first steady frame(s); with ``config.tracking.enabled`` the
     object then tracked in every steady frame's depth and, with ``config.average.enabled``,
-    ``T_w_o`` the robust mean of the tracked frames' poses (:mod:`tracked_average`)."""
+    ``T_w_o`` the robust mean of the registered frames' poses (:mod:`tracked_average`)."""
     s, sfm, stage1 = up["select_steady"].steady_from, up["reconstruct_hand"], up["register_object"]
     hand, mesh = up["fit_hand"].mesh(), session.read_mesh()
     frames = np.arange(s, s + len(sfm.T_w_c))
@@ -213,7 +213,7 @@ def _estimate_adjustment(session: Session, config, **up):
 
 def _track_adjustment(session: Session, config, adj: estimate_adjustment.Adjustment, **up):
     """``adj``'s object tracked in every steady frame's depth (``config.tracking``), and its
-    ``T_w_o`` the robust mean over the tracked frames (``config.average``)."""
+    ``T_w_o`` the robust mean over the registered frames (``config.average``)."""
     if not config.tracking.enabled:
         return adj
     s, sfm, stage1 = up["select_steady"].steady_from, up["reconstruct_hand"], up["register_object"]
@@ -230,9 +230,8 @@ def _track_adjustment(session: Session, config, adj: estimate_adjustment.Adjustm
     adj = replace(adj, tracking=tracking)
     if not config.average.enabled:
         return adj
-    average = tracked_average.average_object_pose(
-        sfm.T_w_c, tracking.T_c_o, tracking.tracked, np.asarray(mesh[0], float).mean(axis=0),
-        config.average,
+    average = tracked_average.average_tracking(
+        sfm.T_w_c, tracking, np.asarray(mesh[0], float).mean(axis=0), config.average,
     )
     if average.T_w_o is None:
         return replace(adj, average=average)

@@ -69,7 +69,7 @@ from graspcap.tasks.object_pose.registration.twin_search import search_twins
 from graspcap.tasks.object_pose.track_object import ObjectTracking, TrackObjectConfig
 from graspcap.tasks.object_pose.tracked_average import TrackedAverage, TrackedAverageConfig
 
-STAGE_VERSION = "estimate_adjustment/21"
+STAGE_VERSION = "estimate_adjustment/22"
 STAGE = "estimate_adjustment"
 
 
@@ -225,7 +225,8 @@ class EstimateAdjustmentConfig(StageConfig):
     glue, :mod:`track_object`); ``propagate_poses`` defines the tracked frames' cameras from
     it. ``enabled=False``: no tracking, stage 2's cameras as they are."""
     average: TrackedAverageConfig = TrackedAverageConfig()
-    """``T_w_o`` as the robust mean over the tracked frames (:mod:`tracked_average`)."""
+    """``T_w_o`` as the robust mean over the frames whose depth registered the object
+    (:mod:`tracked_average`)."""
 
 
 PRESETS: dict[str, EstimateAdjustmentConfig] = {
@@ -277,9 +278,9 @@ class Adjustment:
     Its ``T_c_o`` where not tracked is the pose carried from ``T_w_o_first``."""
     T_w_o_first: np.ndarray | None = None
     """The pose registered in the first steady frame(s) when ``T_w_o`` is the mean over the
-    tracked frames (:mod:`tracked_average`); None when ``T_w_o`` is that pose."""
+    registered frames (:mod:`tracked_average`); None when ``T_w_o`` is that pose."""
     average: TrackedAverage | None = None
-    """The mean over the tracked frames, or why there is none (None: not tried)."""
+    """The mean over the registered frames, or why there is none (None: not tried)."""
 
 
 @single_threaded()

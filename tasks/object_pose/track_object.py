@@ -1,5 +1,5 @@
 """Per-frame object tracking in each steady frame's own depth (issue 19; run by
-``estimate_adjustment``'s glue, whose ``T_w_o`` becomes the mean over the tracked frames
+``estimate_adjustment``'s glue, whose ``T_w_o`` becomes the mean over the registered frames
 (:mod:`tracked_average`), and used by ``propagate_poses``).
 
 After the steady onset the hand and the object are one rigid body, and the paper carries the
@@ -220,6 +220,12 @@ class ObjectTracking:
     gain : (m,) float
         1 - the tracked pose's depth cost over the propagated pose's (NaN where no candidate
         was scored).
+    T_c_o_registered : (m, 4, 4) float
+        The best candidate where ``registered`` (the frame's depth registered, whether or not
+        the gain test kept it), else the propagated pose.
+    registered : (m,) bool
+        A candidate passed every gate but the gain (the depth agrees with it on at least
+        ``min_agreement``); True wherever ``tracked``.
     """
 
     T_c_o: np.ndarray
@@ -232,6 +238,8 @@ class ObjectTracking:
     rmse_m: np.ndarray
     agreement: np.ndarray
     gain: np.ndarray
+    T_c_o_registered: np.ndarray | None = None
+    registered: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -457,6 +465,7 @@ def track_object(
             if config.revolution_tolerance_m > 0 else None)
     out_T = T_c_o.copy()
     tracked = np.zeros(m, bool)
+    reg_T, registered = T_c_o.copy(), np.zeros(m, bool)
     reasons: list[str | None] = []
     starts: list[str | None] = []
     nums = np.full((6, m), np.nan)  # correction deg, m, fitness, rmse, agreement, gain
@@ -523,6 +532,8 @@ def track_object(
             if cost_prop is None:
                 cost_prop = _scored(depth, K_box, mesh, T_prop, keep, config)[1]
             reason, nums[5, j] = _verdict(best, cost_prop, config)
+            if best.agreement >= config.min_agreement:
+                reg_T[j], registered[j] = best.T_c_o, True
         reasons.append(reason)
         starts.append(None if reason else best.start)
         if reason is None:
@@ -530,7 +541,8 @@ def track_object(
             nums[:5, j] = (*_correction(model, T_prop, best.T_c_o), best.fitness, best.rmse_m,
                            best.agreement)
             last = (int(f), best.T_c_o)
-    return ObjectTracking(out_T, tracked, tuple(reasons), tuple(starts), *nums)
+    return ObjectTracking(out_T, tracked, tuple(reasons), tuple(starts), *nums,
+                          T_c_o_registered=reg_T, registered=registered)
 
 
 __all__ = ["ObjectTracking", "TrackObjectConfig", "track_object"]

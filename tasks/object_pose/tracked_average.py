@@ -1,4 +1,5 @@
-"""The object's pose in the hand's world from every tracked steady frame (``estimate_adjustment``).
+"""The object's pose in the hand's world from every steady frame whose depth registered the
+object (``estimate_adjustment``).
 
 After the steady onset the hand and the object are one rigid body, so the object's pose in the
 hand's world, ``T_w_o``, is one constant for the whole grasp. ``estimate_adjustment`` registers
@@ -14,6 +15,24 @@ hand in a tracked frame is exactly as wrong as ``T_w_o``. On tuning seeds (real-
 [9700, i] i<6, ``docs/benchmarks.md``, session 12) the first frame's ``T_w_o`` put the hand in
 the tracked frames 19.9 and 12.4 mm off ([9700, 1], [9700, 4]); with this mean, 8.7 and 6.6 mm.
 
+**Over every registered frame, not the tracked ones alone** (``estimate_adjustment/22``). A
+tracked frame's delivered camera is ``T_w_o @ inv(T_c_o[i])``, an untracked one keeps stage 2's,
+so ``T_w_o`` is the reference both kinds share. The gain test tracks exactly the frames where
+stage 2's camera is wrong, so a mean over them alone carries their cameras' error, and every
+untracked frame then disagrees with the tracked ones by it. A frame the gain test left
+untracked was still registered in its own depth (``ObjectTracking.registered``: a candidate
+the depth agrees with, only not a clear improvement on the propagated pose), and through its
+stage 2 camera, the one it delivers, it measures ``T_w_o`` too; the mean over all of them is
+the pose that agrees with the kept cameras as well as the replaced ones. Frames where no
+candidate agreed with the depth stay out, so a wrong first pose is still replaced (wild
+[22921, 1] mug, first pose 9.4 deg off: delivered cameras 1.66 deg either way; [80625, 3]
+carton 11.69 / aligned 0.40 either way; a mean with the untracked frames' propagated poses
+instead: 3.18 deg, aligned 9.93). On tuning seeds (``docs/benchmarks.md``, session 15),
+delivered cameras ``camera_rot_deg`` tracked-only mean -> this: wild [22921, 4] can 1.51 -> 0.83
+(stage 2 0.70), [82664, 1] bulb 0.54 -> 0.38, [82664, 3] 1.23 -> 1.20, [80625, 11] mug 2.96 ->
+2.85 (per-frame object 5.41 -> 4.42 deg); real-detector [82100, 3] 0.46 -> 0.41; realistic
+[9400, 1] 0.89 -> 0.85, the others unchanged.
+
 The mean: chordal mean rotation and median object centre, then the frames whose pose is more
 than ``outlier_factor`` median deviations from it (rotation, or the object centre's distance)
 dropped once and the mean taken again. Frames still settling after an early onset, and a frame
@@ -26,23 +45,33 @@ Pure numpy and scipy; no Prefect.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.geometry import rotation_error_deg
 
+if TYPE_CHECKING:
+    from graspcap.tasks.object_pose.track_object import ObjectTracking
+
 # scipy: imported where used, so that importing the stage table stays cheap
 
 
 class TrackedAverageConfig(StageConfig):
-    """``T_w_o`` as the mean over the tracked steady frames (``estimate_adjustment``)."""
+    """``T_w_o`` as the mean over the registered steady frames (``estimate_adjustment``)."""
 
     enabled: bool = True
-    """Replace the first frame's ``T_w_o`` by the mean over the tracked frames; False keeps it
+    """Replace the first frame's ``T_w_o`` by the mean over the frames; False keeps it
     (``estimate_adjustment/17``)."""
+    frames: Literal["registered", "tracked"] = "registered"
+    """The frames measured: every frame whose depth registered the object, tracked or left
+    with stage 2's camera by the gain test (``ObjectTracking.registered``), or the tracked
+    ones alone (``estimate_adjustment/21``: their mean carried the error of the cameras the
+    gain test replaced, and the kept cameras disagreed with it; wild [22921, 4] delivered
+    cameras 1.51 deg against 0.83 over the registered frames)."""
     min_frames: int = 5
-    """Fewest tracked frames (after the outliers are dropped) for a mean."""
+    """Fewest frames (after the outliers are dropped) for a mean."""
     outlier_factor: float = 3.0
     """A frame further from the first mean than this many median deviations (rotation, or the
     object centre's distance) is dropped before the second."""
@@ -65,9 +94,9 @@ class TrackedAverage:
     T_w_o : (4, 4) float or None
         The mean; None where there were too few frames (``reason`` says why).
     frames : int
-        Tracked frames in the mean (after the outliers are dropped).
+        Frames in the mean (after the outliers are dropped).
     dropped : int
-        Tracked frames dropped as outliers.
+        Frames dropped as outliers.
     spread_deg, spread_m : float
         Median rotation and object-centre deviation of the kept frames from the mean.
     reason : str or None
@@ -136,4 +165,26 @@ def average_object_pose(
                           float(np.median(dist)))
 
 
-__all__ = ["TrackedAverage", "TrackedAverageConfig", "average_object_pose"]
+def average_tracking(
+    T_w_c: np.ndarray,
+    tracking: ObjectTracking,
+    centre_o: np.ndarray,
+    config: TrackedAverageConfig = DEFAULT,
+) -> TrackedAverage:
+    """:func:`average_object_pose` over the frames ``config.frames`` names: every registered
+    frame at its registered pose, or the tracked ones at their tracked pose (also where the
+    tracking has no registrations).
+
+    Parameters
+    ----------
+    T_w_c : (m, 4, 4) float, the steady frames' stage 2 cameras.
+    tracking : the object tracked in the same frames (:func:`track_object.track_object`).
+    centre_o : (3,) float, the object's centre in its own frame.
+    """
+    if config.frames == "registered" and tracking.registered is not None:
+        return average_object_pose(T_w_c, tracking.T_c_o_registered, tracking.registered,
+                                   centre_o, config)
+    return average_object_pose(T_w_c, tracking.T_c_o, tracking.tracked, centre_o, config)
+
+
+__all__ = ["TrackedAverage", "TrackedAverageConfig", "average_object_pose", "average_tracking"]

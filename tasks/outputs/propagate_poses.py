@@ -9,7 +9,7 @@ Stage 2's cameras come from 2D hand keypoints alone and are degrees off at reali
 noise; every frame's object pose inherits it. ``estimate_adjustment``'s glue
 (``tasks/pipeline.py``, ``estimate_adjustment.tracking``) tracks the object in each steady
 frame's own depth (:mod:`track_object`, from the registered pose, bounded corrections) and takes
-``T_w_o`` as the mean over the tracked frames (:mod:`tracked_average`); here, hand and object
+``T_w_o`` as the mean over the registered frames (:mod:`tracked_average`); here, hand and object
 being one rigid body after the onset, a tracked pose defines that frame's camera:
 ``T_w_c[i]' = T_w_o @ inv(T_c_o_tracked[i])`` (:func:`tracked_cameras`); the palm and the
 joints are carried by the same corrected cameras (``PosePropagation.T_w_c``, the cameras
