@@ -23,7 +23,7 @@ import numpy as np
 from graspcap.tasks.contact import build_contactmap
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.core.geometry import inv_T, transform_points
+from graspcap.tasks.core.geometry import inv_T, rotation_error_deg, transform_points
 from graspcap.tasks.core.presets import PIPELINE_PRESETS, UnknownPreset, apply_settings
 from graspcap.tasks.hand import fit_hand, refine_grasp
 from graspcap.tasks.hand.final import FinalHand, final_hand, final_pose
@@ -220,23 +220,33 @@ def _track_adjustment(session: Session, config, adj: estimate_adjustment.Adjustm
     hand, mesh = up["fit_hand"].mesh(), session.read_mesh()
     frames = np.arange(s, s + len(sfm.T_w_c))
     keypoints = _ideal_keypoints(session, up["detect_keypoints"].keypoints[frames])
-    T_o_w = inv_T(adj.T_w_o)
-    tracking = track_object.track_object(
-        np.stack([inv_T(T) @ adj.T_w_o for T in sfm.T_w_c]),
-        frames, session.grasp_depth_reader(), session.color_K, mesh,
-        (transform_points(T_o_w, hand.vertices), hand.faces), keypoints, config.tracking,
-        joints_o=transform_points(T_o_w, sfm.joints_w),
-    )
+    def track(T_w_o: np.ndarray) -> track_object.ObjectTracking:
+        T_o_w = inv_T(T_w_o)  # the static hand in the frame of that object pose
+        return track_object.track_object(
+            np.stack([inv_T(T) @ T_w_o for T in sfm.T_w_c]),
+            frames, session.grasp_depth_reader(), session.color_K, mesh,
+            (transform_points(T_o_w, hand.vertices), hand.faces), keypoints, config.tracking,
+            joints_o=transform_points(T_o_w, sfm.joints_w),
+        )
+
+    def average_of(tracking: track_object.ObjectTracking) -> tracked_average.TrackedAverage:
+        return tracked_average.average_tracking(
+            sfm.T_w_c, tracking, np.asarray(mesh[0], float).mean(axis=0), config.average)
+
+    tracking = track(adj.T_w_o)
     adj = replace(adj, tracking=tracking)
     if not config.average.enabled:
         return adj
-    average = tracked_average.average_tracking(
-        sfm.T_w_c, tracking, np.asarray(mesh[0], float).mean(axis=0), config.average,
-    )
+    average = average_of(tracking)
     if average.T_w_o is None:
         return replace(adj, average=average)
+    retrack = config.average.retrack_deg
+    if retrack > 0 and rotation_error_deg(average.T_w_o[:3, :3], adj.T_w_o[:3, :3]) > retrack:
+        # the frames the gain test left untracked deliver the pose carried from the mean, so
+        # the tracking is judged again against that pose, from it; the mean itself stays
+        tracking = track(average.T_w_o)
     return replace(adj, T_w_o=average.T_w_o, T_adj=average.T_w_o @ inv_T(stage1.T_w_o),
-                   T_w_o_first=adj.T_w_o, average=average)
+                   T_w_o_first=adj.T_w_o, average=average, tracking=tracking)
 
 
 def _register_scan(session: Session, config, **up):

@@ -69,7 +69,7 @@ from graspcap.tasks.object_pose.registration.twin_search import search_twins
 from graspcap.tasks.object_pose.track_object import ObjectTracking, TrackObjectConfig
 from graspcap.tasks.object_pose.tracked_average import TrackedAverage, TrackedAverageConfig
 
-STAGE_VERSION = "estimate_adjustment/22"
+STAGE_VERSION = "estimate_adjustment/23"
 STAGE = "estimate_adjustment"
 
 

@@ -80,6 +80,16 @@ class TrackedAverageConfig(StageConfig):
     fraction of a degree must not drop a frame 1 deg away)."""
     min_deviation_m: float = 0.003
     """Floor of the median centre deviation in that test."""
+    retrack_deg: float = 2.0
+    """Where the mean turns the object more than this from the pose the tracking started from
+    (``estimate_adjustment``'s first-frame pose), every frame is tracked again from the pose
+    the mean propagates, the mean kept. The frames the gain test leaves untracked deliver that
+    pose, so it is the one a tracked pose must beat; the first pass judged them against the
+    first-frame pose, and where that was far off, a pose ICP left half way beat it (tuning
+    real-detector ``[52033, 9]``, a carton: the first pose 13 deg off, frames 18-19 and 43-47
+    tracked 6.6-7.7 deg short, delivered 5.7-6.9 deg off where stage 2 was 0.1-0.7 deg).
+    Averaging the second pass again was tried and not kept (``docs/benchmarks.md``, session
+    15). 0: never."""
 
 
 DEFAULT = TrackedAverageConfig()

@@ -82,13 +82,14 @@ def _adjustment(T_w_o: np.ndarray, truth) -> Adjustment:
                       ambiguous=False)
 
 
-def _run(held, tracking: TrackObjectConfig, average: bool = False,
+def _run(held, tracking: TrackObjectConfig, average: bool | TrackedAverageConfig = False,
          T_w_o: np.ndarray | None = None):
     """``estimate_adjustment``'s tracking (and mean, with ``average``) from ``T_w_o`` (default:
     the truth), then ``propagate_poses``."""
     session, truth, up = held
-    config = EstimateAdjustmentConfig(tracking=tracking,
-                                      average=TrackedAverageConfig(enabled=average))
+    if not isinstance(average, TrackedAverageConfig):
+        average = TrackedAverageConfig(enabled=average)
+    config = EstimateAdjustmentConfig(tracking=tracking, average=average)
     start = up["estimate_adjustment"] if T_w_o is None else _adjustment(T_w_o, truth)
     adj = pipeline._track_adjustment(session, config, start, **up)
     return pipeline._propagate_poses(session, PropagatePosesConfig(),
@@ -197,3 +198,35 @@ def test_a_kept_first_start_spares_the_other(held, monkeypatch):
     # the propagated start first: it runs in every frame, the previous one only after it
     assert calls_one.count(track_object.PROPAGATED) == len(one.frame_indices)
     assert one.tracking.tracked.sum() >= 0.8 * len(one.frame_indices)
+
+
+def test_a_mean_far_from_the_start_is_tracked_again(held, monkeypatch):
+    """A first pose 8 deg off (beyond ``retrack_deg``): the frames are tracked a second time
+    from the mean, and the delivered poses come from that pass; with ``retrack_deg = 0`` once
+    (real-detector [52033, 9]: frames tracked half way from a first pose 13 deg off)."""
+    from graspcap.tasks.object_pose import track_object
+
+    session, truth, _ = held
+    T_true = truth["T_adj"] @ truth["T_w_o_stage1"]
+    centre = np.asarray(session.read_mesh()[0], float).mean(axis=0)
+    c_w = T_true[:3, :3] @ centre + T_true[:3, 3]
+    start = (make_T(np.eye(3), c_w) @ from_rotvec(np.radians(8.0) * np.array([0.0, 0.6, 0.8]),
+                                                  np.zeros(3))
+             @ make_T(np.eye(3), -c_w) @ T_true)  # fmt: skip
+    real, starts = track_object.track_object, []
+
+    def counted(T_c_o, *args, **kwargs):
+        starts.append(np.asarray(T_c_o).copy())
+        return real(T_c_o, *args, **kwargs)
+
+    monkeypatch.setattr(track_object, "track_object", counted)
+    _run(held, TrackObjectConfig(), TrackedAverageConfig(retrack_deg=0.0), T_w_o=start)
+    assert len(starts) == 1
+    starts.clear()
+    again = _run(held, TrackObjectConfig(), TrackedAverageConfig(), T_w_o=start)
+    assert len(starts) == 2
+    # the second pass starts from the first pass's mean, far nearer the truth than 8 deg
+    T_w_c = held[2]["reconstruct_hand"].T_w_c
+    assert pose_error(T_w_c[0] @ starts[0][0], T_true)[0] > 7.5
+    assert pose_error(T_w_c[0] @ starts[1][0], T_true)[0] < 3.0
+    assert np.median(_errors(truth, again)[:, 0]) < 1.0
