@@ -220,6 +220,7 @@ def _track_adjustment(session: Session, config, adj: estimate_adjustment.Adjustm
     hand, mesh = up["fit_hand"].mesh(), session.read_mesh()
     frames = np.arange(s, s + len(sfm.T_w_c))
     keypoints = _ideal_keypoints(session, up["detect_keypoints"].keypoints[frames])
+
     def track(T_w_o: np.ndarray) -> track_object.ObjectTracking:
         T_o_w = inv_T(T_w_o)  # the static hand in the frame of that object pose
         return track_object.track_object(
@@ -229,15 +230,13 @@ def _track_adjustment(session: Session, config, adj: estimate_adjustment.Adjustm
             joints_o=transform_points(T_o_w, sfm.joints_w),
         )
 
-    def average_of(tracking: track_object.ObjectTracking) -> tracked_average.TrackedAverage:
-        return tracked_average.average_tracking(
-            sfm.T_w_c, tracking, np.asarray(mesh[0], float).mean(axis=0), config.average)
-
     tracking = track(adj.T_w_o)
     adj = replace(adj, tracking=tracking)
     if not config.average.enabled:
         return adj
-    average = average_of(tracking)
+    average = tracked_average.average_tracking(
+        sfm.T_w_c, tracking, np.asarray(mesh[0], float).mean(axis=0), config.average,
+    )
     if average.T_w_o is None:
         return replace(adj, average=average)
     retrack = config.average.retrack_deg
