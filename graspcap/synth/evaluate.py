@@ -179,19 +179,17 @@ def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
             cams = _camera_errors(est[key], steady_est, truth, at)
             out[f"{prefix}camera_rot_deg"] = float(np.median(cams[:, 0]))
             out[f"{prefix}camera_trans_mm"] = 1e3 * float(np.median(cams[:, 1]))
-            out |= _aligned_metrics(prefix, est[key], steady_est, truth,
-                                    {"joints": est["joints_w"]} if prefix == "" else {})
+            hands = {} if prefix else {
+                name: est[k] for k, name in (("joints_w", "joints"),
+                                             ("joints_fit_w", "fit_joints"),
+                                             ("joints_refined_w", "refined_joints"))
+                if k in est}  # fmt: skip
+            out |= _aligned_metrics(prefix, est[key], steady_est, truth, hands)
     if "joints_fit_w" in est:
         out["fit_joints_mm"] = _mpjpe_mm(est["joints_fit_w"], est["T_w_c"], steady_est, truth, at)
     if "joints_refined_w" in est:
         out["refined_joints_mm"] = _mpjpe_mm(est["joints_refined_w"], est["T_w_c"], steady_est,
                                              truth, at)
-    hands = {name: est[key] for key, name in (("joints_fit_w", "fit_joints"),
-                                              ("joints_refined_w", "refined_joints"))
-             if key in est}  # fmt: skip
-    if hands and "joints_w" in est:
-        out |= {k: v for k, v in _aligned_metrics("", est["T_w_c"], steady_est, truth,
-                                                  hands).items() if "camera" not in k}
     for key, name in (
         ("qa_reproj_rmse_px", "reproj_rmse_px"),
         ("qa_crosscheck_mm", "crosscheck_max_mm"),

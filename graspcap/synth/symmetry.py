@@ -87,10 +87,14 @@ class Symmetries:
         return extra or "none"
 
 
+def _skew(a: np.ndarray) -> np.ndarray:
+    """(3, 3) cross-product matrix of ``a`` (3,): ``_skew(a) @ x == np.cross(a, x)``."""
+    return np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+
+
 def _rot(axis: np.ndarray, angle_rad: float | np.ndarray) -> np.ndarray:
     """(3, 3) rotation(s) about unit ``axis`` (Rodrigues); a vector of angles gives (m, 3, 3)."""
-    a = np.asarray(axis, dtype=float)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    K = _skew(np.asarray(axis, dtype=float))
     th = np.asarray(angle_rad, dtype=float)[..., None, None]
     return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * (K @ K)
 
@@ -243,9 +247,8 @@ def rotation_error_sym_deg(R_est: np.ndarray, R_true: np.ndarray, sym: Symmetrie
             trace = float(np.trace(M))
         else:
             a = sym.axis
-            K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
             along = float(a @ M @ a)
-            trace = along + float(np.hypot(np.trace(M) - along, np.trace(M @ K)))
+            trace = along + float(np.hypot(np.trace(M) - along, np.trace(M @ _skew(a))))
         best = max(best, trace)
     return float(np.degrees(np.arccos(np.clip((best - 1) / 2, -1.0, 1.0))))
 
