@@ -14,7 +14,9 @@ Detection, a change point in how rigid the hand is:
    A hand fitted to late viewpoints only can fit early steady frames so poorly that they
    look moving (the onset 40-60 frames late). So the model then grows backwards: refitted
    with the block of frames just before its own, the block is kept while it fits as well as
-   the model's frames did before (a moving block, pulled into the fit, still stands out).
+   the model's frames did before (a moving block, pulled into the fit, still stands out);
+   a block that does not is halved and tried again, so the model ends within two frames of
+   the motion rather than within a block.
 4. Refined onset: a hand that settles slows down, and in its last moving frames the fingers
    are a fraction of a pixel to a few pixels from their final place, which an energy (a sum
    over 42 noisy coordinates) cannot tell from noise. But a smooth motion arrives at its end
@@ -23,7 +25,9 @@ Detection, a change point in how rigid the hand is:
    projected on that pattern (leaving the frame itself out of it), a matched filter whose
    noise is one coordinate's, not 42's; standardised by the steady frames, its CUSUM from
    the start of the pattern window gives the onset, at most ``pattern_frames / 2`` after the
-   coarse one. Pattern and onset are re-estimated until the onset settles.
+   coarse one and never before it (the filter finds motion the energy missed; it cannot
+   unsee the motion the energy found). Pattern and onset are re-estimated until the onset
+   settles.
 5. Depth onset (with the aligned depth): under a real detector's keypoint noise (5-10 % of
    the hand's image size, correlated over frames) steps 3-4 find the onset 6-15 frames early.
    The depth is far less noisy: before the onset the hand-and-object surface deforms from
@@ -66,7 +70,7 @@ from graspcap.tasks.hand_sfm.steady_stats import cusum, matched_filter, standard
 from graspcap.tasks.hand_sfm.two_view_init import initialise
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/9"
+STAGE_VERSION = "select_steady/10"
 
 
 class SteadyMethod(StrEnum):
@@ -119,6 +123,10 @@ class SelectSteadyConfig(StageConfig):
     grow_frames: int = 8
     """Block of frames before the model's that the hand is refitted with, growing the model
     backwards while the block fits like the steady frames (0: no growth)."""
+    grow_min_frames: int = 2
+    """A rejected block is halved and tried again down to this many frames, so the model
+    reaches the onset to within that many frames rather than a block (``grow_frames``: no
+    halving; below the scores' smoothing window, 3, a block's mean is partly its neighbour's)."""
     grow_z: float = 1.0
     """Largest mean score of a refitted block, standardised by the model's frames before the
     refit, for it to count as steady (about 1.6 standard errors of a mean of 8 windowed
@@ -413,9 +421,10 @@ def _detect(uv, ok, K, cfg):
     # block then fits as well as the model's own frames did before (a moving block, pulled
     # into the fit, still stands out and worsens the fit of the others).
     before, rejected = (X, T, res, model, onset, scores, threshold), -1
-    while cfg.grow_frames > 0 and model[0] > 0:
+    step = cfg.grow_frames
+    while step > 0 and model[0] > 0:
         first = int(model[0])
-        lo = max(first - cfg.grow_frames, 0)
+        lo = max(first - step, 0)
         ref = standardise(window_scores(res, half, cfg.min_points), np.arange(first, n))
         if ref is None:
             break
@@ -429,7 +438,8 @@ def _detect(uv, ok, K, cfg):
         z_block = (window_scores(res_new, half, cfg.min_points)[lo:first] - med) / spread
         if not np.nanmean(z_block) <= cfg.grow_z:
             rejected = lo
-            break
+            step = step // 2 if step // 2 >= cfg.grow_min_frames else 0
+            continue
         X, T, res, model = X_new, T_new, res_new, frames
     if model[0] < before[3][0]:
         onset, scores, threshold = _coarse(res, np.arange(model[0], n), cfg)
@@ -441,7 +451,7 @@ def _detect(uv, ok, K, cfg):
     latest = onset + cfg.pattern_frames // 2
     for _ in range(cfg.pattern_passes):
         found = matched_filter(res, guess, cfg.pattern_frames, cfg.pattern_drift_sigmas,
-                               cfg.min_points, cfg.smooth_frames, latest)  # fmt: skip
+                               cfg.min_points, cfg.smooth_frames, latest, onset)  # fmt: skip
         if found is None:
             break
         matched = found

@@ -51,12 +51,13 @@ def cusum(z, drift, start=0):
     return np.concatenate([np.full(start, -np.inf), [0.0], np.cumsum(steps)])
 
 
-def matched_filter(res, onset, pattern_frames, drift, min_points, smooth_frames, latest):
+def matched_filter(res, onset, pattern_frames, drift, min_points, smooth_frames, latest,
+                   earliest=0):
     """(pattern (21, 2), z (n,), cusum (n + 1,), onset) of the projection of every frame's
     residual on the direction of the frames ``onset - pattern_frames .. onset - 1``,
     standardised by the frames from ``onset + smooth_frames``, its CUSUM with ``drift`` from
-    the window's start, the onset no later than ``latest``; None when that window holds no
-    residual or too few steady frames follow."""
+    the window's start, the onset between ``earliest`` and ``latest``; None when that window
+    holds no residual or too few steady frames follow."""
     n = len(res)
     hi = onset
     lo = max(hi - pattern_frames, 0)
@@ -76,4 +77,5 @@ def matched_filter(res, onset, pattern_frames, drift, min_points, smooth_frames,
     z = found[0]
     sums = cusum(z, drift, lo)
     sums[latest + 1 :] = -np.inf  # the last motion's frames lie just before the coarse onset
+    sums[: min(earliest, latest)] = -np.inf
     return total / np.linalg.norm(total), z, sums, int(np.argmax(sums))
