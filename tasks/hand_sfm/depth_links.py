@@ -52,7 +52,12 @@ class DepthLinkConfig(StageConfig):
     centre_below_skin_m: float = 0.01
     """The hand's centre lies this far behind the median skin reading at its keypoints."""
     stride_px: int = 3
-    """Every this many pixels of the depth are sampled (rows and columns)."""
+    """Every this many pixels of the depth are sampled (rows and columns), at most: see
+    ``spacing_m``."""
+    spacing_m: float | None = 0.0025
+    """The lattice is refined (down to every pixel) for its nodes to lie about this far
+    apart at the hand's depth (``surface_clouds.surface_cloud``; None: ``stride_px`` at
+    every distance)."""
     min_height_m: float = 0.015
     """Points less than this above the platter's top plane are the static scene."""
     max_points: int = 300

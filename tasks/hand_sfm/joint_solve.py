@@ -79,7 +79,7 @@ from graspcap.tasks.hand_sfm.two_view_init import pnp, ray_angles_deg
 # gtsam: imported where used, so that importing the stage table stays cheap
 
 STAGE = "joint_solve"
-STAGE_VERSION = "joint_solve/9"
+STAGE_VERSION = "joint_solve/10"
 
 
 class HandPath(StrEnum):
@@ -317,6 +317,7 @@ def joint_solve(
             depth_frame, K, steady_from, T_color_turntable,
             centre_below_skin_m=link_cfg.centre_below_skin_m, radius_m=link_cfg.radius_m,
             stride_px=link_cfg.stride_px, min_height_m=link_cfg.min_height_m,
+        spacing_m=link_cfg.spacing_m,
         )
 
     def solve(rec=None, fit=None, staged_error=""):

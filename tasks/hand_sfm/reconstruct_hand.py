@@ -53,7 +53,7 @@ from graspcap.tasks.hand_sfm.two_view_init import Initialisation, check_frames, 
 __all__ = ["HandReconstruction", "PRESETS", "ReconstructConfig", "SfmDiagnostics",
            "STAGE_VERSION", "reconstruct_hand"]  # the result types live in sfm_result
 
-STAGE_VERSION = "reconstruct_hand/14"
+STAGE_VERSION = "reconstruct_hand/15"
 
 
 class ReconstructConfig(StageConfig):
@@ -326,6 +326,7 @@ def reconstruct_hand(
         depth_frame, K, steady_from, T_color_turntable,
         centre_below_skin_m=link_cfg.centre_below_skin_m, radius_m=link_cfg.radius_m,
         stride_px=link_cfg.stride_px, min_height_m=link_cfg.min_height_m,
+        spacing_m=link_cfg.spacing_m,
     )
 
     compute = partial(

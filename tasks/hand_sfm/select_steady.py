@@ -197,7 +197,12 @@ class SelectSteadyConfig(StageConfig):
     depth_radius_m: float = 0.15
     """Radius of the sphere around the hand's centre that cuts each frame's surface."""
     depth_stride_px: int = 3
-    """Pixel lattice of the surfaces."""
+    """Pixel lattice of the surfaces (its coarsest: see ``depth_spacing_m``)."""
+    depth_spacing_m: float | None = 0.0025
+    """The surfaces' lattice is refined (down to every pixel) for its nodes to lie about this
+    far apart at the hand's depth (``surface_clouds.surface_cloud``): a hand 1 m away on a
+    960 px wide Kinect v2 image is sampled every pixel, one at 0.45 m on a 640 px camera every
+    3 (None: ``depth_stride_px`` at every distance)."""
     depth_min_height_m: float = 0.015
     """Depth less than this above the platter's top plane (platter, table) is dropped."""
     depth_max_points: int = 600

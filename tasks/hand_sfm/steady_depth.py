@@ -89,7 +89,7 @@ def deformation(
     depth_frame: Callable[[int], np.ndarray], K: np.ndarray, centres: np.ndarray,
     T_color_turntable: np.ndarray, *, gap: int, radius_m: float, stride_px: int,
     min_height_m: float, max_points: int, max_distance_m: float, huber_m: float,
-    iterations: int, far_m: float,
+    iterations: int, far_m: float, spacing_m: float | None = None,
 ) -> np.ndarray:
     """(n,) per frame ``i`` the share of its hand-and-object surface that no rigid motion
     onto frame ``i + gap``'s explains (NaN where a frame lacks a centre or a surface, and for
@@ -99,7 +99,7 @@ def deformation(
     def cloud(frame: int, centre: np.ndarray) -> SurfaceCloud | None:
         return surface_cloud(depth_frame(frame), K, centre, radius_m=radius_m,
                              stride_px=stride_px, T_color_turntable=T_color_turntable,
-                             min_height_m=min_height_m)  # fmt: skip
+                             min_height_m=min_height_m, spacing_m=spacing_m)  # fmt: skip
 
     def register(pairs: list[tuple[SurfaceCloud, SurfaceCloud]], guess: np.ndarray):
         clouds = [c for pair in pairs for c in pair]
@@ -215,6 +215,7 @@ def onset_from_depth(uv, ok, K, onset, depth_frame, T_color_turntable,
         stride_px=cfg.depth_stride_px, min_height_m=cfg.depth_min_height_m,
         max_points=cfg.depth_max_points, max_distance_m=0.01, huber_m=0.003,
         iterations=cfg.depth_iterations, far_m=cfg.depth_far_m,
+        spacing_m=cfg.depth_spacing_m,
     )  # fmt: skip
     if np.isfinite(share_of).mean() < cfg.depth_min_share:
         return -1, share_of, None, False

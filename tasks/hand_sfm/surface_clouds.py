@@ -61,17 +61,25 @@ def surface_cloud(
     normal_step: int = 2,
     max_jump_m: float = 0.01,
     min_points: int = 50,
+    spacing_m: float | None = None,
 ) -> SurfaceCloud | None:
     """Depth pixels on a lattice of ``stride_px`` within ``radius_m`` of ``centre_c`` (3,) and,
     when the turntable pose ``T_color_turntable`` (4, 4) is given, at least ``min_height_m``
     above its top plane. Normals from the lattice neighbours ``normal_step`` nodes away (central
     differences), none across a depth jump over ``max_jump_m``. None with fewer than
-    ``min_points``."""
+    ``min_points``.
+
+    With ``spacing_m`` the lattice is as fine as needed for its nodes to lie about that far
+    apart at the centre's depth, ``stride_px`` at most: a hand twice as far is sampled on a
+    lattice twice as fine, so that the normals' reach (``normal_step`` nodes) stays inside a
+    finger instead of spanning its edges, where the jump test drops the point."""
     h, w = depth_m.shape
     c = np.asarray(centre_c, dtype=float)
     if not np.all(np.isfinite(c)) or c[2] <= radius_m * 0.5:
         return None
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if spacing_m is not None:
+        stride_px = int(np.clip(round(spacing_m * fx / c[2]), 1, stride_px))
     z_near = max(c[2] - radius_m, 0.05)
     u0 = int(np.clip(fx * (c[0] - radius_m) / z_near + cx, 0, w))
     u1 = int(np.clip(fx * (c[0] + radius_m) / z_near + cx + 1, 0, w))
@@ -142,6 +150,7 @@ def surface_reader(
     radius_m: float,
     stride_px: int,
     min_height_m: float,
+    spacing_m: float | None = None,
 ) -> Callable[[int, np.ndarray, np.ndarray], SurfaceCloud | None]:
     """``(i, uv_i, depth_i) -> `` the surface of row ``i`` (video frame ``first_frame + i``)
     around the hand its keypoints ``uv_i`` and their depth readings ``depth_i`` place, or None
@@ -154,6 +163,7 @@ def surface_reader(
         return surface_cloud(
             depth_frame(first_frame + i), K, centre, radius_m=radius_m, stride_px=stride_px,
             T_color_turntable=T_color_turntable, min_height_m=min_height_m,
+            spacing_m=spacing_m,
         )  # fmt: skip
 
     return surface_at
