@@ -317,7 +317,7 @@ def joint_solve(
             depth_frame, K, steady_from, T_color_turntable,
             centre_below_skin_m=link_cfg.centre_below_skin_m, radius_m=link_cfg.radius_m,
             stride_px=link_cfg.stride_px, min_height_m=link_cfg.min_height_m,
-        spacing_m=link_cfg.spacing_m,
+            spacing_m=link_cfg.spacing_m,
         )
 
     def solve(rec=None, fit=None, staged_error=""):

@@ -72,7 +72,8 @@ def surface_cloud(
     With ``spacing_m`` the lattice is as fine as needed for its nodes to lie about that far
     apart at the centre's depth, ``stride_px`` at most: a hand twice as far is sampled on a
     lattice twice as fine, so that the normals' reach (``normal_step`` nodes) stays inside a
-    finger instead of spanning its edges, where the jump test drops the point."""
+    finger instead of spanning its edges (where the jump test drops the point, or, with both
+    ends beyond the finger, the point takes the normal of what lies there)."""
     h, w = depth_m.shape
     c = np.asarray(centre_c, dtype=float)
     if not np.all(np.isfinite(c)) or c[2] <= radius_m * 0.5:
