@@ -124,6 +124,8 @@ def _mesh_scene(vertices: np.ndarray, faces: np.ndarray) -> Any:
             return _SCENES[key]
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(v, f)
+    # the BVH is built lazily by the first cast: build it before another thread can see it
+    scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], dtype=np.float32)))
     with _SCENES_LOCK:
         _SCENES[key] = scene
         while len(_SCENES) > _SCENES_MAX:
