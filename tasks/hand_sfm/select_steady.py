@@ -70,7 +70,7 @@ from graspcap.tasks.hand_sfm.steady_stats import cusum, matched_filter, standard
 from graspcap.tasks.hand_sfm.two_view_init import initialise
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/10"
+STAGE_VERSION = "select_steady/11"
 
 
 class SteadyMethod(StrEnum):
@@ -194,6 +194,13 @@ class SelectSteadyConfig(StageConfig):
     hand detected, and the end of the grasp can lie anywhere among them; also when the
     surface is rigid more than this many frames before the last frame seen deforming (two
     candidate ends)."""
+    depth_settled_frames: int = 5
+    """Where the onset is marked uncertain, it is moved to the first frame (plus
+    ``depth_lag_frames``) from which this many frames in a row share below
+    ``depth_settled_share`` after a frame read deforming (``depth_strong_share``), within the
+    searched window (``steady_depth.settled_after_deforming``), the mark kept. 0: off."""
+    depth_settled_share: float = 0.1
+    """A share below this reads rigid for ``depth_settled_frames`` (steady frames: 0-0.03)."""
     depth_radius_m: float = 0.15
     """Radius of the sphere around the hand's centre that cuts each frame's surface."""
     depth_stride_px: int = 3
@@ -569,6 +576,16 @@ def select_steady(
     if depth_from >= 0 and not uncertain and not by_keypoints:
         uncertain, moving_to = steady_depth.depth_doubt(share_of, z_depth, depth_from, onset,
                                                         at_end, cfg)
+    if uncertain and cfg.depth_settled_frames > 0 and len(share_of):
+        settled = steady_depth.settled_after_deforming(
+            share_of, cfg.depth_strong_share, cfg.depth_settled_share, cfg.depth_settled_frames,
+            keypoint_from + cfg.depth_after)
+        later = detected[detected >= settled + cfg.depth_lag_frames]
+        if settled >= 0 and len(later) and later[0] < n - 2 and later[0] != onset:
+            uncertain += (f" (taken at frame {later[0]}, not {onset}: the first of "
+                          f"{cfg.depth_settled_frames} frames the depth sees rigid after it saw "
+                          "the grasp deforming)")
+            onset = int(later[0])
     return SteadySelection(
         steady_from=onset,
         uncertain=uncertain,

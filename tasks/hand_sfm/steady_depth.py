@@ -202,6 +202,29 @@ def rigid_between(share: np.ndarray, z: np.ndarray, last: int, strong: float,
     return -1
 
 
+def settled_after_deforming(share: np.ndarray, strong: float, rigid: float, frames: int,
+                            latest: int) -> int:
+    """The first frame after the first one read deforming (``share >= strong``) from which
+    ``frames`` known shares in a row are below ``rigid``, at most ``latest``; -1 if none.
+
+    ``select_steady``'s estimate where its change point is marked uncertain: the change point
+    standardises the share by the steady frames', and a fast turn of the held grasp, which
+    ICP misregisters, fills that reference with shares of 0.2-0.7 (wild `[44199, 0]`: 11 of its
+    20 frames), so a plain deformation at the start does not stand out. The first settled run
+    after a deformation does not depend on that reference."""
+    known = np.flatnonzero(np.isfinite(share))
+    deforming = known[share[known] >= strong]
+    if not len(deforming):
+        return -1
+    for k in np.flatnonzero(known > deforming[0]):
+        run = known[k: k + frames]
+        if known[k] > latest:
+            break
+        if len(run) == frames and np.all(share[run] < rigid):
+            return int(known[k])
+    return -1
+
+
 def onset_from_depth(uv, ok, K, onset, depth_frame, T_color_turntable,
                      cfg: SelectSteadyConfig):
     """``select_steady``'s step 5 around the keypoint ``onset``: (depth onset or -1, share
