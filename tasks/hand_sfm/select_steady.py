@@ -49,6 +49,10 @@ Detection, a change point in how rigid the hand is:
    window's last frame (the deformation goes on past it), are ambiguous too, and so is a
    change with no deformation seen before it. Each marks the selection uncertain with its
    reason.
+7. A marked onset is moved to the first frame from which the depth reads rigid for
+   ``depth_settled_frames`` frames after it read the grasp deforming (the mark kept): a fast
+   turn of the held grasp, misregistered, can fill the change point's reference and hide a
+   plain deformation at the start; an early onset spoils every later stage.
 """
 
 from __future__ import annotations
