@@ -102,6 +102,49 @@ POSE_STAGES = ("register_object", "select_steady", "reconstruct_hand", "crossche
 """The stages of issue 3, whose total per session has the 6 s target."""
 
 
+def _diagnostics(results: dict) -> dict[str, float]:
+    """What the stages measured besides QA's metrics, for calibrating QA offline from the JSON
+    lines: the detections' noise, the joint solve's dropped frames and depth refinement, and
+    the stage-2 cameras against the object tracked in each frame's depth."""
+    out: dict[str, float] = {}
+    rec = results.get("reconstruct_hand")
+    if rec is not None:
+        dia = rec.diagnostics
+        out |= {"noise_sigma_px": dia.noise_sigma_px, "hand_size_px": dia.hand_size_px,
+                "reproj_rmse_px": rec.reproj_rmse_px, "frames": len(rec.frames),
+                "pose_valid_share": float(np.mean(rec.pose_valid))}
+        cam_w = np.asarray(rec.T_w_c)[:, :3, 3]
+        dist = np.linalg.norm(cam_w - np.nanmean(rec.joints_w, axis=0), axis=1)
+        out["hand_distance_m"] = float(np.median(dist))
+    js = results.get("joint_solve")
+    if js is not None:
+        out |= {"js_joint": float(js.path == "joint"),
+                "js_rejected_share": float(np.mean(js.frame_rejected)),
+                "js_frame_median_px": float(np.nanmedian(js.frame_median_px))
+                if np.isfinite(js.frame_median_px).any() else float("nan")}
+        if js.depth_refine is not None:
+            dr = js.depth_refine
+            out |= {"dr_kept": float(dr.kept), "dr_rms_before_mm": 1e3 * dr.rms_before_m,
+                    "dr_rms_after_mm": 1e3 * dr.rms_after_m, "dr_points": dr.points,
+                    "dr_reproj_before_px": dr.reproj_before_px,
+                    "dr_reproj_after_px": dr.reproj_after_px,
+                    "dr_moved_mm": 1e3 * float(np.median(np.linalg.norm(
+                        dr.joints_w_before - js.reconstruction.joints_w, axis=1)))}
+    adj = results.get("estimate_adjustment")
+    avg = None if adj is None else adj.average
+    if avg is not None:
+        out |= {"avg_frames": avg.frames, "avg_dropped": avg.dropped,
+                "avg_spread_deg": avg.spread_deg, "avg_spread_mm": 1e3 * avg.spread_m}
+    tr = None if adj is None else adj.tracking
+    if tr is not None:
+        out |= {"tracked_share": float(np.mean(tr.tracked)),
+                "registered_share": float(np.mean(tr.registered))
+                if tr.registered is not None else float("nan"),
+                "track_corr_deg": float(np.nanmedian(tr.correction_deg))
+                if np.isfinite(tr.correction_deg).any() else float("nan")}
+    return {k: float(v) for k, v in out.items() if v is not None}
+
+
 def _session(root: Path, profile: str, frames: int, seed: int, i: int, preset: str = "default"
              ) -> dict | None:
     """Session ``[seed, i]`` of ``profile`` generated and run bare: its errors, timings, QA
@@ -117,7 +160,8 @@ def _session(root: Path, profile: str, frames: int, seed: int, i: int, preset: s
         return {"name": d.name, "failed": f"{e.stage}: {e.reason[:80]}"}
     qa = results["qa_metrics"]
     return {"name": d.name, "failed": None, "timings": t, "verdict": str(qa.verdict),
-            "notes": list(qa.notes), "reasons": list(qa.reasons),
+            "notes": list(qa.notes), "reasons": list(qa.reasons), "qa": dict(qa.metrics),
+            "diagnostics": _diagnostics(results),
             "metrics": evaluate(d, estimate_from_results(results, timings_s=t)),
             "steady_error": results["select_steady"].steady_from
             - int(load_truth(d)["steady_from"]),
