@@ -34,8 +34,7 @@ from graspcap.synth.evaluate import (
     qa_confusion,
 )
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.hand_sfm.frame_screen import hand_size_px
-from graspcap.tasks.pipeline import STAGES, configs_for, run_session
+from graspcap.tasks.pipeline import STAGES, configs_for, run_session, steady_hand_size_px
 
 SEED = 9000
 """The default seed; the reported runs in docs/benchmarks.md use it unless they say."""
@@ -114,9 +113,7 @@ def _diagnostics(results: dict) -> dict[str, float]:
         out |= {"noise_sigma_px": dia.noise_sigma_px, "hand_size_px": dia.hand_size_px,
                 "reproj_rmse_px": rec.reproj_rmse_px, "frames": len(rec.frames),
                 "pose_valid_share": float(np.mean(rec.pose_valid))}
-        kp = np.asarray(results["detect_keypoints"].keypoints, float)[np.asarray(rec.frames)]
-        sizes = hand_size_px(kp[..., :2], (kp[..., 2] > 0) & np.all(np.isfinite(kp), axis=2))
-        out["hand_image_px"] = float(np.nanmedian(sizes))
+        out["hand_image_px"] = steady_hand_size_px(results)
         cam_w = np.asarray(rec.T_w_c)[:, :3, 3]
         dist = np.linalg.norm(cam_w - np.nanmean(rec.joints_w, axis=0), axis=1)
         out["hand_distance_m"] = float(np.median(dist))

@@ -46,7 +46,7 @@ from graspcap.synth.evaluate import (
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.hand.final import final_hand
 from graspcap.tasks.outputs.qa_metrics import METRICS, qa_metrics
-from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
+from graspcap.tasks.pipeline import STAGES, configs_for, run_stage, steady_hand_size_px
 
 SEEDS = {"realistic": 9400, "hard": 9401, "wild": 9700}
 """The tuning seeds of each profile (module docstring)."""
@@ -78,7 +78,8 @@ def judge(session_dir: Path, results: dict[str, Any]):
     session = results["load_session"]
     hand = final_hand(results["fit_hand"], results.get("refine_grasp"),
                       results["estimate_adjustment"].T_w_o)
-    return qa_metrics(results, object_mesh=session.read_mesh(), hand_mesh_o=hand.mesh_o)
+    return qa_metrics(results, object_mesh=session.read_mesh(), hand_mesh_o=hand.mesh_o,
+                      hand_size_px=steady_hand_size_px(results))
 
 
 def _cache(out: Path, session_dir: Path) -> Path:

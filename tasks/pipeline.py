@@ -309,15 +309,21 @@ def _final_hand(up: Mapping[str, Any]) -> FinalHand:
     return final_hand(up["fit_hand"], up.get("refine_grasp"), up["estimate_adjustment"].T_w_o)
 
 
-def _qa_metrics(session: Session, config, **up):
-    """QA of the session; the hand's image size (median over the steady frames of the
-    detections' bounding-box diagonal) tells noisy detections from clean ones."""
+def steady_hand_size_px(up: Mapping[str, Any]) -> float | None:
+    """The hand's image size in the steady frames: the median over them of the detections'
+    bounding-box diagonal (px); None without a detection there."""
     frames = up["reconstruct_hand"].frames if up.get("reconstruct_hand") is not None else []
     kp = np.asarray(up["detect_keypoints"].keypoints, dtype=float)[np.asarray(frames, int)]
     sizes = hand_size_px(kp[..., :2], (kp[..., 2] > 0) & np.all(np.isfinite(kp), axis=2))
-    size = float(np.nanmedian(sizes)) if np.isfinite(sizes).any() else None
+    return float(np.nanmedian(sizes)) if np.isfinite(sizes).any() else None
+
+
+def _qa_metrics(session: Session, config, **up):
+    """QA of the session; the hand's image size (:func:`steady_hand_size_px`) tells noisy
+    detections from clean ones."""
     return qa_metrics.qa_metrics(up, config, object_mesh=session.read_mesh(),
-                                 hand_mesh_o=_final_hand(up).mesh_o, hand_size_px=size)
+                                 hand_mesh_o=_final_hand(up).mesh_o,
+                                 hand_size_px=steady_hand_size_px(up))
 
 
 def _pictures(session: Session, config, **up):
