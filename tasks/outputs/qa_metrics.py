@@ -36,7 +36,7 @@ from graspcap.tasks.outputs.qa_measures import (
     window_outlier_share,
 )
 
-STAGE_VERSION = "qa_metrics/11"
+STAGE_VERSION = "qa_metrics/12"
 STAGE = "qa_metrics"
 
 
@@ -96,13 +96,19 @@ class QaMetricsConfig(StageConfig):
     crosscheck_camera_deg: Bound = Bound(flag=0.57, fail=5.0)
     """Largest camera rotation discrepancy between GTSAM and pycolmap (deg), upper limits;
     trustworthy <= 0.378 (x 1.5); 0.94-2.9 where the cameras were wrong."""
-    rgbd_discrepancy_mm: Bound = Bound(flag=12.5, fail=25.0)
+    rgbd_discrepancy_mm: Bound = Bound(flag=21.7, fail=25.0)
     """Largest joint difference between the RGB-D result and pycolmap's pixels-only optimum
-    (mm, after a similarity), upper limits; trustworthy <= 8.14 (x 1.5; the depth terms move
-    joints by several mm by design, and the wrong sessions were no higher)."""
-    registration_fitness: Bound = Bound(flag=0.95, fail=0.6)
+    (mm, after a similarity), upper limits; the depth terms move joints by several mm by
+    design. Recalibrated in session 18 on 80 realistic tuning sessions (``[9400, i]`` i < 20
+    at 60/90/120 frames, ``[86381]``, ``[53582]``, ``[83761]``, ``[77421]``, ``[42813]`` x12
+    at 60; ``bench/qa_calibration.py``): trustworthy <= 14.46 (x 1.5), the 14 not-good ones
+    3.1-13.7 and never caught by it alone (the 26-session calibration's 8.14 x 1.5 = 12.5
+    flagged a good session at 14.46)."""
+    registration_fitness: Bound = Bound(flag=0.90, fail=0.6)
     """register_object's registration fitness (share of scene points explained), lower limits;
-    trustworthy >= 0.972 (x 1.5 gives 0.958, rounded down to 0.95)."""
+    on the 80 tuning sessions above trustworthy >= 0.934 (x 1.5 gives 0.901), the not-good ones
+    0.984-1.00 (a wrong stage-1 pose of a near-symmetric object explains the depth as well);
+    the 26-session calibration's 0.972 x 1.5 (0.95) flagged good sessions at 0.934 and 0.94."""
     registration_rmse_mm: Bound = Bound(flag=1.7, fail=5.0)
     """register_object's inlier RMSE (mm), upper limits; trustworthy <= 1.12 (x 1.5)."""
     adjustment_fitness: Bound = Bound(flag=0.5, fail=0.3)
