@@ -11,7 +11,8 @@ bare (``graspcap.tasks.pipeline.run_session``), and per profile it prints the sh
 built, the median and p90 of every metric next to its target, the QA confusion table (good /
 not good by ``graspcap.synth.evaluate.GOOD_IF`` x ok / flagged / failed, with precision and
 yield) and the failures per reason. A session a stage rejects is counted as failed with its
-reason, never dropped silently.
+reason, never dropped silently. ``--out`` appends each session's errors, timings, verdict, QA
+metrics and stage diagnostics (``_diagnostics``) as a JSON line, for calibrating QA offline.
 """
 
 from __future__ import annotations
@@ -102,6 +103,12 @@ POSE_STAGES = ("register_object", "select_steady", "reconstruct_hand", "crossche
 """The stages of issue 3, whose total per session has the 6 s target."""
 
 
+def _median(x) -> float:
+    """Median of the finite values (NaN where none is)."""
+    x = np.asarray(x, float)
+    return float(np.median(x[np.isfinite(x)])) if np.isfinite(x).any() else float("nan")
+
+
 def _diagnostics(results: dict) -> dict[str, float]:
     """What the stages measured besides QA's metrics, for calibrating QA offline from the JSON
     lines: the detections' noise, the joint solve's dropped frames and depth refinement, and
@@ -121,8 +128,7 @@ def _diagnostics(results: dict) -> dict[str, float]:
     if js is not None:
         out |= {"js_joint": float(js.path == "joint"),
                 "js_rejected_share": float(np.mean(js.frame_rejected)),
-                "js_frame_median_px": float(np.nanmedian(js.frame_median_px))
-                if np.isfinite(js.frame_median_px).any() else float("nan")}
+                "js_frame_median_px": _median(js.frame_median_px)}
         if js.depth_refine is not None:
             dr = js.depth_refine
             out |= {"dr_kept": float(dr.kept), "dr_rms_before_mm": 1e3 * dr.rms_before_m,
@@ -141,8 +147,7 @@ def _diagnostics(results: dict) -> dict[str, float]:
         out |= {"tracked_share": float(np.mean(tr.tracked)),
                 "registered_share": float(np.mean(tr.registered))
                 if tr.registered is not None else float("nan"),
-                "track_corr_deg": float(np.nanmedian(tr.correction_deg))
-                if np.isfinite(tr.correction_deg).any() else float("nan")}
+                "track_corr_deg": _median(tr.correction_deg)}
     return {k: float(v) for k, v in out.items() if v is not None}
 
 
