@@ -63,6 +63,8 @@ QA_METRICS: tuple[QaMetric, ...] = (
              column_doc="Object registration inlier RMSE.", column_format=1),
     QaMetric("adjustment_fitness", "adjustment registration fitness", "", False),
     QaMetric("adjustment_rmse_mm", "adjustment registration RMSE", "mm", True),
+    QaMetric("object_spread_deg", "spread of the object's pose over the tracked frames", "deg",
+             True),
     QaMetric("scan_fitness", "scan registration fitness", "", False),
     QaMetric("scan_rmse_mm", "scan registration RMSE", "mm", True),
     QaMetric("fit_residual_mm", "hand fit residual", "mm", True,

@@ -36,7 +36,7 @@ from graspcap.tasks.outputs.qa_measures import (
     window_outlier_share,
 )
 
-STAGE_VERSION = "qa_metrics/12"
+STAGE_VERSION = "qa_metrics/13"
 STAGE = "qa_metrics"
 
 
@@ -116,6 +116,17 @@ class QaMetricsConfig(StageConfig):
     limits; trustworthy >= 0.644 (x 1.5 gives 0.47; the stage itself refuses < 0.5)."""
     adjustment_rmse_mm: Bound = Bound(flag=5.0, fail=10.0)
     """Inlier RMSE of ``estimate_adjustment`` (mm), upper limits; trustworthy <= 3.3 (x 1.5)."""
+    object_spread_deg: Bound = Bound(flag=1.05)
+    """Median rotation of the object's pose in the hand's world, each registered steady frame's
+    ``T_w_c @ T_c_o`` (stage 2's camera and the object registered in that frame's own depth),
+    from their mean (``TrackedAverage.spread_deg``), upper limit: after the onset hand and
+    object are one rigid body, so the spread is how far stage 2's cameras disagree with the
+    depth, a camera error seen without the pixels. Set in session 18 on 80 realistic tuning
+    sessions (``registration_fitness``'s pool): good ones <= 0.70 (x 1.5), the two not-good
+    sessions QA passed for their cameras (1.22 and 1.33 deg off, good <= 1) 1.71 and 1.21. It
+    does not see cameras that are wrong together with the object's tracking (real-detector
+    tuning ``[22282, 2/7/10]``, cameras 16-20 deg off, spread 0.12-0.25: their contact
+    agreements fail them)."""
     scan_fitness: Bound = Bound(flag=0.94, fail=0.6)
     """Fitness of the object on the platter during the thermal scan, lower limits;
     trustworthy >= 0.962 (x 1.5 gives 0.943)."""
@@ -317,6 +328,19 @@ _SOURCES: dict[str, tuple[str, str, float]] = {
 """Metrics read off a stage result: (stage, attribute, factor to the metric's unit)."""
 
 
+def object_spread(results: Mapping[str, Any]) -> tuple[float, str | None]:
+    """``estimate_adjustment``'s spread of the object's pose over the registered frames (deg),
+    or NaN and why it is missing (``QaMetricsConfig.object_spread_deg``)."""
+    if results.get("estimate_adjustment") is None:
+        return math.nan, "estimate_adjustment did not run"
+    average = _attr(results, "estimate_adjustment", "average")
+    if average is None:
+        return math.nan, "estimate_adjustment took no mean over the tracked frames"
+    if average.T_w_o is None or not math.isfinite(average.spread_deg):
+        return math.nan, f"no mean over the tracked frames: {average.reason}"
+    return float(average.spread_deg), None
+
+
 def stage_notes(results: Mapping[str, Any]) -> list[str]:
     """What the stages report that changes no verdict: a refinement rejected in favour of the
     fit_hand's fit (whose agreement with the contact map ``fit_contact_agreement`` judges), and an
@@ -434,6 +458,11 @@ def qa_metrics(
             missing[name] = f"{stage} gave {float(value)}"
         else:
             metrics[name] = float(value) * factor
+    spread, why = object_spread(results)
+    if why is None:
+        metrics["object_spread_deg"] = spread
+    else:
+        missing["object_spread_deg"] = why
     rec = results.get("reconstruct_hand")
     if rec is None:
         missing["window_outlier_share"] = "reconstruct_hand did not run"
@@ -493,6 +522,7 @@ def qa_metrics(
 
 __all__ = [
     "METRICS", "PIXEL_CONSISTENCY", "PRESETS", "STAGE_VERSION", "Bound", "MetricSpec",
+    "object_spread",
     "QaMetricsConfig", "QaReport",
     "Verdict", "hand_object_metrics", "judge", "qa_metrics", "refined_metrics", "stage_notes",
     "stage_warnings",

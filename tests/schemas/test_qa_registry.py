@@ -43,4 +43,4 @@ def test_the_rows_fill_the_registry_columns():
     assert [m.name for m in qa_columns(max_format=1)] == list(QA_COLUMNS[:9])
     assert {m.name for m in QA_METRICS} - set(QA_COLUMNS) == {
         "registration_fitness", "adjustment_fitness", "adjustment_rmse_mm", "scan_fitness",
-        "scan_rmse_mm", "hand_contact_agreement"}
+        "scan_rmse_mm", "hand_contact_agreement", "object_spread_deg"}

@@ -56,8 +56,9 @@ def good_results(V: np.ndarray, contact: np.ndarray | None = None) -> dict:
                                           max_rgbd_joint_discrepancy_m=0.004, flagged=False,
                                           reason=""),
         "register_object": SimpleNamespace(fitness=0.99, inlier_rmse_m=0.001, ambiguous=False),
-        "estimate_adjustment": SimpleNamespace(fitness=0.99, inlier_rmse_m=0.001,
-                                               ambiguous=False),
+        "estimate_adjustment": SimpleNamespace(
+            fitness=0.99, inlier_rmse_m=0.001, ambiguous=False,
+            average=SimpleNamespace(T_w_o=np.eye(4), spread_deg=0.3, reason=None)),
         "register_scan": SimpleNamespace(fitness=0.99, inlier_rmse_m=0.001, ambiguous=False),
         "fit_hand": SimpleNamespace(rmse_mm=2.0),
         "propagate_poses": SimpleNamespace(n_behind=0),
@@ -258,6 +259,8 @@ def test_stage_warnings_flag_the_session(scene):
     for (stage, attr, value), reason in cases.items():
         results = good_results(V, contact)
         setattr(results[stage], attr, value)
+        if stage == "reconstruct_hand":  # a flag only without the mean over tracked frames
+            results["estimate_adjustment"].average = None
         report = run(results, scene)
         assert report.verdict == Verdict.FLAGGED and len(report.flags) == 1
         assert reason in report.flags[0]
@@ -275,11 +278,11 @@ def test_stage_warnings_flag_the_session(scene):
     # registration, a note once T_w_o is the mean over the tracked frames
     results = good_results(V, contact)
     results["reconstruct_hand"].pose_valid = (False,) + (True,) * 19
-    results["estimate_adjustment"].average = SimpleNamespace(T_w_o=np.eye(4))
     report = run(results, scene)
     assert report.verdict == Verdict.OK and report.flags == ()
     assert any("first steady frame has no pose of its own" in n for n in report.notes)
-    results["estimate_adjustment"].average = SimpleNamespace(T_w_o=None)  # too few tracked
+    results["estimate_adjustment"].average = SimpleNamespace(  # too few tracked
+        T_w_o=None, spread_deg=float("nan"), reason="3 tracked frames, fewer than 5")
     assert run(results, scene).verdict == Verdict.FLAGGED
     for stage, note in (("register_object", "register_object: near-symmetric object"),
                         ("estimate_adjustment", "estimate_adjustment: ambiguous")):
@@ -426,3 +429,29 @@ def test_noisy_detections_are_judged_by_what_does_not_depend_on_the_pixels(scene
     caught = qa_metrics(wrong, PRESETS["default"], object_mesh=(V, F), hand_mesh_o=default_hand,
                         hand_size_px=200.0)
     assert caught.verdict == Verdict.FAILED and any("scan" in f for f in caught.failures)
+
+
+def test_object_spread_flags_cameras_the_depth_disagrees_with(scene):
+    """The object's pose in the hand's world over the tracked frames: a spread beyond the flag
+    limit flags the session with its value; without a tracked mean the metric is missing with
+    the stage's reason and changes nothing."""
+    V, F, hand, contact = scene
+    limit = QaMetricsConfig().object_spread_deg.flag
+    for spread, verdict in ((0.3, Verdict.OK), (1.5 * limit, Verdict.FLAGGED)):
+        results = good_results(V, contact)
+        results["estimate_adjustment"].average = SimpleNamespace(
+            T_w_o=np.eye(4), spread_deg=spread, reason=None)
+        report = qa_metrics(results, object_mesh=(V, F), hand_mesh_o=hand)
+        assert report.metrics["object_spread_deg"] == spread
+        assert report.verdict == verdict, report.reasons
+        if verdict == Verdict.FLAGGED:
+            assert report.flags == (
+                f"spread of the object's pose over the tracked frames {spread:.2f} deg > "
+                f"{limit:.2f} deg",)
+    results = good_results(V, contact)
+    results["estimate_adjustment"].average = SimpleNamespace(
+        T_w_o=None, spread_deg=float("nan"), reason="3 tracked frames, fewer than 5")
+    report = qa_metrics(results, object_mesh=(V, F), hand_mesh_o=hand)
+    assert report.verdict == Verdict.OK
+    assert report.missing["object_spread_deg"] == (
+        "no mean over the tracked frames: 3 tracked frames, fewer than 5")
