@@ -44,9 +44,8 @@ from graspcap.synth.evaluate import (
     qa_confusion,
 )
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.hand.final import final_hand
-from graspcap.tasks.outputs.qa_metrics import METRICS, qa_metrics
-from graspcap.tasks.pipeline import STAGES, configs_for, run_stage, steady_hand_size_px
+from graspcap.tasks.outputs.qa_metrics import METRICS
+from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
 
 SEEDS = {"realistic": 9400, "hard": 9401, "wild": 9700}
 """The tuning seeds of each profile (module docstring)."""
@@ -74,12 +73,9 @@ def run_stages(session_dir: Path) -> tuple[dict[str, Any], str | None]:
 
 
 def judge(session_dir: Path, results: dict[str, Any]):
-    """The current ``qa_metrics`` (default preset) on pickled stage results."""
-    session = results["load_session"]
-    hand = final_hand(results["fit_hand"], results.get("refine_grasp"),
-                      results["estimate_adjustment"].T_w_o)
-    return qa_metrics(results, object_mesh=session.read_mesh(), hand_mesh_o=hand.mesh_o,
-                      hand_size_px=steady_hand_size_px(results))
+    """The current ``qa_metrics`` stage (default preset) on pickled stage results, through
+    the pipeline's own glue (the final hand, the object mesh, the hand's image size)."""
+    return run_stage(STAGES["qa_metrics"], session_dir, configs_for()["qa_metrics"], results)
 
 
 def _cache(out: Path, session_dir: Path) -> Path:
