@@ -69,14 +69,14 @@ def search_twins(
     cfg: RegistrationConfig,
     config: TwinSearchConfig,
     cache: dict,
-) -> tuple[Candidate, bool]:
-    """(the chosen candidate, ambiguous) among ``candidates`` (ranked: the global step's and
+) -> tuple[Candidate, list[Candidate]]:
+    """(the chosen candidate, its twins) among ``candidates`` (ranked: the global step's and
     ICP from ``T_w_o1``) and the twins found from them. ``scene``, ``down``: the region's
     clouds (``engine.prepare_scene``), ``region`` (n, 3) its points; ``T_w_o1`` (4, 4): the
     reference pose (ties go to the rotation nearest it); ``agree``: a pose ``T_w_o``'s depth
     agreement in [0, 1]. ``cache``: shared by every call on the same region (the grid's
-    candidates, the scores), whatever ``T_w_o1``. ``ambiguous``: a pose at least
-    ``cfg.ambiguity_min_deg`` away explains the depth as well."""
+    candidates, the scores), whatever ``T_w_o1``. The twins: the poses at least
+    ``cfg.ambiguity_min_deg`` away that explain the depth as well (none: not ambiguous)."""
     # near-equal candidates are compared on fitness times depth agreement (a carton's twin:
     # 0.99 x 0.91, the truth 1.0 x 1.0); while the best agrees poorly, probes run from it
     scores: dict[Candidate, Candidate] = cache.setdefault("scores", {})
@@ -158,7 +158,5 @@ def search_twins(
     chosen = next(
         c for c in tied if rotation_error_deg(c.T_o_s, nearest.T_o_s) < cfg.ambiguity_min_deg
     )
-    ambiguous = any(
-        rotation_error_deg(c.T_o_s, chosen.T_o_s) >= cfg.ambiguity_min_deg for c in equal
-    )
-    return chosen, ambiguous
+    twins = [c for c in equal if rotation_error_deg(c.T_o_s, chosen.T_o_s) >= cfg.ambiguity_min_deg]
+    return chosen, twins
