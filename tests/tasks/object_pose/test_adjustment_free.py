@@ -154,10 +154,12 @@ def test_lifted_mug_is_not_its_handle_flip(seed, angle_deg):
         r_old = estimate_adjustment(depth, K, *mesh, T_w_o1, mask, old)
         assert pose_error(r_old.T_w_o, T_true)[0] >= 90.0
 
-def _held_out_mug(tmp_path, seed: list[int], onset: int | None = None):
+def _held_out_mug(tmp_path, seed: list[int], onset: int | None = None, first: bool = False):
     """Synth session ``seed`` (realistic, 120 frames), upstream stages run fresh (from
     ``onset`` when given), estimate_adjustment's ``T_c_o`` at the first steady frame against
-    the truth's: (rotation deg, translation m, result)."""
+    the truth's: (rotation deg, translation m, result). ``first``: the pose registered in the
+    first steady frame(s) (``Adjustment.T_w_o_first``, where ``T_w_o`` is the mean over the
+    tracked frames since estimate_adjustment/22, which carries stage 2's camera errors)."""
     from dataclasses import replace
 
     from graspcap.synth import config_for, generate_session
@@ -176,15 +178,19 @@ def _held_out_mug(tmp_path, seed: list[int], onset: int | None = None):
     i = res["select_steady"].steady_from - int(truth["steady_from"])
     T_true = inv_T(truth["T_w_c"][max(i, 0)]) @ truth["T_adj"] @ truth["T_w_o_stage1"]
     adj = run_stage(STAGES["estimate_adjustment"], d, configs_for()["estimate_adjustment"], res)
-    rot, trans = pose_error(inv_T(res["reconstruct_hand"].T_w_c[0]) @ adj.T_w_o, T_true)
+    T_w_o = adj.T_w_o_first if first and adj.T_w_o_first is not None else adj.T_w_o
+    rot, trans = pose_error(inv_T(res["reconstruct_hand"].T_w_c[0]) @ T_w_o, T_true)
     return rot, trans, adj
 
 
 @pytest.mark.slow
 def test_held_out_mug_handle_seen_is_not_its_flip(tmp_path):
     """[9900, 7]: the handle is seen, its half turn about the handle's axis (agreement 0.71)
-    was kept, the truth (1.0) never a candidate: 179.7 deg off at estimate_adjustment/13."""
-    rot, trans, adj = _held_out_mug(tmp_path, [9900, 7])
+    was kept, the truth (1.0) never a candidate: 179.7 deg off at estimate_adjustment/13. The
+    first steady frame's registration is judged (0.65 deg / 1.5 mm at /24): the mean over the
+    tracked frames that replaced it as ``T_w_o`` at /22 is 2.39 deg off here, its frames'
+    object poses spread 2.8 deg by stage 2's cameras (QA's ``object_spread_deg`` flags it)."""
+    rot, trans, adj = _held_out_mug(tmp_path, [9900, 7], first=True)
     assert rot <= 1.0 and trans <= 0.003, (rot, trans)
     assert adj.fitness >= 0.99
 
