@@ -181,8 +181,8 @@ class EstimateAdjustmentConfig(StageConfig):
     """...and when it is ``ambiguous`` (a mug, handle hidden: rig seed 11 #0 48.7 deg off
     alone, 0.7 with the views; a spray bottle whose half-turned twin fit one frame at 0.997
     against the truth's 0.983, wild [78643, 9]: 176 deg off alone, 1.4 with the views and the
-    later frame). An exactly symmetric object's ties are alike in every view (carton
-    [9000, 0] 0.06 deg alone, 0.12 with them, +4.5 s CPU)."""
+    later frame). Ties that are the object's own symmetry (``symmetric_tie_share``) are alike
+    in every view and ask for none."""
     symmetric_tie_share: float = 0.02
     """An ambiguous pose whose every twin moves at most this share of the model's surface more
     than ``symmetric_tie_moved_m`` off itself (:func:`symmetry.moved_share`) is the object's
