@@ -35,7 +35,7 @@ from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, pose_error
 from graspcap.tasks.hand import fit_hand
 from graspcap.tasks.hand.model import HandSide
-from graspcap.tasks.object_pose import estimate_adjustment
+from graspcap.tasks.object_pose import adjustment_steady
 from graspcap.tasks.pipeline import STAGES, _ideal_keypoints, configs_for, run_stage
 
 UPSTREAM = ("load_session", "detect_keypoints", "select_steady", "reconstruct_hand",
@@ -157,7 +157,7 @@ def run_one(d: Path, configs: dict, mode: str) -> dict[str, Any]:
         stage1 = up["register_object"]
         t0 = time.process_time()
         try:
-            adj = estimate_adjustment.estimate_adjustment_steady(
+            adj = adjustment_steady.estimate_adjustment_steady(
                 lambda k: session.read_depth_m(session.grasp_path("depth", s + k)),
                 session.color_K, *session.read_mesh(), (hand.vertices, hand.faces), kp, T_w_c,
                 np.ones(len(T_w_c), bool), stage1.T_w_o, configs["estimate_adjustment"],

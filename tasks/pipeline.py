@@ -34,6 +34,7 @@ from graspcap.tasks.hand_sfm.metric_scale import depth_lookup
 from graspcap.tasks.keypoints import detect_keypoints
 from graspcap.tasks.keypoints.detect_keypoints import why_missing
 from graspcap.tasks.object_pose import (
+    adjustment_steady,
     estimate_adjustment,
     register_object,
     register_scan,
@@ -203,7 +204,7 @@ def _estimate_adjustment(session: Session, config, **up):
     hand, mesh = up["fit_hand"].mesh(), session.read_mesh()
     frames = np.arange(s, s + len(sfm.T_w_c))
     keypoints = _ideal_keypoints(session, up["detect_keypoints"].keypoints[frames])
-    adj = estimate_adjustment.estimate_adjustment_steady(
+    adj = adjustment_steady.estimate_adjustment_steady(
         lambda k: session.read_depth_m(session.grasp_path("depth", s + k)), session.color_K,
         *mesh, (hand.vertices, hand.faces), keypoints, sfm.T_w_c, sfm.pose_valid,
         stage1.T_w_o, config, T_w_o_stage1_alt=stage1.second_hypothesis,

@@ -41,11 +41,11 @@ from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T
 from graspcap.tasks.hand.image_masks import grow_mask
 from graspcap.tasks.object_pose.adjustment_region import (
-    hand_cluster,
-    hand_mask,
     near_hand,
     needed_pixels,
+    region_per_view,
     surface_area_m2,
+    within_reach,
 )
 from graspcap.tasks.object_pose.registration.depth_agreement import views_agreement
 from graspcap.tasks.object_pose.registration.engine import (
@@ -367,10 +367,11 @@ def estimate_adjustment(
         hand_pts = [cloud_from_depth(d, K, m) @ T[:3, :3].T + T[:3, 3]
                     for (d, _, T), m in zip(views, hands, strict=True)]  # fmt: skip
         pts, hand_all = np.concatenate(points), np.concatenate(hand_pts)
-        ctx = _Context(views, K, _within_reach(pts, hand_all, hypotheses, model, config),
+        centres = [T[:3, :3] @ model.centroid + T[:3, 3] for _, T in hypotheses]
+        ctx = _Context(views, K, within_reach(pts, hand_all, centres, model.radius_m, config),
                        hand_all, model, mesh, area)
         if len(views) > 1:
-            ctx.cache["region"] = _region_per_view(points, hand_pts, model, config)
+            ctx.cache["region"] = region_per_view(points, hand_pts, model.radius_m, config)
         results: list[Adjustment] = []
         errors: list[StageError] = []
         for which, T_start in hypotheses:
@@ -427,42 +428,6 @@ def estimate_adjustment(
     return single
 
 
-def _region_per_view(
-    points: list[np.ndarray], hand_pts: list[np.ndarray], model: Model,
-    config: EstimateAdjustmentConfig,
-) -> np.ndarray:
-    """The object's points near the hand (:func:`near_hand`) found in each view on its own and
-    joined: fused first, the views' clouds sit a camera error apart (a degree is 10 mm at the
-    object's far side), the object's pieces merge with each other and with the table into
-    clusters wider than the object, and only a sliver was left (wild [78643, 9]: 34 points of
-    7 views). Views without enough hand points of their own are left out while one has them."""
-    with_hand = [(p, h) for p, h in zip(points, hand_pts, strict=True)
-                 if len(h) >= config.min_hand_points]  # fmt: skip
-    if not with_hand:
-        return near_hand(np.concatenate(points), np.concatenate(hand_pts), model.radius_m, config)
-    return np.concatenate([near_hand(p, h, model.radius_m, config) for p, h in with_hand])
-
-
-def _within_reach(
-    points: np.ndarray, hand_pts: np.ndarray, hypotheses: list, model: Model,
-    config: EstimateAdjustmentConfig,
-) -> np.ndarray:
-    """The ``points`` (n, 3) either path can use: within the box of the hand's own points
-    (:func:`adjustment_region.hand_cluster`) grown as :func:`near_hand` grows it, or within
-    reach of a register_object hypothesis (path 1). Every view's every pixel, carried into
-    the first frame, cost seconds of distance computations per hypothesis."""
-    keep = np.zeros(len(points), bool)
-    for _, T in hypotheses:
-        centre = T[:3, :3] @ model.centroid + T[:3, 3]
-        keep |= np.linalg.norm(points - centre, axis=1) <= model.radius_m + config.stage1_reach_m
-    if len(hand_pts) < config.min_hand_points:
-        return points
-    hand = hand_cluster(hand_pts, config.cluster_voxel_m, config.cluster_eps_m)
-    grow = 2 * (model.radius_m + config.region_margin_m) + 2 * config.cluster_voxel_m
-    keep |= np.all((points >= hand.min(0) - grow) & (points <= hand.max(0) + grow), axis=1)
-    return points[keep]
-
-
 def _depth(depth_m: np.ndarray, K: np.ndarray, config: EstimateAdjustmentConfig) -> np.ndarray:
     """A view's depth as the stage uses it: valid within range, without flying pixels."""
     depth = valid_depth(depth_m, config.max_range_m)
@@ -475,80 +440,6 @@ def _agreement(
     """:func:`views_agreement` with the stage's tolerance and pixel stride."""
     return views_agreement(views, K, mesh, T_w_o, config.agree_tol_m, config.agree_stride_px,
                            free_outside=config.hand_free_space)
-
-
-def spread_frames(pose_valid: np.ndarray, ref: int, count: int) -> list[int]:
-    """Up to ``count`` frames other than ``ref``, evenly spread over the posed ones (``pose_valid``
-    (m,) bool), the last posed frame included: the views of :class:`SteadyView`."""
-    posed = np.flatnonzero(np.asarray(pose_valid, bool))
-    posed = posed[posed != ref]
-    if count <= 0 or len(posed) == 0:
-        return []
-    pick = np.unique(np.round(np.linspace(0, len(posed) - 1, count + 1)[1:]).astype(int))
-    return [int(posed[i]) for i in pick]
-
-
-def estimate_adjustment_steady(
-    read_depth: Callable[[int], np.ndarray],
-    K: np.ndarray,
-    mesh_vertices: np.ndarray,
-    mesh_faces: np.ndarray,
-    hand_mesh_w: tuple[np.ndarray, np.ndarray],
-    keypoints: np.ndarray,
-    T_w_c: np.ndarray,
-    pose_valid: np.ndarray,
-    T_w_o_stage1: np.ndarray,
-    config: EstimateAdjustmentConfig = PRESETS["default"],
-    T_w_o_stage1_alt: np.ndarray | None = None,
-) -> Adjustment:
-    """The stage on the steady frames: :func:`estimate_adjustment` on the first steady frame's
-    depth with the hand masked out (:func:`adjustment_region.hand_mask`). When that fails or
-    fits below ``config.accept_fitness`` (the onset is often detected a few frames early, while
-    the object still settles), also on the frame ``config.frames_after_onset`` later, its pose
-    carried back by that frame's virtual camera; the better fit is kept.
-
-    Parameters
-    ----------
-    read_depth : steady frame k -> its depth (h, w) float, metres.
-    hand_mesh_w : the fitted hand (vertices (n, 3) in the world, faces (f, 3)).
-    keypoints : (m, 21, 3) float, the steady frames' keypoints (pixels, confidence).
-    T_w_c : (m, 4, 4) the steady frames' cameras; the world is steady frame 0's camera.
-    pose_valid : (m,) bool, frames whose camera was solved.
-    T_w_o_stage1, T_w_o_stage1_alt : ``register_object``'s pose and, when it is ambiguous, its
-        runner-up.
-    """
-
-    def view(k: int) -> tuple[np.ndarray, np.ndarray]:
-        depth = read_depth(k)
-        return depth, hand_mask(depth.shape, K, inv_T(T_w_c[k]), hand_mesh_w, keypoints[k])
-
-    def attempt(k: int) -> Adjustment:
-        depth, mask = view(k)
-
-        def others(count: int) -> list[SteadyView]:
-            return [SteadyView(*view(j), inv_T(T_w_c[k]) @ T_w_c[j])
-                    for j in spread_frames(pose_valid, k, count)]
-
-        adj = estimate_adjustment(
-            depth, K, mesh_vertices, mesh_faces, T_w_o_stage1, mask, config,
-            T_w_o_stage1_alt=T_w_o_stage1_alt, other_views=others,
-        )
-        return replace(adj, T_adj=T_w_c[k] @ adj.T_adj, T_w_o=T_w_c[k] @ adj.T_w_o)
-
-    k = min(config.frames_after_onset, len(T_w_c) - 1)
-    try:
-        first = attempt(0)
-    except StageError:
-        if k == 0 or not pose_valid[k]:
-            raise
-        return attempt(k)
-    if first.fitness >= config.accept_fitness or k == 0 or not pose_valid[k]:
-        return first
-    try:
-        later = attempt(k)
-    except StageError:
-        return first
-    return later if later.fitness > first.fitness else first
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, make_T, rot_z
 from graspcap.tasks.object_pose import estimate_adjustment as ea
 from graspcap.tasks.object_pose.adjustment_region import hand_mask
+from graspcap.tasks.object_pose.adjustment_steady import estimate_adjustment_steady
 
 K = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
 M = 8  # steady frames
@@ -33,7 +34,7 @@ def _run(monkeypatch, fitness: dict[int, float | None], **config):
 
     monkeypatch.setattr(ea, "estimate_adjustment", fake)
     keypoints = np.zeros((M, 21, 3))
-    result = ea.estimate_adjustment_steady(
+    result = estimate_adjustment_steady(
         lambda k: np.full((48, 64), float(k)), K, *TRI, TRI, keypoints, T_W_C,
         np.ones(M, bool), T_W_O1, ea.EstimateAdjustmentConfig(**config),
     )

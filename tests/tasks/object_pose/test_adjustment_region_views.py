@@ -6,13 +6,11 @@ views were left, the stage refused and the first frame's flipped pose was kept).
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 from scipy.spatial import cKDTree
 
-from graspcap.tasks.object_pose.adjustment_region import near_hand
-from graspcap.tasks.object_pose.estimate_adjustment import PRESETS, _region_per_view
+from graspcap.tasks.object_pose.adjustment_region import near_hand, region_per_view
+from graspcap.tasks.object_pose.estimate_adjustment import PRESETS
 
 
 def _grid(lo, hi, step=0.002):
@@ -36,22 +34,22 @@ def _scene(shift_m: float):
 
 def test_each_view_keeps_its_object_and_leaves_the_background_out():
     config = PRESETS["default"]
-    model = SimpleNamespace(radius_m=0.04)
+    radius_m = 0.04
     views = [_scene(0.0), _scene(-0.012)]  # the second camera 12 mm off
     points = [np.concatenate([ball, wall]) for _, ball, wall in views]
     hands = [hand for hand, _, _ in views]
     balls = np.concatenate([ball for _, ball, _ in views])
     walls = np.concatenate([wall for _, _, wall in views])
 
-    region = _region_per_view(points, hands, model, config)
+    region = region_per_view(points, hands, radius_m, config)
     near_ball = cKDTree(balls).query(region)[0] < 1e-9
     assert near_ball.all()  # no wall point
     assert len(region) >= 0.95 * len(balls)  # and (nearly) every ball point
 
     # fused, the first view's ball touches the second view's wall: one wide cluster, wall kept
-    fused = near_hand(np.concatenate(points), np.concatenate(hands), model.radius_m, config)
+    fused = near_hand(np.concatenate(points), np.concatenate(hands), radius_m, config)
     assert (cKDTree(walls).query(fused)[0] < 1e-9).sum() > 100
 
     # a view without a hand of its own adds nothing while another has one
-    lone = _region_per_view([points[0], points[1]], [hands[0], hands[1][:5]], model, config)
-    assert len(lone) == len(near_hand(points[0], hands[0], model.radius_m, config))
+    lone = region_per_view([points[0], points[1]], [hands[0], hands[1][:5]], radius_m, config)
+    assert len(lone) == len(near_hand(points[0], hands[0], radius_m, config))

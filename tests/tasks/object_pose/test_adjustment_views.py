@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from graspcap.tasks.core.geometry import inv_T, pose_error
-from graspcap.tasks.object_pose.estimate_adjustment import PRESETS, spread_frames
+from graspcap.tasks.object_pose.adjustment_steady import spread_frames
+from graspcap.tasks.object_pose.estimate_adjustment import PRESETS
 from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
 
 UPSTREAM = ("load_session", "register_object", "detect_keypoints", "select_steady",

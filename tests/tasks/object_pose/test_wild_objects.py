@@ -18,7 +18,7 @@ from graspcap.synth import PRESETS, SynthConfig, generate_session
 from graspcap.synth.evaluate import load_truth
 from graspcap.tasks.hand import fit_hand
 from graspcap.tasks.hand.model import HandSide
-from graspcap.tasks.object_pose.estimate_adjustment import estimate_adjustment_steady
+from graspcap.tasks.object_pose.adjustment_steady import estimate_adjustment_steady
 from graspcap.tasks.pipeline import STAGES, _ideal_keypoints, configs_for, run_stage
 
 pytestmark = pytest.mark.slow
