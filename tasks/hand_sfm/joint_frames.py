@@ -11,7 +11,7 @@ import numpy as np
 from graspcap.tasks.hand_sfm.hand_graph import project_hand
 
 if TYPE_CHECKING:
-    from graspcap.tasks.hand_sfm.joint_solve import JointSolveConfig
+    from graspcap.tasks.hand_sfm.joint_config import JointSolveConfig
 
 
 def residuals_px(K, T_c_p, J, uv, ok) -> np.ndarray:

@@ -15,26 +15,90 @@ from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, transform_points, umeyama
 from graspcap.tasks.hand import fit_hand as fit_hand_stage
 from graspcap.tasks.hand.fit_hand import HandFit
-from graspcap.tasks.hand.model import SURFACE_OFFSET_M, HandSide
+from graspcap.tasks.hand.model import SURFACE_OFFSET_M, HandModel, HandSide
 from graspcap.tasks.hand_sfm.depth_init import depth_initialisation
+from graspcap.tasks.hand_sfm.depth_links import DepthLink
 from graspcap.tasks.hand_sfm.joint_frames import depth_disagrees, off_smooth_path
 from graspcap.tasks.hand_sfm.metric_scale import DepthLookup
 from graspcap.tasks.hand_sfm.odometry_init import odometry_initialisation
 from graspcap.tasks.hand_sfm.result import HandReconstruction
+from graspcap.tasks.hand_sfm.solve import fill_poses
 
 if TYPE_CHECKING:
-    from graspcap.tasks.hand_sfm.joint_solve import JointSolveConfig
+    from graspcap.tasks.hand_sfm.joint_config import JointSolveConfig
 
 
 @dataclass(frozen=True)
 class Start:
     """A start of the joint solve: each frame's palm in its camera (NaN where unposed), the
-    hand's angles and scale, and which start it is ("staged", "depth", "chain")."""
+    hand's angles and scale, which start it is ("staged", "depth", "chain") and, for the chain,
+    the depth registrations that chained its cameras (``DepthLink``, see :func:`chain_links`)."""
 
     T_c_p: np.ndarray
     angles: np.ndarray
     scale: float
     name: str
+    chain: tuple[DepthLink, ...] = ()
+
+
+def chain_links(start: Start, active: np.ndarray) -> list[DepthLink]:
+    """The chain's registrations as links between consecutive ``active`` frames (m,) bool:
+    each pair the chain connects gets the relative pose its cameras give and the information
+    of the registrations on the chain's path between them (their covariances summed).
+    Measured once from rest, these hold the cameras the depth chained wherever the detections
+    pull a frame away (a detector's run of wrong frames), where the links registered from the
+    current solve (``depth_links``) are dropped for moving it more than
+    ``max_correction_deg``."""
+    parent = {k.b: (k.a, n) for n, k in enumerate(start.chain)}  # each chained frame's link
+
+    def to_root(i: int) -> list[int]:  # the links from frame i up to the chain's start
+        out = []
+        while i in parent:
+            i, n = parent[i]
+            out.append(n)
+        return out
+
+    chained = set(parent) | {k.a for k in start.chain}
+    frames = [int(i) for i in np.flatnonzero(active) if int(i) in chained]
+    out = []
+    for p, q in zip(frames[:-1], frames[1:], strict=False):
+        path = set(to_root(p)) ^ set(to_root(q))  # the links between them
+        cov = sum(np.linalg.inv(start.chain[n].information) for n in path)
+        out.append(DepthLink(p, q, start.T_c_p[p] @ inv_T(start.T_c_p[q]), np.linalg.inv(cov),
+                             max(start.chain[n].rmse_m for n in path),
+                             min(start.chain[n].overlap for n in path)))
+    return out
+
+
+def chained_poses(start: Start) -> np.ndarray:
+    """(m, 4, 4) the start's poses of the frames its chain registered (NaN elsewhere, and
+    everywhere for a start without a chain)."""
+    out = np.full_like(start.T_c_p, np.nan)
+    for k in start.chain:
+        out[[k.a, k.b]] = start.T_c_p[[k.a, k.b]]
+    return out
+
+
+def chain_fill(start: Start, T_c_p: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """``T_c_p`` (m, 4, 4) with the frames the chain posed but the solve did not (not
+    ``active``: no or too few detections, dropped whole) placed by the chained cameras: each
+    active chained frame's solved pose differs from its chained one by a palm-side transform
+    (one for all frames where the chain and the solve agree), interpolated between the
+    neighbouring active frames and applied to the frame's chained camera. Interpolating the
+    solved cameras instead (``solve.fill_poses``) misses the motion inside a gap, which the
+    depth measured. Other frames are left as they are."""
+    chained = np.all(np.isfinite(chained_poses(start).reshape(len(T_c_p), -1)), axis=1)
+    both = active & chained
+    if not both.any():
+        return T_c_p
+    D = np.full_like(T_c_p, np.nan)
+    for a in np.flatnonzero(both):
+        D[a] = inv_T(start.T_c_p[a]) @ T_c_p[a]
+    D, _ = fill_poses(D)
+    out = T_c_p.copy()
+    for i in np.flatnonzero(chained & ~active):
+        out[i] = start.T_c_p[i] @ D[i]
+    return out
 
 
 def staged_start(rec: HandReconstruction, fit: HandFit) -> Start:
@@ -50,6 +114,12 @@ def _fit_to_points(points_w: np.ndarray, side: HandSide, cfg: JointSolveConfig) 
     known = np.all(np.isfinite(points_w), axis=1)
     return fit_hand_stage.fit_hand(np.where(known[:, None], points_w, 0.0), side, cfg.fit,
                                    weights=known.astype(float))
+
+
+def _template_fit(side: HandSide, cfg: JointSolveConfig) -> HandFit:
+    """The template hand (rest pose, scale 1) as a fit in its own palm frame."""
+    model = HandModel(side)
+    return fit_hand_stage.fit_hand(model.keypoints(model.rest_angles()), side, cfg.fit)
 
 
 def depth_start(uv, ok, K, readings, steady_from, side, cfg) -> Start | str:
@@ -100,7 +170,10 @@ def chain_start(
     through frames without one (a detector's runs of missed frames would break it), each
     cropped by ``surface_at`` around its nearest detected neighbour's ``confident`` readings.
     The hand is the staged ``fit``'s (its articulation from every frame's detections) placed
-    on the joints triangulated with the chained cameras (rigid, robust), else fitted to them."""
+    on the joints triangulated with the chained cameras (rigid, robust), else fitted to them,
+    else to the joints the depth readings place (:func:`depth_joints`: a turn of 15-20 deg
+    triangulates a far hand's joints to half its size, wild tuning ``[80929, 5]``), else the
+    template hand placed on those: the chain's cameras are what this start is for."""
     own = np.array([i for i, s in enumerate(surfaces) if s is not None], dtype=int)
     if not len(own):
         return None
@@ -116,14 +189,39 @@ def chain_start(
         return None
     T_w_p = None if fit is None else place_hand(
         fit, init.points_w, np.all(np.isfinite(init.points_w), axis=1))
-    if T_w_p is None:
-        try:
-            fit = _fit_to_points(init.points_w, side, cfg)
-        except StageError:
-            return None
-        T_w_p = fit.T_w_p
+    if T_w_p is None:  # the hand fitted to the triangulated joints, else to the depth's
+        by_depth = depth_joints(init.T_c_w, uv, readings, K)
+        for points_w in (init.points_w, by_depth):
+            try:
+                fit = _fit_to_points(points_w, side, cfg)
+                T_w_p = fit.T_w_p
+                break
+            except StageError:
+                continue
+        else:  # else the template hand placed on the depth's joints (the solve finds its size)
+            fit = _template_fit(side, cfg)
+            T_w_p = place_hand(fit, by_depth, np.all(np.isfinite(by_depth), axis=1))
+            if T_w_p is None:
+                return None
     return Start(np.einsum("mab,bc->mac", init.T_c_w, T_w_p), fit.angles_rad, fit.scale,
-                 "chain")
+                 "chain", init.chain)
+
+
+def depth_joints(T_c_w: np.ndarray, uv: np.ndarray, readings: np.ndarray, K: np.ndarray
+                 ) -> np.ndarray:
+    """(21, 3) each joint's median position over the frames posed in ``T_c_w`` (m, 4, 4) that
+    read the depth at its detection (``readings`` (m, 21), skin depth plus the template's
+    ``SURFACE_OFFSET_M`` to the joint's centre), NaN where fewer than 2 frames do. No
+    parallax needed: the readings are metric."""
+    posed = np.all(np.isfinite(T_c_w.reshape(len(T_c_w), -1)), axis=1)
+    z = readings + np.asarray(SURFACE_OFFSET_M)
+    X_c = np.concatenate([(uv - K[:2, 2]) / np.diag(K)[:2] * z[..., None], z[..., None]], -1)
+    X_w = np.einsum("mba,mjb->mja", T_c_w[:, :3, :3], X_c - T_c_w[:, None, :3, 3])
+    use = posed[:, None] & np.isfinite(X_w).all(-1)
+    out = np.full((X_w.shape[1], 3), np.nan)
+    for j in np.flatnonzero(use.sum(0) >= 2):
+        out[j] = np.median(X_w[use[:, j], j], axis=0)
+    return out
 
 
 def place_hand(fit: HandFit, points_w: np.ndarray, known: np.ndarray) -> np.ndarray | None:

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from graspcap.tasks.core.geometry import inv_T, rotation_error_deg
-from graspcap.tasks.hand_sfm.depth_links import DepthLinkConfig, icp_batch
+from graspcap.tasks.hand_sfm.depth_links import DepthLink, DepthLinkConfig, icp_batch
 from graspcap.tasks.hand_sfm.surface_clouds import SurfaceCloud
 from graspcap.tasks.hand_sfm.two_view_init import (
     Initialisation,
@@ -39,9 +39,10 @@ def chain_cameras(
     max_skip: int = 3,
     max_gap: int = 4,
     max_rmse_m: float = 0.002,
-) -> np.ndarray:
+) -> tuple[np.ndarray, list[DepthLink]]:
     """T_c_w (m, 4, 4) of the frames whose surfaces chain (world = the chain's first camera),
-    NaN elsewhere.
+    NaN elsewhere, and the registrations that chained them (one into each chained frame but
+    the start, ``a`` the frame it was registered onto).
 
     Away from the start, each frame's surface is registered onto the last chained frame's (from
     the last motion between neighbours continued over the gap, then from no motion), else
@@ -57,33 +58,33 @@ def chain_cameras(
     m = len(surfaces)
     have = [i for i in range(m) if surfaces[i] is not None]
     best = np.full((m, 4, 4), np.nan)
+    best_links: list[DepthLink] = []
     if len(have) < 2:
-        return best
+        return best, best_links
     starts = list(dict.fromkeys(have[k] for k in np.linspace(0, len(have) - 1, 6).astype(int)))
     for start in starts:
         T = np.full((m, 4, 4), np.nan)
         T[start] = np.eye(4)
-        n = 1 + _grow(surfaces, K, cfg, T, start, [i for i in have if i > start], max_skip,
-                      max_gap, max_rmse_m)
-        n += _grow(surfaces, K, cfg, T, start, [i for i in have if i < start][::-1], max_skip,
-                   max_gap, max_rmse_m)  # fmt: skip
-        if n > np.isfinite(best[:, 0, 0]).sum():
-            best = T
-        if n >= 0.8 * len(have):
+        links: list[DepthLink] = []
+        for order in ([i for i in have if i > start], [i for i in have if i < start][::-1]):
+            _grow(surfaces, K, cfg, T, start, order, max_skip, max_gap, max_rmse_m, links)
+        if len(links) + 1 > np.isfinite(best[:, 0, 0]).sum():
+            best, best_links = T, links
+        if len(links) + 1 >= 0.8 * len(have):
             break
-    return best
+    return best, best_links
 
 
-def _grow(surfaces, K, cfg, T, start, order, max_skip, max_gap, max_rmse_m) -> int:
+def _grow(surfaces, K, cfg, T, start, order, max_skip, max_gap, max_rmse_m, links) -> None:
     """Chain the frames of ``order`` (away from ``start``, in time order either way) onto
-    the chain (``T`` (m, 4, 4) filled in place); the number chained."""
+    the chain (``T`` (m, 4, 4) filled in place, each registration appended to ``links``)."""
     chain = [start]
     step = np.eye(4)  # the last motion between neighbouring chained frames (a onto b)
     for b in order:
         tries = [(a, g) for a in chain[::-1][:max_skip] if abs(b - a) <= max_gap
                  for g in (np.linalg.matrix_power(step, abs(b - a)), np.eye(4))]  # fmt: skip
         for a, guess in tries:
-            T_a_b, _, rmse, overlap = icp_batch(
+            T_a_b, info, rmse, overlap = icp_batch(
                 [surfaces[a], surfaces[b]], np.array([[0, 1]]), guess[None], K,
                 max_points=cfg.max_points, max_distance_m=cfg.max_distance_m,
                 huber_m=cfg.huber_m, iterations=cfg.iterations, sigma_m=cfg.sigma_m,
@@ -95,10 +96,11 @@ def _grow(surfaces, K, cfg, T, start, order, max_skip, max_gap, max_rmse_m) -> i
                     and angle <= cfg.max_step_deg and np.linalg.norm(t) <= cfg.max_step_m):
                 T[b] = inv_T(T_a_b[0]) @ T[a]  # T_b_w = (T_a_b)^-1 T_a_w
                 chain.append(b)
+                links.append(DepthLink(int(a), int(b), T_a_b[0], info[0], float(rmse[0]),
+                                       float(overlap[0])))
                 if abs(b - a) == 1:
                     step = T_a_b[0]
                 break
-    return len(chain) - 1
 
 
 def odometry_initialisation(
@@ -118,9 +120,10 @@ def odometry_initialisation(
     surfaces : (m) each solve frame's surface (None without); uv : (m, 21, 2) pixels; ok :
     (m, 21) usable observations (frames rejected whole already left out). Returns None when
     the chain has fewer than ``min_frames`` cameras or fewer than ``min_points`` joints
-    triangulate. The ``pair`` is the chain's first camera and the one turned furthest from it.
+    triangulate. The ``pair`` is the chain's first camera and the one turned furthest from it;
+    ``chain`` the registrations that chained the cameras.
     """
-    T = chain_cameras(surfaces, K, cfg)
+    T, links = chain_cameras(surfaces, K, cfg)
     chained = np.all(np.isfinite(T[:, :3, 3]), axis=1)
     if chained.sum() < min_frames:
         return None
@@ -146,4 +149,4 @@ def odometry_initialisation(
         return None
     parallax = float(np.median(ray_angles_deg(T[b], X[known])))
     return Initialisation(T, X, TwoView(a, b, T[b].copy(), parallax, known),
-                          links_from_start=True)
+                          links_from_start=True, chain=tuple(links))

@@ -44,6 +44,8 @@ class Initialisation:
     points_w : (21, 3) float, NaN for joints that could not be triangulated.
     pair : the :class:`TwoView` it started from.
     links_from_start : see the field.
+    chain : the depth registrations that chained the cameras (``hand_sfm.depth_links.DepthLink``,
+        frames of ``T_c_w``; ``hand_sfm.odometry_init``), empty for the other starts.
     """
 
     T_c_w: np.ndarray
@@ -52,6 +54,7 @@ class Initialisation:
     links_from_start: bool = False
     """The cameras came from the depth surfaces (``hand_sfm.odometry_init``): the depth links
     are registered from them, in every RGB-D round, instead of from the current solve."""
+    chain: tuple = ()
 
 
 def normalise(K: np.ndarray, uv: np.ndarray) -> np.ndarray:
