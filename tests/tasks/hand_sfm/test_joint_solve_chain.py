@@ -80,3 +80,16 @@ def test_chain_holds_the_cameras_of_a_small_object_on_the_wild_rig(tmp_path):
     _, e_coarse = _joint_solve(d, depth_links=coarse)
     assert e_coarse["camera_rot_deg"] > 1.5  # else this session shows nothing
     assert e_fine["camera_rot_deg"] < 1.0 and e_fine["camera_trans_mm"] < 10.0
+
+
+@pytest.mark.slow
+def test_the_chain_holds_the_cameras_past_the_start_on_the_wild_rig(tmp_path):
+    """A wild tuning session (`[80929, 13]`, 60 frames, a 49 deg turn): the joints the chained
+    cameras triangulate, and those the depth back-projects, fit no plausible hand (scale
+    0.50 / 0.56), so joint_solve/10 dropped the chain for the depth start (cameras 34 deg
+    off); joint_solve/11 keeps the chain with the template hand placed on the depth's joints,
+    and its links hold the cameras (0.16 deg)."""
+    d = generate_session(tmp_path, [80929, 13], config_for("wild", 60))
+    js, e = _joint_solve(d)
+    assert js.path == "joint" and js.start == "chain"
+    assert e["camera_rot_deg"] < 1.0 and e["camera_trans_mm"] < 8.0
