@@ -148,7 +148,7 @@ def depth_initialisation(
         fit = robust_rigid(P[a, common], P[i, common], inlier_m, rng)
         if fit is not None and fit[1].sum() >= min_points:
             T_c_w[i] = fit[0]  # reference camera (the world) into camera i
-    X = _median_joints(T_c_w, P, inlier_m)
+    X = median_joints(T_c_w, P, inlier_m)
     X_px = _triangulate(K, T_c_w, uv, ok, 3 * ransac_px)
     # a joint the depth never sees (a fingertip behind the object) is the median of wrong
     # readings, off its rays: the pixels' triangulation then
@@ -176,21 +176,24 @@ def depth_initialisation(
     return Initialisation(T_c_w, X, TwoView(a, b, T_c_w[b].copy(), parallax, known))
 
 
-def _median_joints(T_c_w, P, inlier_m):
-    """Each joint (21, 3) in the world as the median of its backprojections from the posed
-    frames, then again over those within ``inlier_m`` of it (readings on the object or a
-    nearer finger are minorities); NaN where fewer than three frames read it."""
+def median_joints(T_c_w: np.ndarray, P: np.ndarray, inlier_m: float | None = None,
+                  min_frames: int = 3) -> np.ndarray:
+    """Each joint (21, 3) in the world as the median of its backprojections ``P`` (m, 21, 3,
+    camera frames, :func:`backprojected_joints`) from the frames posed in ``T_c_w``, then,
+    given ``inlier_m``, again over those within it of that median (readings on the object or
+    a nearer finger are minorities); NaN where fewer than ``min_frames`` frames read it."""
     posed = np.all(np.isfinite(T_c_w[:, :3, 3]), axis=1)
     T_w_c = np.stack([np.linalg.inv(T) for T in T_c_w[posed]])
     Pw = np.einsum("mab,mjb->mja", T_w_c[:, :3, :3], P[posed]) + T_w_c[:, None, :3, 3]
     X = np.full((P.shape[1], 3), np.nan)
     for j in range(P.shape[1]):
         pts = Pw[:, j][np.all(np.isfinite(Pw[:, j]), axis=1)]
-        if len(pts) < 3:
+        if len(pts) < min_frames:
             continue
-        centre = np.median(pts, axis=0)
-        near = pts[np.linalg.norm(pts - centre, axis=1) < inlier_m]
-        X[j] = np.median(near, axis=0) if len(near) >= 3 else centre
+        X[j] = centre = np.median(pts, axis=0)
+        if inlier_m is not None:
+            near = pts[np.linalg.norm(pts - centre, axis=1) < inlier_m]
+            X[j] = np.median(near, axis=0) if len(near) >= min_frames else centre
     return X
 
 

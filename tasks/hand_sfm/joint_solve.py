@@ -300,7 +300,8 @@ def solve_from_start(
                               max(cfg.min_frames, int(np.ceil(cfg.start_min_share * active.sum()))))
     if rejected is not None:
         active &= ~rejected  # else the start is too poor to judge frames by: solve them all
-    sigma = cfg.sigma_px / np.maximum(conf, cfg.min_sigma_confidence)
+    conf_clipped = np.maximum(conf, cfg.min_sigma_confidence)
+    sigma = cfg.sigma_px / conf_clipped
     priors = HandPriors(cfg.limit_sigma_rad, cfg.rest_sigma_rad, cfg.scale_sigma)
     gate = cfg.depth_gate_m
     frame_median = np.full(m, np.nan)
@@ -334,8 +335,7 @@ def solve_from_start(
         # comes back once the hand is right)
         level = float(np.nanmedian(frame_medians(residuals_px(K, T_c_p, J, uv, ok))[active]))
         if cfg.sigma_from_residuals and np.isfinite(level):
-            sigma = (max(cfg.sigma_px, level / MEDIAN_PER_AXIS)
-                     / np.maximum(conf, cfg.min_sigma_confidence))
+            sigma = max(cfg.sigma_px, level / MEDIAN_PER_AXIS) / conf_clipped
         cand = np.where(active[:, None, None], T_c_p, np.nan)
         for i in np.flatnonzero(usable & ~active):
             pose = pnp(K, J[ok[i]], uv[i, ok[i]], max(cfg.ransac_px, 2 * level),

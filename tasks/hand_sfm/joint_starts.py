@@ -16,7 +16,11 @@ from graspcap.tasks.core.geometry import inv_T, transform_points, umeyama
 from graspcap.tasks.hand import fit_hand as fit_hand_stage
 from graspcap.tasks.hand.fit_hand import HandFit
 from graspcap.tasks.hand.model import SURFACE_OFFSET_M, HandModel, HandSide
-from graspcap.tasks.hand_sfm.depth_init import depth_initialisation
+from graspcap.tasks.hand_sfm.depth_init import (
+    backprojected_joints,
+    depth_initialisation,
+    median_joints,
+)
 from graspcap.tasks.hand_sfm.depth_links import DepthLink
 from graspcap.tasks.hand_sfm.joint_frames import depth_disagrees, off_smooth_path
 from graspcap.tasks.hand_sfm.metric_scale import DepthLookup
@@ -58,10 +62,9 @@ def chain_links(start: Start, active: np.ndarray) -> list[DepthLink]:
             out.append(n)
         return out
 
-    chained = set(parent) | {k.a for k in start.chain}
-    frames = [int(i) for i in np.flatnonzero(active) if int(i) in chained]
+    frames = [int(i) for i in np.flatnonzero(active & _chained(start))]
     out = []
-    for p, q in zip(frames[:-1], frames[1:], strict=False):
+    for p, q in zip(frames[:-1], frames[1:], strict=True):
         path = set(to_root(p)) ^ set(to_root(q))  # the links between them
         cov = sum(np.linalg.inv(start.chain[n].information) for n in path)
         out.append(DepthLink(p, q, start.T_c_p[p] @ inv_T(start.T_c_p[q]), np.linalg.inv(cov),
@@ -70,12 +73,11 @@ def chain_links(start: Start, active: np.ndarray) -> list[DepthLink]:
     return out
 
 
-def chained_poses(start: Start) -> np.ndarray:
-    """(m, 4, 4) the start's poses of the frames its chain registered (NaN elsewhere, and
-    everywhere for a start without a chain)."""
-    out = np.full_like(start.T_c_p, np.nan)
+def _chained(start: Start) -> np.ndarray:
+    """(m,) the frames the start's chain registered (none for a start without a chain)."""
+    out = np.zeros(len(start.T_c_p), bool)
     for k in start.chain:
-        out[[k.a, k.b]] = start.T_c_p[[k.a, k.b]]
+        out[[k.a, k.b]] = True
     return out
 
 
@@ -87,7 +89,7 @@ def chain_fill(start: Start, T_c_p: np.ndarray, active: np.ndarray) -> np.ndarra
     neighbouring active frames and applied to the frame's chained camera. Interpolating the
     solved cameras instead (``solve.fill_poses``) misses the motion inside a gap, which the
     depth measured. Other frames are left as they are."""
-    chained = np.all(np.isfinite(chained_poses(start).reshape(len(T_c_p), -1)), axis=1)
+    chained = _chained(start)
     both = active & chained
     if not both.any():
         return T_c_p
@@ -213,15 +215,9 @@ def depth_joints(T_c_w: np.ndarray, uv: np.ndarray, readings: np.ndarray, K: np.
     read the depth at its detection (``readings`` (m, 21), skin depth plus the template's
     ``SURFACE_OFFSET_M`` to the joint's centre), NaN where fewer than 2 frames do. No
     parallax needed: the readings are metric."""
-    posed = np.all(np.isfinite(T_c_w.reshape(len(T_c_w), -1)), axis=1)
-    z = readings + np.asarray(SURFACE_OFFSET_M)
-    X_c = np.concatenate([(uv - K[:2, 2]) / np.diag(K)[:2] * z[..., None], z[..., None]], -1)
-    X_w = np.einsum("mba,mjb->mja", T_c_w[:, :3, :3], X_c - T_c_w[:, None, :3, 3])
-    use = posed[:, None] & np.isfinite(X_w).all(-1)
-    out = np.full((X_w.shape[1], 3), np.nan)
-    for j in np.flatnonzero(use.sum(0) >= 2):
-        out[j] = np.median(X_w[use[:, j], j], axis=0)
-    return out
+    P = backprojected_joints(uv, np.isfinite(readings), K, readings,
+                             np.asarray(SURFACE_OFFSET_M, float), 0)
+    return median_joints(T_c_w, P, min_frames=2)
 
 
 def place_hand(fit: HandFit, points_w: np.ndarray, known: np.ndarray) -> np.ndarray | None:
