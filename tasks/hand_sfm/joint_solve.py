@@ -323,7 +323,8 @@ def solve_from_start(
             kin, K, uv, ok & active[:, None], sigma, T_c_p, angles, log_bone, log_scale,
             priors, robust=lambda: gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.cauchy_k),
             depth_m=np.where(range_used, readings, np.nan), depth_sigma_m=cfg.depth_sigma_m,
-            range_front_weight=cfg.range_front_weight, max_iterations=cfg.max_iterations, relative_tol=cfg.relative_tol,
+            range_front_weight=cfg.range_front_weight, max_iterations=cfg.max_iterations,
+            relative_tol=cfg.relative_tol,
             motion_sigmas=((cfg.motion_sigma_rad, cfg.motion_sigma_m)
                            if cfg.motion_sigma_rad > 0 else None),
             links=(depth_links(surfaces, np.where(active[:, None, None], T_c_p, np.nan), K,
