@@ -154,9 +154,11 @@ def reprojection_factor(kin: HandKinematics, K: np.ndarray, i: int, j: int, uv: 
 
 
 def range_factor(kin: HandKinematics, i: int, j: int, depth_m: float, offset_m: float,
-                 noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+                 noise: gtsam.noiseModel.Base, front_weight: float = 1.0) -> gtsam.CustomFactor:
     """Depth residual (1,): the joint's camera z minus the reading plus the skin offset
-    (``offset_m`` at unit scale, scaled with the hand)."""
+    (``offset_m`` at unit scale, scaled with the hand), times ``front_weight`` where the
+    reading lies in front of the skin: a reading is the first surface on the pixel's ray, the
+    hand's skin or something before it (the held object, another finger), never behind it."""
 
     import gtsam
 
@@ -166,12 +168,14 @@ def range_factor(kin: HandKinematics, i: int, j: int, depth_m: float, offset_m: 
         J, dJ = kin.evaluate(angles, log_bone, log_scale)
         pc, dpc_dxi, R = _camera_point(T, J[j])
         s_off = np.exp(log_scale) * offset_m
+        r = pc[2] - depth_m - s_off
+        w = front_weight if r > 0.0 else 1.0
         if H is not None:
             dh = R[2:3] @ dJ[j]  # (1, 41)
-            H[0] = dpc_dxi[2:3]
-            H[1], H[2] = dh[:, :20], dh[:, 20:40]
-            H[3] = dh[:, 40:] - s_off
-        return np.array([pc[2] - depth_m - s_off])
+            H[0] = w * dpc_dxi[2:3]
+            H[1], H[2] = w * dh[:, :20], w * dh[:, 20:40]
+            H[3] = w * (dh[:, 40:] - s_off)
+        return np.array([w * r])
 
     return gtsam.CustomFactor(noise, [camera_key(i), A_KEY, B_KEY, S_KEY], error)
 
@@ -286,6 +290,7 @@ def solve_graph(
     robust: Callable[[], gtsam.noiseModel.mEstimator.Base] | None,
     depth_m: np.ndarray | None = None,
     depth_sigma_m: float = 0.003,
+    range_front_weight: float = 1.0,
     motion_sigmas: tuple[float, float] | None = None,
     links: Sequence = (),
     link_huber_k: float = 3.0,
@@ -323,7 +328,7 @@ def solve_graph(
         )
         for i, j in zip(*np.nonzero(np.isfinite(depth_m) & use), strict=True):
             graph.add(range_factor(kin, int(i), int(j), float(depth_m[i, j]),
-                                   float(SURFACE_OFFSET_M[j]), range_noise))
+                                   float(SURFACE_OFFSET_M[j]), range_noise, range_front_weight))
     huber_link = gtsam.noiseModel.mEstimator.Huber.Create(link_huber_k)
     framed = set(frames.tolist())
     for link in links:

@@ -64,6 +64,12 @@ class JointSolveConfig(StageConfig):
     """Only detections at least this confident read the depth."""
     depth_sigma_m: float = 0.003
     """Sigma of a range factor (depth noise plus the skin-to-joint-centre model error)."""
+    range_front_weight: float = 0.3
+    """Weight of a range residual whose reading lies in front of the joint's skin (the first
+    surface on the ray can be the held object or another finger; it is never behind the
+    skin): below 1 such readings pull the hand towards the camera less than readings behind
+    the skin push it away. Clean readings then place the hand a little deep (0.06-0.08 % of
+    its distance in ``tests/tasks/hand_sfm/test_joint_solve.py``)."""
     depth_gate_m: float = 0.015
     """Readings further than this from the start get no range factor in the first round (the
     object or a nearer finger in front of the joint)."""
