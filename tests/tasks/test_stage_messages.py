@@ -318,8 +318,8 @@ def test_two_people_pick_deterministically_and_are_counted(tmp_path):
 
 def test_one_corrupt_keypoint_file_is_dropped_and_named(synth, tmp_path):
     """A shuffled frame and a collapsed one among 32: dropped with notes naming their files,
-    the steady onset within a frame of the one without them (two frames fewer move the
-    matched filter's optimum by one on some sessions; the onset's target is 3)."""
+    the steady onset within a frame of the one without them (with hand_model/2's tips this
+    fixture's onset is 9 with them, 8 without; the onset's target is 3 frames)."""
     clean = _run(synth, "detect_keypoints", "select_steady")
 
     def corrupt(manifest, folder):
