@@ -18,7 +18,7 @@ from graspcap.synth.objects import ObjectMesh
 from graspcap.synth.wild_hand import WildHand
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import make_T, transform_points
-from graspcap.tasks.hand.model import FINGERTIPS, SURFACE_OFFSET_M, HandModel, sphere_centres
+from graspcap.tasks.hand.model import FINGERTIPS, SURFACE_OFFSET_M, HandModel
 
 # Palm point (palm frame, scale 1) pressed against the object: mid palm, palmar skin.
 _PALM_CONTACT_P = np.array([-0.005, 0.05, 0.014])
@@ -141,7 +141,7 @@ class _Grasper:
             centres = start[f][:, None] + t[..., None] * (end[f] - start[f])[:, None]
             radius = (1 - t) * r0[f][:, None] + t * r1[f][:, None]
             return (self.sdf(centres.reshape(-1, 3)).reshape(3, -1) - radius).min(axis=1)
-        kp = sphere_centres(self.hm.keypoints(angles, T_o_p, self.scale), self.scale)
+        kp = self.hm.keypoints(angles, T_o_p, self.scale)
         a, b = kp[1 + 4 * f: 4 + 4 * f], kp[2 + 4 * f: 5 + 4 * f]
         centres = a[:, None] + self._t[None, :, None] * (b - a)[:, None]  # (3, s, 3)
         d = self.sdf(centres.reshape(-1, 3)).reshape(3, -1) - self._radius[f]
@@ -163,8 +163,7 @@ class _Grasper:
         if self.wild:
             _, end, _, r1 = self.hm.phalanx_capsules(angles, T_o_p, self.scale)
             return self.sdf(end[:, 2]) - r1[:, 2]
-        tips = sphere_centres(self.hm.keypoints(angles, T_o_p, self.scale), self.scale)
-        tips = tips[list(FINGERTIPS)]
+        tips = self.hm.keypoints(angles, T_o_p, self.scale)[list(FINGERTIPS)]
         return self.sdf(tips) - SURFACE_OFFSET_M[list(FINGERTIPS)] * self.scale
 
     def penetration(self, angles: np.ndarray, T_o_p: np.ndarray) -> float:

@@ -58,7 +58,6 @@ from graspcap.synth.wild_hand import WildHand, WildHandShape
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import backproject, inv_T, make_T, project, transform_points
 from graspcap.tasks.core.render import RayHits
-from graspcap.tasks.hand.model import MODEL_VERSION as HAND_MODEL_VERSION
 from graspcap.tasks.hand.model import RIGID_PALM_POINTS, HandModel, HandSide
 
 COLOR_PATTERN = "grasp/color/{index:06d}.jpg"
@@ -362,7 +361,7 @@ def _write_session(root: Path, session_id: str, seed: list[int], rng: np.random.
     }
     if _randomised(config):
         truth["randomisation"] = {
-            "hand_model": WILD_HAND_VERSION if shape is not None else HAND_MODEL_VERSION,
+            "hand_model": WILD_HAND_VERSION if shape is not None else "hand_model/1",
             "hand_shape": None if shape is None else shape.to_json(),
             "camera": {"width": cfg.width, "height": cfg.height, "f_px": cfg.f_px},
             "dist": [0.0] * 5 if dist is None else [float(d) for d in dist],

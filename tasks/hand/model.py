@@ -10,11 +10,7 @@ here is procedural and the numbers are our own (see ``_LIMITS_DEG``).
 Bone lengths are adult means of the phalanges after Buryanov & Kotiuk,
 "Proportions of hand segments", Int. J. Morphol. 28(3):755-758, 2010 (rounded);
 metacarpal placement was chosen so that wrist-to-middle-fingertip is about
-0.191 m and index-to-little MCP about 0.072 m at ``scale = 1``. A finger's tip keypoint is the
-end of the finger, ``TIP_PAD_M`` (the fingertip sphere's radius) beyond the centre of the
-distal phalanx's end sphere, where hand detectors put it (hand_model/2; before, the sphere's
-centre: every real detection's fingertip then lay 7.5-8.2 mm beyond the model's, and a fit
-stretched the distal bones or bent the fingers to reach it).
+0.183 m and index-to-little MCP about 0.072 m at ``scale = 1``.
 
 Palm frame ``p``: origin at the wrist (keypoint 0), +y towards the middle MCP
 (keypoint 9), +z the palmar normal, x = y cross z (towards the thumb for a
@@ -39,7 +35,7 @@ import numpy as np
 
 from graspcap.tasks.hand.mesh import sphere_hull, tapered_capsule
 
-MODEL_VERSION = "hand_model/2"
+MODEL_VERSION = "hand_model/1"
 _EYE4 = np.eye(4)
 _EYE4.setflags(write=False)
 _ONES20 = np.ones(20)
@@ -79,7 +75,7 @@ _BASE_M = np.array(
         [-0.046, 0.079, 0.006],  # little MCP (17)
     ]
 )
-_PHALANX_M = np.array(
+_SEGMENT_LENGTH_M = np.array(
     [
         [0.045, 0.032, 0.025],  # thumb: metacarpal, proximal, distal
         [0.0398, 0.0224, 0.0158],  # index: proximal, middle, distal phalanx
@@ -97,18 +93,6 @@ _RADIUS_M = np.array(
         [0.0105, 0.0088, 0.0080, 0.0075],
     ]
 )
-TIP_PAD_M: np.ndarray = np.concatenate([[0.0], _RADIUS_M[1:, 3]])
-"""(5,) At scale 1, how far each fingertip keypoint lies beyond the centre of its fingertip's
-sphere, thumb first: a finger's keypoint is the end of the finger, where hand detectors put it
-(MediaPipe's and OpenPose's fingertip landmark), not the sphere's centre. The thumb's distal
-length already reaches that far (its tip-to-IP / IP-to-MCP ratio 0.78 against MediaPipe's
-0.83; the fingers' distal-to-middle ratios were 0.66-0.71 against MediaPipe's 0.9-1.3,
-``docs/hand_shape.md``), so its pad is 0. Multiply by ``scale``."""
-TIP_PAD_M.setflags(write=False)
-_CAPSULE_TRIM_M = np.zeros((5, 3))
-_CAPSULE_TRIM_M[:, 2] = TIP_PAD_M  # a distal phalanx's surface ends TIP_PAD_M past its sphere
-# keypoint to keypoint: the distal "bone" is the DIP to the end of the finger
-_SEGMENT_LENGTH_M = _PHALANX_M + _CAPSULE_TRIM_M
 _WRIST_RADIUS_M = 0.014
 # Palm solid: hull of spheres (centre, radius): wrist, wrist sides, mid palm (thenar and
 # hypothenar), thumb base, knuckles. Half-thickness 14 mm mid palm, 10.5-12 mm at the knuckles.
@@ -180,9 +164,8 @@ PART_BONES: tuple[tuple[int, int], ...] = tuple(
 """(start, end) keypoint of each part after the palm, in ``PART_NAMES`` order from index 1."""
 
 SURFACE_OFFSET_M: np.ndarray = np.concatenate([[_WRIST_RADIUS_M], _RADIUS_M.reshape(-1)])
-"""(21,) Radius at scale 1 of the hand's surface at each keypoint's sphere: around the joint
-centre, and for a fingertip around ``sphere_centres``' point ``TIP_PAD_M`` behind the keypoint
-(the end of the finger). Multiply by ``scale``."""
+"""(21,) Distance at scale 1 from each keypoint (a joint centre or the fingertip's centre)
+to the skin: the radius of the hand surface there. Multiply by ``scale``."""
 SURFACE_OFFSET_M.setflags(write=False)
 
 
@@ -191,20 +174,6 @@ TEMPLATE_BONE_LENGTHS_M = np.concatenate(
 ).reshape(20)
 """(20,) Bone lengths at scale 1 and unit ``bone_scale``, metres, ``SKELETON`` order."""
 TEMPLATE_BONE_LENGTHS_M.setflags(write=False)
-
-
-def sphere_centres(keypoints: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """The centres (..., 21, 3) of the surface's spheres at the keypoints (..., 21, 3) of a
-    hand of ``scale``: the keypoints, each fingertip moved back along its distal bone by
-    ``TIP_PAD_M * scale`` (the end of the finger to its sphere's centre). ``SURFACE_OFFSET_M``
-    are these spheres' radii."""
-    kp = np.asarray(keypoints, dtype=float)
-    out = kp.copy()
-    tips, dips = np.array(FINGERTIPS), np.array(FINGERTIPS) - 1
-    bone = kp[..., tips, :] - kp[..., dips, :]
-    unit = bone / np.maximum(np.linalg.norm(bone, axis=-1, keepdims=True), 1e-12)
-    out[..., tips, :] -= (scale * TIP_PAD_M)[:, None] * unit
-    return out
 
 
 class HandSide(StrEnum):
@@ -422,7 +391,7 @@ class HandModel:
         palm_start, palm_end, palm_r = _palm_capsules(f.reshape(5, 4))
         bones = np.array(PART_BONES)
         start = np.concatenate([palm_start, kp_p[bones[:, 0]]])
-        end = np.concatenate([palm_end, sphere_centres(kp_p)[bones[:, 1]]])
+        end = np.concatenate([palm_end, kp_p[bones[:, 1]]])
         ends_r = np.stack([_RADIUS_M[:, :3].reshape(-1), _RADIUS_M[:, 1:].reshape(-1)])
         radius = np.concatenate([palm_r, ends_r.mean(axis=0)]) * scale
         part = np.concatenate([np.zeros(len(palm_r), int), np.arange(1, 16)])
@@ -495,7 +464,7 @@ def _build_template() -> HandMesh:
     for f in range(5):
         for j in range(3):
             parts.append(
-                tapered_capsule(_PHALANX_M[f, j], _RADIUS_M[f, j], _RADIUS_M[f, j + 1])
+                tapered_capsule(_SEGMENT_LENGTH_M[f, j], _RADIUS_M[f, j], _RADIUS_M[f, j + 1])
             )
     offsets = np.cumsum([0] + [len(v) for v, _ in parts])
     vertices = np.concatenate([v for v, _ in parts])
@@ -506,7 +475,7 @@ def _build_template() -> HandMesh:
     for k in range(1, 16):
         f, j = divmod(k - 1, 3)
         ends = np.array([[0.0, 0.0, 0.0, _RADIUS_M[f, j]],
-                         [0.0, _PHALANX_M[f, j], 0.0, _RADIUS_M[f, j + 1]]])
+                         [0.0, _SEGMENT_LENGTH_M[f, j], 0.0, _RADIUS_M[f, j + 1]]])
         end[part == k] = _sphere_of(vertices[part == k], ends) == 1
     for arr in (vertices, faces, part, palm_sphere, end):
         arr.setflags(write=False)
@@ -527,6 +496,5 @@ def _mesh_template() -> HandMesh:
 __all__ = [
     "ANGLE_NAMES", "FINGERS", "FINGERTIPS", "KEYPOINT_NAMES", "KEYPOINT_PARENTS", "MODEL_VERSION",
     "PART_BONES", "RIGID_PALM_POINTS", "SKELETON", "SURFACE_OFFSET_M", "Capsules", "HandMesh",
-    "TEMPLATE_BONE_LENGTHS_M", "TIP_PAD_M", "HandModel", "HandSide", "check_bone_scale",
-    "sphere_centres",
+    "TEMPLATE_BONE_LENGTHS_M", "HandModel", "HandSide", "check_bone_scale",
 ]  # fmt: skip

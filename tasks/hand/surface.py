@@ -1,8 +1,7 @@
 """Cheap, batched distances between the hand model's surface and an object (for refine_grasp).
 
 The hand model's surface (``HandModel.mesh``) is 16 closed convex parts: each phalanx the hull
-of two spheres at its joints (a tapered capsule whose radii are ``SURFACE_OFFSET_M``, around
-``sphere_centres``: a fingertip's sphere lies behind the tip keypoint), and the
+of two spheres at its joints (a tapered capsule whose radii are ``SURFACE_OFFSET_M``), and the
 palm the hull of a few spheres, rigid in the palm frame. So:
 
 - the signed distance of a point to a phalanx is the distance to its bone minus the radius
@@ -25,13 +24,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from graspcap.tasks.hand.model import (
-    PART_BONES,
-    SURFACE_OFFSET_M,
-    HandModel,
-    HandSide,
-    sphere_centres,
-)
+from graspcap.tasks.hand.model import PART_BONES, SURFACE_OFFSET_M, HandModel, HandSide
 
 # open3d, scipy: imported where used, so that importing the stage table stays cheap
 
@@ -254,8 +247,7 @@ class HandSurface:
     def distance(self, points: np.ndarray, kp: np.ndarray, R: np.ndarray, t: np.ndarray
                  ) -> np.ndarray:
         """Signed distance (b, n) of ``points`` (n, 3) to the hand surface (negative inside)."""
-        c = sphere_centres(kp, self.scale)
-        A, B = c[:, BONES[:, 0]], c[:, BONES[:, 1]]  # (b, 15, 3)
+        A, B = kp[:, BONES[:, 0]], kp[:, BONES[:, 1]]  # (b, 15, 3)
         centre = points.mean(axis=0)
         P, A, B = points - centre, A - centre, B - centre
         AB = B - A
@@ -274,8 +266,7 @@ class HandSurface:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Penetration probes: sphere centres (b, 15 s, 3) along the bones with radii
         ``sample_r``, and palm surface points (b, p, 3)."""
-        c = sphere_centres(kp, self.scale)
-        A, B = c[:, BONES[:, 0]], c[:, BONES[:, 1]]
+        A, B = kp[:, BONES[:, 0]], kp[:, BONES[:, 1]]
         centres = A[:, :, None] + self.t[None, None, :, None] * (B - A)[:, :, None]
         palm = np.einsum("bij,pj->bpi", R, self.palm_samples_p) + t[:, None]
         return centres.reshape(len(kp), -1, 3), self.sample_r, palm

@@ -20,8 +20,6 @@ OVERRIDES = {
     "refine_grasp": {"contact_threshold": 1.01},
 }
 REJECTED = "refine_grasp: refinement rejected, the stage-3 fit kept"
-FORCED = "no observed vertex has contact"  # the reason OVERRIDES give (a warm build's session
-# can have its refinement rejected for a reason of its own: deeper than the fit)
 
 
 def _reports(catalog) -> list:
@@ -33,7 +31,7 @@ def _report_of(row: dict, reports: list, *, rejected: bool):
     """The one cached QaReport of ``row``'s session and build: same reprojection RMSE (a
     per-session value no override changes), with or without the rejected refinement's note."""
     mine = [q for q in reports if q.metrics.get("reproj_rmse_px") == row["qa_reproj_rmse_px"]
-            and any(REJECTED in n and FORCED in n for n in q.notes) == rejected]
+            and any(REJECTED in n for n in q.notes) == rejected]
     assert len(mine) == 1, (row["session_id"], len(mine))
     return mine[0]
 

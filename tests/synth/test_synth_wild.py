@@ -28,7 +28,7 @@ from graspcap.synth.sensors import kinect_depth_mm, real_detections
 from graspcap.synth.wild_hand import WildHand, WildHandShape
 from graspcap.tasks.core.geometry import from_rotvec, inv_T, transform_points
 from graspcap.tasks.core.render import cast_rays
-from graspcap.tasks.hand.model import MODEL_VERSION, SKELETON, HandModel
+from graspcap.tasks.hand.model import SKELETON, HandModel
 from graspcap.tasks.session.load_session import validate_session
 
 WILD = PRESETS["wild"].model_copy(update={"frames": 12, "scan_views": (6, 6)})
@@ -130,7 +130,7 @@ def test_real_detector_profile_alone_keeps_the_realistic_rig(tmp_path):
     assert (manifest["color_camera"]["width"], manifest["color_camera"]["height"]) == (640, 480)
     assert manifest["color_camera"]["dist"] == [0.0] * 5
     rnd = truth["randomisation"]
-    assert rnd["hand_model"] == MODEL_VERSION and rnd["hand_shape"] is None
+    assert rnd["hand_model"] == "hand_model/1" and rnd["hand_shape"] is None
     assert len(rnd["detector"]["events"]) == 8 and truth["difficulty"] == "real-detector"
 
 

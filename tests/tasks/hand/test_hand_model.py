@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -20,10 +19,8 @@ from graspcap.tasks.hand.model import (
     PART_BONES,
     RIGID_PALM_POINTS,
     SURFACE_OFFSET_M,
-    TIP_PAD_M,
     HandModel,
     HandSide,
-    sphere_centres,
 )
 
 SIDES = [HandSide.RIGHT, HandSide.LEFT]
@@ -240,9 +237,8 @@ def test_mesh_parts_closed_outward_and_plausible(model):
             assert 50 <= len(part.vertices) <= 1000, name
             assert part.is_watertight and part.is_winding_consistent, name
             assert part.volume > 0, name  # outward-facing
-        # every phalanx lies on its bone, between its spheres' centres: surface within
-        # 7..12.5 mm of the axis (scaled)
-        kp = sphere_centres(model.keypoints(angles, np.eye(4), 1.0))
+        # every phalanx lies on its bone: surface within 7..12.5 mm of the axis (scaled)
+        kp = model.keypoints(angles, np.eye(4), 1.0)
         posed = model.mesh(angles)
         for p, (a, b) in enumerate(PART_BONES, start=1):
             v = posed.vertices[posed.part == p]
@@ -291,41 +287,29 @@ def _skin_distance(mesh, points) -> np.ndarray:
     return np.linalg.norm(points[:, None] - skin[None], axis=2).min(axis=1)
 
 
-def test_sphere_centres_lie_surface_offset_below_the_skin_and_tips_on_it(model):
-    tips = list(FINGERTIPS)
+def test_keypoints_lie_surface_offset_below_the_skin(model):
     flexed = model.rest_angles()
     flexed[1::4] = 0.4  # thumb CMC flexion and every finger's base flexion
     flexed[2::4] = 0.5
     for angles in (model.rest_angles(), flexed):
         mesh, kp = model.mesh(angles), model.keypoints(angles)
-        centres = sphere_centres(kp)
-        assert np.all(_surface_distance(mesh, centres)[1])  # inside the hand
-        np.testing.assert_allclose(_skin_distance(mesh, centres), SURFACE_OFFSET_M,
-                                   atol=0.3e-3)
-        # a finger's tip keypoint is the end of the finger (where detectors put it): on the
-        # skin, TIP_PAD_M beyond its sphere's centre along the distal bone (the thumb's: 0)
-        np.testing.assert_allclose(_surface_distance(mesh, kp[tips])[0],
-                                   SURFACE_OFFSET_M[tips] - TIP_PAD_M, atol=0.3e-3)
-        np.testing.assert_allclose(np.linalg.norm(kp[tips] - centres[tips], axis=1), TIP_PAD_M,
-                                   atol=1e-12)
-        others = [j for j in range(21) if j not in tips]
-        np.testing.assert_array_equal(centres[others], kp[others])
+        assert np.all(_surface_distance(mesh, kp)[1])  # inside the hand
+        np.testing.assert_allclose(_skin_distance(mesh, kp), SURFACE_OFFSET_M, atol=0.3e-3)
     # offsets as documented: fingers 7.5-12 mm, palm/wrist 12-15 mm
     assert np.all((SURFACE_OFFSET_M > 0.0074) & (SURFACE_OFFSET_M < 0.015))
-    # any pose, scaled: every sphere centre inside the hand and within one offset of a surface
+    # any pose, scaled: every keypoint inside the hand and within one offset of a surface
     rng = np.random.default_rng(6)
     angles, T_w_p, scale = random_angles(model, rng), random_pose(rng), 1.2
-    kp = model.keypoints(angles, T_w_p, scale)
-    dist, inside = _surface_distance(model.mesh(angles, T_w_p, scale), sphere_centres(kp, scale))
+    dist, inside = _surface_distance(
+        model.mesh(angles, T_w_p, scale), model.keypoints(angles, T_w_p, scale)
+    )
     assert np.all(inside)
     assert np.all(dist <= scale * SURFACE_OFFSET_M + 0.5e-3)
-    dist = _surface_distance(model.mesh(angles, T_w_p, scale), kp[tips])[0]
-    assert np.all(dist <= scale * (SURFACE_OFFSET_M[tips] - TIP_PAD_M) + 0.5e-3)
 
 
 def test_proportions_at_scale_one(model):
     kp = model.keypoints(model.rest_angles())
-    assert 0.185 <= np.linalg.norm(kp[12] - kp[0]) <= 0.195  # wrist to middle fingertip's end
+    assert 0.18 <= np.linalg.norm(kp[12] - kp[0]) <= 0.19  # wrist to middle fingertip
     assert 0.07 <= np.linalg.norm(kp[5] - kp[17]) <= 0.085  # index MCP to little MCP
     mesh = model.mesh(model.rest_angles())
     extent = np.ptp(mesh.vertices, axis=0)
@@ -349,8 +333,7 @@ def test_capsules_follow_the_bones(model):
     np.testing.assert_array_equal(caps.part[phalanx], np.arange(1, 16))
     bones = np.array(PART_BONES)
     np.testing.assert_allclose(caps.start[phalanx], kp[bones[:, 0]], atol=1e-12)
-    np.testing.assert_allclose(caps.end[phalanx], sphere_centres(kp, scale)[bones[:, 1]],
-                               atol=1e-12)
+    np.testing.assert_allclose(caps.end[phalanx], kp[bones[:, 1]], atol=1e-12)
     assert 3 <= np.sum(~phalanx) <= 8
     assert np.all((caps.radius > scale * 0.007) & (caps.radius < scale * 0.016))
     # palm capsules are fixed in the palm: same in the palm frame whatever the angles
@@ -386,25 +369,3 @@ def test_bone_scale_changes_exactly_its_bone_lengths():
     np.testing.assert_array_equal(model.keypoints(angles, bone_scale=np.ones(20)), kp0)
     with pytest.raises(ValueError, match="bone_scale"):
         model.keypoints(angles, bone_scale=np.ones(19))
-
-
-def test_fingertips_end_the_fingers_as_a_real_detector_puts_them(shared_data, model):
-    """MediaPipe's fingertip landmark is the end of the finger. On its metric 3D landmarks of
-    the 12 real hands in ``mediapipe_hands`` (5 photos, both model sizes) the distal "bone"
-    (DIP to tip) is 1.30 / 1.01 / 0.98 / 0.93 times the middle phalanx (index, middle, ring,
-    little; medians). The template's ratios agree within 15 % on the four fingers' geometric
-    mean (measured 1.02; with the tip at its sphere's centre, hand_model/1, 0.69)."""
-    path = shared_data / "mediapipe_hands" / "mediapipe_0.10.14_reference_landmarks.json"
-    ratios = []
-    for image in json.loads(path.read_text())["images"].values():
-        for complexity in ("model_complexity_0", "model_complexity_1"):
-            for hand in image.get(complexity, []):
-                J = np.array(hand["world_landmarks_m"], dtype=float)
-                ratios.append([np.linalg.norm(J[m + 3] - J[m + 2])
-                               / np.linalg.norm(J[m + 2] - J[m + 1]) for m in (5, 9, 13, 17)])
-    assert len(ratios) >= 10
-    real = np.median(ratios, axis=0)
-    kp = model.keypoints(model.rest_angles())
-    ours = np.array([np.linalg.norm(kp[m + 3] - kp[m + 2])
-                     / np.linalg.norm(kp[m + 2] - kp[m + 1]) for m in (5, 9, 13, 17)])
-    assert abs(np.mean(np.log(ours / real))) < np.log(1.15), (ours, real)

@@ -18,7 +18,6 @@ from graspcap.tasks.hand.model import (
     TEMPLATE_BONE_LENGTHS_M,
     HandModel,
     HandSide,
-    sphere_centres,
 )
 from graspcap.tasks.hand.shape import (
     BONE_NAMES,
@@ -58,7 +57,7 @@ def test_bone_lengths_are_exact_and_the_surface_follows(side):
         # every phalanx: its skin is its radius from its (stretched) bone, ends included
         for k, (s, e) in enumerate(PART_BONES):
             V = mesh.vertices[mesh.part == k + 1]
-            A, B = sphere_centres(kp, scale)[s], sphere_centres(kp, scale)[e]
+            A, B = kp[s], kp[e]
             t = np.clip((V - A) @ (B - A) / ((B - A) @ (B - A)), 0.0, 1.0)
             d = np.linalg.norm(V - (A + t[:, None] * (B - A)), axis=1)
             r = scale * (SURFACE_OFFSET_M[s] * (1 - t) + SURFACE_OFFSET_M[e] * t)
@@ -74,8 +73,7 @@ def test_bone_lengths_are_exact_and_the_surface_follows(side):
             part.remove_unreferenced_vertices()
             assert part.is_watertight and part.volume > 0, k
         caps = model.capsules(angles, T, scale, b)
-        ends = sphere_centres(kp, scale)[np.array(PART_BONES)[:, 1]]
-        np.testing.assert_allclose(caps.end[5:], ends, atol=1e-12)
+        np.testing.assert_allclose(caps.end[5:], kp[np.array(PART_BONES)[:, 1]], atol=1e-12)
         np.testing.assert_allclose(caps.end[:5], kp[[1, 5, 9, 13, 17]], atol=1e-12)
     np.testing.assert_array_equal(model.mesh(GRASP, bone_scale=np.ones(20)).vertices,
                                   model.mesh(GRASP).vertices)
