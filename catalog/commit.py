@@ -31,7 +31,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -228,8 +228,23 @@ def _as_list(values: Any) -> list:
     return list(values)
 
 
-def _prepare(commit: BuildCommit) -> tuple[pa.Table, pa.Table, dict[str, tuple[str, dict]]]:
-    """Validate rows and arrays, fill the digest columns; no writes."""
+GroupSource = Callable[[], dict[str, np.ndarray]]
+"""Reads one checked array group again when it is written (``_prepare``)."""
+
+
+def _session_group(arrays: Mapping[str, SessionArrays], sid: str, kind: str) -> GroupSource:
+    return lambda: check_arrays(kind, arrays[sid].groups()[kind], owner=sid)
+
+
+def _mesh_group(meshes: Mapping[str, ObjectMesh], key: str, owner: str) -> GroupSource:
+    return lambda: mesh_group(meshes[key], owner)[1]
+
+
+def _prepare(commit: BuildCommit) -> tuple[pa.Table, pa.Table, dict[str, tuple[str, GroupSource]]]:
+    """Validate rows and arrays, fill the digest columns; no writes. Each array group's digest
+    comes with the kind and a source that reads it again from the commit's mappings when it is
+    written, so a commit of many sessions never holds all their arrays at once (a build hands
+    mappings that read them from its work area: ``flows/assemble.py``)."""
     sessions = commit.sessions
     digest_cols = [g.digest_column for g in ZARR_LAYOUT.values()]
     if isinstance(sessions, pa.Table):
@@ -239,22 +254,22 @@ def _prepare(commit: BuildCommit) -> tuple[pa.Table, pa.Table, dict[str, tuple[s
     sessions = dict(sessions)
     ids = [str(s) for s in _as_list(sessions.get("session_id"))]
     objects = _as_list(sessions.get("object_id"))
-    groups: dict[str, tuple[str, dict]] = {}
+    groups: dict[str, tuple[str, GroupSource]] = {}
     filled = {c: [None] * len(ids) for c in digest_cols}
     for i, sid in enumerate(ids):
         arrays = commit.session_arrays.get(sid)
         if arrays is not None:
             for kind, group in arrays.groups().items():
-                checked = check_arrays(kind, group, owner=sid)
-                digest = array_digest(kind, checked)
-                groups[digest] = (kind, checked)
+                digest = array_digest(kind, check_arrays(kind, group, owner=sid))
+                groups[digest] = (kind, _session_group(commit.session_arrays, sid, kind))
                 filled[ZARR_LAYOUT[kind].digest_column][i] = digest
-        mesh = commit.object_meshes.get(sid)
+        key, mesh = sid, commit.object_meshes.get(sid)
         if mesh is None and i < len(objects):
-            mesh = commit.object_meshes.get(objects[i])
+            key, mesh = objects[i], commit.object_meshes.get(objects[i])
         if mesh is not None:
             digest, checked = mesh_group(mesh, sid)
-            groups[digest] = ("object_mesh", checked)
+            if digest not in groups:
+                groups[digest] = ("object_mesh", _mesh_group(commit.object_meshes, key, sid))
             filled["object_mesh_digest"][i] = digest
             if arrays is not None and len(arrays.contact) != len(checked["vertices"]):
                 raise CatalogSchemaError("arrays/contact", "values", [sid],
@@ -367,7 +382,7 @@ def commit_build(layout: CatalogLayout, commit: BuildCommit, *, lock_timeout_s: 
                                      "in this build or the catalog")
         with writing(layout.arrays_dir), \
                 ThreadPoolExecutor(max_workers=ARRAY_WRITERS) as pool:  # zarr waits on I/O
-            list(pool.map(lambda item: write_group(layout, item[1][0], item[1][1], item[0]),
+            list(pool.map(lambda item: write_group(layout, item[1][0], item[1][1](), item[0]),
                           groups.items()))
         _pause("after_arrays")
 

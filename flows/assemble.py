@@ -20,10 +20,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
+
 import graspcap.catalog as gc
 from graspcap.catalog.commit import ObjectMesh, SessionArrays, mesh_group
 from graspcap.catalog.layout import CatalogLayout
-from graspcap.catalog.validate import check_commit
+from graspcap.catalog.validate import check_commit, to_table
 from graspcap.flows.build_log import session_keys
 from graspcap.flows.cached import reads_digest, session_files
 from graspcap.flows.report import Outcome, SessionReport
@@ -34,7 +36,7 @@ from graspcap.flows.rows import (
     predates_columns,
     session_rows,
 )
-from graspcap.flows.workarea import ResultRef, WorkArea
+from graspcap.flows.workarea import ResultRef, Spill, WorkArea
 from graspcap.schemas.tables import Status
 
 
@@ -161,13 +163,16 @@ def _store_pictures(layout: CatalogLayout, session_id: str, ref: ResultRef
 
 @dataclass(frozen=True)
 class Assembled:
-    """What a build commits, and its report of each session (in the order of its folders)."""
+    """What a build commits, and its report of each session (in the order of its folders).
+    It stays small as sessions add up (0.09 MB a demo session, 0.70 before; docs/benchmarks.md):
+    ``frames`` are Arrow tables, not Python rows, and the arrays and meshes wait in the work
+    area (``Spill``) until the commit reads them one session at a time."""
 
     reports: tuple[SessionReport, ...]
     rows: list[dict[str, Any]]
-    frames: list[dict[str, Any]]
-    arrays: dict[str, SessionArrays]
-    meshes: dict[str, ObjectMesh | None]
+    frames: pa.Table
+    arrays: Mapping[str, SessionArrays]
+    meshes: Mapping[str, ObjectMesh]
     new_failures: bool
     """A failure the catalog's latest build does not record: worth a version of its own."""
 
@@ -192,10 +197,12 @@ def assemble(cat: gc.Catalog, work: WorkArea, build: gc.BuildInfo, previous: int
         k = (rec["session_id"], rec["stage"])
         attempts[k] = attempts.get(k, 0) + 1
     by_index: dict[int, SessionReport] = {}  # reports in the order of sessions
-    rows, frames, arrays, meshes = [], [], {}, {}
+    rows: list[dict[str, Any]] = []
+    frames: list[pa.Table] = []
+    arrays, meshes = Spill(work), Spill(work)
     recorded: dict[str, str] | None = None
     new_failures = False
-    built = []  # sessions with rows, checked against the catalog's rules below
+    built = []  # sessions whose rows passed the commit's checks
 
     def fail(i: int, d: Path, sid: str, error: str, stage: str | None, info: dict,
              common: dict, prev: dict | None, good_prev: bool,
@@ -267,28 +274,29 @@ def assemble(cat: gc.Catalog, work: WorkArea, build: gc.BuildInfo, previous: int
             fail(i, d, sid, f"assembling the catalog rows: {type(exc).__name__}: {exc}",
                  None, info, common, prev, good_prev)
             continue
-        built.append((i, d, sid, sr, info, common, prev, good_prev))
-        meshes[sid] = sr.object_mesh  # the session's own mesh (content-addressed)
-    shared = _shared_object_notes({sid: (sr.object_id, mesh_digest(sr.object_mesh, sid))
-                                   for _, _, sid, sr, *_ in built}, prev_rows)
-    # the checks the commit runs, per session: one whose rows, frames or arrays would make it
-    # raise fails alone, with the reason, and the others are committed
-    for i, d, sid, sr, info, common, prev, good_prev in built:
-        if sid in shared:
-            info["notes"] = (*info["notes"], shared[sid])
+        # the checks the commit runs, per session: one whose rows, frames or arrays would make
+        # it raise fails alone, with the reason, and the others are committed
         try:
-            check_commit(gc.BuildCommit(build=build, sessions=[sr.session],
-                                        frames=sr.frames, session_arrays={sid: sr.arrays},
-                                        object_meshes=meshes))
+            frames_t = check_commit(gc.BuildCommit(
+                build=build, sessions=[sr.session], frames=sr.frames,
+                session_arrays={sid: sr.arrays}, object_meshes={sid: sr.object_mesh}))
         except Exception as exc:  # noqa: BLE001 - CatalogSchemaError, or a bug in a check
             fail(i, d, sid, f"the catalog refused its rows: {exc}", None, info, common, prev,
                  good_prev)
             continue
-        rows.append(sr.session)
-        frames.extend(sr.frames)
-        arrays[sid] = sr.arrays
+        built.append((i, sid, sr.session, sr.object_id, mesh_digest(sr.object_mesh, sid), info,
+                      prev))
+        frames.append(frames_t)
+        arrays.put(sid, sr.arrays)
+        meshes.put(sid, sr.object_mesh)  # the session's own mesh (content-addressed)
+    shared = _shared_object_notes({sid: (object_id, digest)
+                                   for _, sid, _, object_id, digest, *_ in built}, prev_rows)
+    for i, sid, row, _, _, info, prev in built:
+        if sid in shared:
+            info["notes"] = (*info["notes"], shared[sid])
+        rows.append(row)
         by_index[i] = SessionReport(outcome=Outcome.CHANGED if prev else Outcome.ADDED,
-                                   status=sr.session["status"], error=sr.session["error"],
-                                   **info)
-    return Assembled(tuple(by_index[i] for i in sorted(by_index)), rows, frames, arrays,
+                                   status=row["status"], error=row["error"], **info)
+    return Assembled(tuple(by_index[i] for i in sorted(by_index)), rows,
+                     pa.concat_tables(frames) if frames else to_table("frames", []), arrays,
                      meshes, new_failures)

@@ -39,12 +39,15 @@ import io
 import json
 import os
 import pickle
+import shutil
 import socket
 import tempfile
 import threading
 import time
 import types
+import uuid
 from collections import OrderedDict
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -146,8 +149,8 @@ class WorkArea:
     def remove_stale_temp(self) -> list[Path]:
         """Delete the temporary files of writers that are gone (killed builds); return them."""
         removed = []
-        folders = [self._digest_index, *(p for p in (self.root / "results").iterdir()
-                                         if p.is_dir())]
+        folders = [self.root, self._digest_index,
+                   *(p for p in (self.root / "results").iterdir() if p.is_dir())]
         now = time.time()
         for folder in folders:
             try:
@@ -162,7 +165,10 @@ class WorkArea:
                 except FileNotFoundError:
                     continue
                 if age > STALE_TEMP_S or not _writer_alive(entry.name):
-                    Path(entry.path).unlink(missing_ok=True)
+                    if entry.is_dir(follow_symlinks=False):  # a killed build's Spill
+                        shutil.rmtree(entry.path, ignore_errors=True)
+                    else:
+                        Path(entry.path).unlink(missing_ok=True)
                     removed.append(Path(entry.path))
         return removed
 
@@ -507,6 +513,38 @@ def _atomic_write(path: Path, data: bytes) -> None:
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
+
+
+class Spill(Mapping[str, Any]):
+    """Values by key, pickled into a temporary folder of the work area until they are read
+    (each read unpickles again; a key whose value was None is absent). A build assembles every
+    session's arrays and mesh into one and its commit reads them one session at a time, so
+    the build does not hold all sessions' arrays in memory (``flows/assemble.py``). The folder
+    goes when the object does; a killed process's is swept with its other temporary files."""
+
+    def __init__(self, work: WorkArea):
+        self._dir = tempfile.TemporaryDirectory(dir=work.root, prefix=_temp_prefix())
+        self._files: dict[str, Path] = {}
+
+    def put(self, key: str, value: Any) -> None:
+        if value is None:
+            self._files.pop(key, None)
+            return
+        path = Path(self._dir.name) / f"{len(self._files)}-{uuid.uuid4().hex[:8]}.pkl"
+        path.write_bytes(pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL))
+        self._files[key] = path
+
+    def __getitem__(self, key: str) -> Any:
+        return pickle.loads(self._files[key].read_bytes())
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._files
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._files)
+
+    def __len__(self) -> int:
+        return len(self._files)
 
 
 def _temp_prefix() -> str:
