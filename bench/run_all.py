@@ -11,7 +11,7 @@ BENCHES = [
     "synth_speed.py", "validate_speed.py", "hand_model_speed.py", "fit_hand_speed.py",
     "bench_sfm.py", "steady_bench.py", "registration_bench.py", "accuracy.py", "catalog_bench.py",
     "contactmap_speed.py", "detect_speed.py", "core_scaling.py", "build_overhead.py",
-    "scale.py --short",
+    "scale.py --short", "build_memory.py --commit 50 200 800",
 ]
 """Each entry: a script under bench/ and its arguments."""
 
