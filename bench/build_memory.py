@@ -23,17 +23,12 @@ import gc as pygc
 import sys
 import tempfile
 import tracemalloc
-import zlib
-from collections.abc import Iterator, Mapping
 from pathlib import Path
-
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import graspcap.catalog as gc  # noqa: E402
-from graspcap.catalog.commit import SessionArrays  # noqa: E402
-from tests.catalog_factory import OBJECT_VERTICES, make_build  # noqa: E402
+from tests.catalog_factory import GeneratedArrays, make_build  # noqa: E402
 
 
 def assembled_per_session(demo: Path) -> None:
@@ -70,32 +65,11 @@ def assembled_per_session(demo: Path) -> None:
           f"{peak / 1e6:.1f} MB)")
 
 
-class Generated(Mapping[str, SessionArrays]):
-    """A session's arrays made on every read (a work-area spill without the disk)."""
-
-    def __init__(self, objects: Mapping[str, str], vertices: int):
-        self.objects, self.vertices = dict(objects), vertices
-
-    def __getitem__(self, sid: str) -> SessionArrays:
-        rng = np.random.default_rng(zlib.crc32(sid.encode()))
-        n, v = OBJECT_VERTICES[self.objects[sid]], self.vertices
-        return SessionArrays(
-            contact=rng.uniform(0, 1, n).astype(np.float32), observed=np.ones(n, bool),
-            hand_vertices=rng.normal(size=(v, 3)).astype(np.float32),
-            hand_faces=rng.integers(0, v, size=(2 * v, 3)).astype(np.int32),
-            joints=rng.normal(size=(21, 3)))
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.objects)
-
-    def __len__(self) -> int:
-        return len(self.objects)
-
-
 def commit_peak(n: int, vertices: int) -> None:
     ids = [f"p{i:04d}-mug-use-00" for i in range(n)]
     build = make_build(ids, seed=n, frames=2)
-    arrays = Generated({r["session_id"]: r["object_id"] for r in build.sessions}, vertices)
+    arrays = GeneratedArrays({r["session_id"]: r["object_id"] for r in build.sessions},
+                             vertices, faces=2 * vertices)
     one = arrays[ids[0]]
     one_mb = (one.hand_vertices.nbytes + one.hand_faces.nbytes + one.contact.nbytes) / 1e6
     with tempfile.TemporaryDirectory() as tmp:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import zlib
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -113,6 +115,31 @@ def session_arrays(object_id: str, rng: np.random.Generator) -> SessionArrays:
         hand_vertices=rng.normal(size=(25, 3)).astype(np.float32) * 0.05,
         hand_faces=rng.integers(0, 25, size=(40, 3)).astype(np.int32),
         joints=rng.normal(size=(21, 3)) * 0.05)
+
+
+class GeneratedArrays(Mapping[str, SessionArrays]):
+    """Each session's arrays made afresh on every read, as a build's work-area spill reads them
+    (``flows.workarea.Spill``, without the disk): the contact map of its object's mesh and a
+    hand mesh of ``vertices`` vertices and ``faces`` faces, seeded by the session id.
+    ``objects``: the object id by session id."""
+
+    def __init__(self, objects: Mapping[str, str], vertices: int, faces: int):
+        self.objects, self.vertices, self.faces = dict(objects), vertices, faces
+
+    def __getitem__(self, sid: str) -> SessionArrays:
+        rng = np.random.default_rng(zlib.crc32(sid.encode()))
+        n, v = OBJECT_VERTICES[self.objects[sid]], self.vertices
+        return SessionArrays(
+            contact=rng.uniform(0, 1, n).astype(np.float32), observed=np.ones(n, bool),
+            hand_vertices=rng.normal(size=(v, 3)).astype(np.float32),
+            hand_faces=rng.integers(0, v, size=(self.faces, 3)).astype(np.int32),
+            joints=rng.normal(size=(21, 3)))
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.objects)
+
+    def __len__(self) -> int:
+        return len(self.objects)
 
 
 def make_build(session_ids: list[str], *, seed: int, build_id: str = "b1", frames: int = 3,

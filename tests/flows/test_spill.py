@@ -9,16 +9,13 @@ import socket
 import subprocess
 import sys
 import tracemalloc
-import zlib
-from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
 
 import graspcap.catalog as gc
-from graspcap.catalog.commit import SessionArrays
 from graspcap.flows.workarea import TEMP_PREFIX, Spill, WorkArea
-from tests.catalog_factory import OBJECT_VERTICES, make_build
+from tests.catalog_factory import GeneratedArrays, make_build
 
 
 def test_spill_round_trip_and_lifetime(tmp_path: Path) -> None:
@@ -52,33 +49,12 @@ def test_a_killed_builds_spill_is_swept(tmp_path: Path) -> None:
     assert str(os.getpid()) in Path(live._dir.name).name
 
 
-class Generated(Mapping[str, SessionArrays]):
-    """Arrays made on every read (a work area's spill without the disk): large hand meshes."""
-
-    def __init__(self, objects: Mapping[str, str], vertices: int):
-        self.objects, self.vertices = dict(objects), vertices
-
-    def __getitem__(self, sid: str) -> SessionArrays:
-        rng = np.random.default_rng(zlib.crc32(sid.encode()))
-        n, v = OBJECT_VERTICES[self.objects[sid]], self.vertices
-        return SessionArrays(
-            contact=rng.uniform(0, 1, n).astype(np.float32), observed=np.ones(n, bool),
-            hand_vertices=rng.normal(size=(v, 3)).astype(np.float32),
-            hand_faces=rng.integers(0, v, size=(v, 3)).astype(np.int32),
-            joints=rng.normal(size=(21, 3)))
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.objects)
-
-    def __len__(self) -> int:
-        return len(self.objects)
-
-
 def test_commit_reads_each_sessions_arrays_when_it_writes_them(tmp_path: Path) -> None:
     ids = [f"p{i:02d}-mug-use-00" for i in range(50)]
     build = make_build(ids, seed=3, frames=2)
     objects = {r["session_id"]: r["object_id"] for r in build.sessions}
-    arrays = Generated(objects, vertices=100_000)  # 2.4 MB a session: 120 MB in all
+    # 2.4 MB a session: 120 MB in all
+    arrays = GeneratedArrays(objects, vertices=100_000, faces=100_000)
     one = sum(a.nbytes for a in (arrays[ids[0]].hand_vertices, arrays[ids[0]].hand_faces))
     cat = gc.open(tmp_path / "cat", create=True)
     tracemalloc.start()
