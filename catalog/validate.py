@@ -184,11 +184,13 @@ def _check_unique(name: str, table: pa.Table) -> None:
         raise CatalogSchemaError(name, ",".join(key), sessions, f"duplicate key {first}")
 
 
-def check_commit(commit: Any) -> pa.Table:
+def check_commit(commit: Any) -> tuple[pa.Table, pa.Table]:
     """Every check ``Catalog.commit`` runs on a ``BuildCommit`` (rows, frames, arrays and
     meshes), without writing anything; raises the same ``CatalogSchemaError``. The build runs
     it per session before its commit, so a session that would make the commit raise fails on
-    its own (``flows/build.py``). Returns the commit's frames as the checked table."""
+    its own (``flows/build.py``). Returns the checked sessions table (its digest columns
+    filled) and frames table."""
     from graspcap.catalog.commit import _prepare  # commit imports this module
 
-    return _prepare(commit)[1]
+    sessions, frames, _ = _prepare(commit)
+    return sessions, frames

@@ -23,7 +23,7 @@ from typing import Any
 import pyarrow as pa
 
 import graspcap.catalog as gc
-from graspcap.catalog.commit import ObjectMesh, SessionArrays, mesh_group
+from graspcap.catalog.commit import ObjectMesh, SessionArrays
 from graspcap.catalog.layout import CatalogLayout
 from graspcap.catalog.validate import check_commit, to_table
 from graspcap.flows.build_log import session_keys
@@ -79,15 +79,6 @@ def recorded_failures(cat: gc.Catalog) -> dict[str, str]:
     failed = {f["session_id"]: f["error"] for f in last["sessions_failed"]}
     record = json.loads(last["parameters_json"]).get("report", {})
     return {**failed, **record.get("summary", {}).get("failed", {})}
-
-
-def mesh_digest(mesh: Any, owner: str) -> str | None:
-    """The catalog's content digest of a session's object mesh (None: none, or one the
-    commit's checks refuse, which fails that session there)."""
-    try:
-        return None if mesh is None else mesh_group(mesh, owner)[0]
-    except Exception:  # noqa: BLE001 - reported by the per-session checks in assemble
-        return None
 
 
 def _shared_object_notes(built: Mapping[str, tuple[str, str | None]],
@@ -277,15 +268,15 @@ def assemble(cat: gc.Catalog, work: WorkArea, build: gc.BuildInfo, previous: int
         # the checks the commit runs, per session: one whose rows, frames or arrays would make
         # it raise fails alone, with the reason, and the others are committed
         try:
-            frames_t = check_commit(gc.BuildCommit(
+            sessions_t, frames_t = check_commit(gc.BuildCommit(
                 build=build, sessions=[sr.session], frames=sr.frames,
                 session_arrays={sid: sr.arrays}, object_meshes={sid: sr.object_mesh}))
         except Exception as exc:  # noqa: BLE001 - CatalogSchemaError, or a bug in a check
             fail(i, d, sid, f"the catalog refused its rows: {exc}", None, info, common, prev,
                  good_prev)
             continue
-        built.append((i, sid, sr.session, sr.object_id, mesh_digest(sr.object_mesh, sid), info,
-                      prev))
+        built.append((i, sid, sr.session, sr.object_id,
+                      sessions_t["object_mesh_digest"][0].as_py(), info, prev))
         frames.append(frames_t)
         arrays.put(sid, sr.arrays)
         meshes.put(sid, sr.object_mesh)  # the session's own mesh (content-addressed)
