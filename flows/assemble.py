@@ -27,7 +27,7 @@ from graspcap.catalog.commit import ObjectMesh, SessionArrays
 from graspcap.catalog.layout import CatalogLayout
 from graspcap.catalog.validate import check_commit, to_table
 from graspcap.flows.build_log import session_keys
-from graspcap.flows.cached import reads_digest, session_files
+from graspcap.flows.cached import SessionRoles, reads_digest, session_files
 from graspcap.flows.report import Outcome, SessionReport
 from graspcap.flows.rows import (
     NEWEST_COLUMNS,
@@ -108,13 +108,16 @@ def _shared_object_notes(built: Mapping[str, tuple[str, str | None]],
 def _input_digest(work: WorkArea, session_dir: Path) -> str:
     from graspcap.tasks.pipeline import ALL_FILES
 
-    files = session_files(session_dir)
+    roles = SessionRoles(work, session_dir)
+    files = {} if all(r in roles.digests for r in ALL_FILES) else session_files(session_dir)
     if files is None:
         return hashlib.sha256(b"unreadable manifest").hexdigest()
     try:
-        return reads_digest(work, files, ALL_FILES)
+        digest = reads_digest(work, files, ALL_FILES, roles.digests)
     except OSError:
         return hashlib.sha256(b"missing files").hexdigest()
+    roles.save()
+    return digest
 
 
 def _write_pictures(layout: CatalogLayout, session_id: str, pictures: Any) -> dict[str, str]:

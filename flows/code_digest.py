@@ -27,6 +27,7 @@ and ~16 s on a loaded machine, checking their stats a few ms.
 from __future__ import annotations
 
 import ast
+import functools
 import hashlib
 import importlib.metadata
 import importlib.util
@@ -65,7 +66,7 @@ class StageCode:
     modules: tuple[tuple[str, str], ...]
     libraries: tuple[tuple[str, str], ...]
 
-    @property
+    @functools.cached_property
     def digest(self) -> str:
         return hashlib.sha256(json.dumps([self.modules, self.libraries]).encode()).hexdigest()
 

@@ -38,6 +38,7 @@ from typing import Any
 
 from graspcap.flows.cached import (
     REASONS,
+    SessionRoles,
     cache_key,
     diff_parts,
     first_run,
@@ -76,7 +77,7 @@ def plan_session(session_dir: Path, session_id: str, configs: Mapping[str, Stage
     refs: dict[str, ResultRef] = {}
     action: dict[str, str] = {}
     out: list[StagePlan] = []
-    role_digests: dict[str, str] = {}
+    role_digests = SessionRoles(work, session_dir).digests
     for name, stage in STAGES.items():
         ups = stage.upstream
         if any(action[u] in ("fails again", "not ready") for u in ups):

@@ -27,7 +27,7 @@ from prefect import flow, task
 from prefect.cache_policies import NONE
 from prefect.futures import PrefectFuture
 
-from graspcap.flows.cached import lookup_cached, run_cached, session_id_of
+from graspcap.flows.cached import SessionRoles, lookup_cached, run_cached, session_id_of
 from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
@@ -175,7 +175,7 @@ def settle_session(session_dir: Path | str, configs: Mapping[str, StageConfig], 
 
     stages = STAGES if stages is None else stages
     settled: dict[str, Settled] = {}
-    role_digests: dict[str, str] = {}
+    roles = SessionRoles(work, session_dir)
     for name, stage in stages.items():
         ups = [settled.get(up) for up in stage.upstream]
         if any(u is not None and u.state != "Cached" for u in ups):
@@ -185,11 +185,12 @@ def settle_session(session_dir: Path | str, configs: Mapping[str, StageConfig], 
             continue
         found = lookup_cached(name, session_dir, configs[name],
                               {up: u.ref for up, u in zip(stage.upstream, ups, strict=True)},
-                              work, replay_failures, role_digests)
+                              work, replay_failures, roles.digests)
         if isinstance(found, ResultRef):
             settled[name] = Settled("Cached", ref=found)
         elif isinstance(found, StageError):
             settled[name] = Settled("Failed", error=found)
+    roles.save()
     return settled
 
 

@@ -492,12 +492,21 @@ def _importable(modules: list[str] | None) -> bool:
     if not isinstance(modules, list):
         return False
     for name in modules:
+        if not isinstance(name, str):
+            return False
+        if name in _IMPORTABLE:
+            continue
         try:
             if importlib.util.find_spec(name) is None:
                 return False
         except (ImportError, ValueError):
             return False
+        _IMPORTABLE.add(name)
     return True
+
+
+_IMPORTABLE: set[str] = set()
+"""Modules :func:`_importable` found, in this process (a module found stays found)."""
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
