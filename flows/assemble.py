@@ -27,7 +27,7 @@ from graspcap.catalog.commit import ObjectMesh, SessionArrays
 from graspcap.catalog.layout import CatalogLayout
 from graspcap.catalog.validate import check_commit, to_table
 from graspcap.flows.build_log import session_keys
-from graspcap.flows.cached import SessionRoles, reads_digest, session_files
+from graspcap.flows.cached import reads_digest, session_files
 from graspcap.flows.report import Outcome, SessionReport
 from graspcap.flows.rows import (
     NEWEST_COLUMNS,
@@ -36,6 +36,7 @@ from graspcap.flows.rows import (
     predates_columns,
     session_rows,
 )
+from graspcap.flows.session_roles import SessionRoles
 from graspcap.flows.workarea import ResultRef, Spill, WorkArea
 from graspcap.schemas.tables import Status
 

@@ -38,7 +38,6 @@ from typing import Any
 
 from graspcap.flows.cached import (
     REASONS,
-    SessionRoles,
     cache_key,
     diff_parts,
     first_run,
@@ -46,6 +45,7 @@ from graspcap.flows.cached import (
     run_reasons,
     session_id_of,
 )
+from graspcap.flows.session_roles import SessionRoles
 from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.tasks.core.config import StageConfig
 

@@ -27,7 +27,8 @@ from prefect import flow, task
 from prefect.cache_policies import NONE
 from prefect.futures import PrefectFuture
 
-from graspcap.flows.cached import SessionRoles, lookup_cached, run_cached, session_id_of
+from graspcap.flows.cached import lookup_cached, run_cached, session_id_of
+from graspcap.flows.session_roles import SessionRoles
 from graspcap.flows.workarea import ResultRef, WorkArea
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError

@@ -1,5 +1,5 @@
 """The role digests a session's stage keys are made of, remembered across processes
-(``flows.cached.SessionRoles``): used only while every file the manifest names has the stamp
+(``flows.session_roles.SessionRoles``): used only while every file the manifest names has the stamp
 it had, so a changed file, a replaced file or a retargeted link re-digests the session."""
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from graspcap.flows import cached
-from graspcap.flows.cached import SessionRoles, cache_key, manifest_names, session_files
+from graspcap.flows.cached import cache_key, session_files
+from graspcap.flows.session_roles import SessionRoles, manifest_names
 from graspcap.flows.workarea import WorkArea
 from graspcap.schemas.session import SessionManifest
 from graspcap.tasks.pipeline import STAGES, configs_for
@@ -41,6 +42,25 @@ def _new_process() -> None:
 def _key(session: Path, work: WorkArea, roles: SessionRoles | None) -> str | None:
     return cache_key("load_session", session, configs_for(PRESET)["load_session"], {}, work,
                      None if roles is None else roles.digests)
+
+
+def _flip_last_byte(path: Path) -> None:
+    """One different byte, the size kept (the file is written in place: a new mtime)."""
+    data = bytearray(path.read_bytes())
+    data[-1] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def _assert_digested_again(session: Path, work: WorkArea, before: str | None) -> SessionRoles:
+    """In a new process the memo is not used, and the key is the one computed from scratch,
+    not ``before``."""
+    _new_process()
+    roles = SessionRoles(work, session)
+    assert roles.digests == {}
+    after = _key(session, work, roles)
+    _new_process()
+    assert after == _key(session, work, None) != before
+    return roles
 
 
 @pytest.fixture
@@ -91,17 +111,9 @@ def test_a_changed_file_or_manifest_is_digested_again(session, tmp_path):
     before = _key(session, work, roles)
     roles.save()
     frame = sorted((session / "grasp" / "depth").iterdir())[3]
-    data = bytearray(frame.read_bytes())
-    data[-1] ^= 0xFF  # same size; written in place with its old mtime: a new mtime_ns below
-    frame.write_bytes(bytes(data))
-    os.utime(frame, ns=(OLD_NS + 1, OLD_NS + 1))
-    _new_process()
-    changed = SessionRoles(work, session)
-    assert changed.digests == {}
-    after = _key(session, work, changed)
-    _new_process()
-    assert after == _key(session, work, None) != before
-    changed.save()
+    _flip_last_byte(frame)
+    os.utime(frame, ns=(OLD_NS + 1, OLD_NS + 1))  # still old, but another mtime_ns
+    _assert_digested_again(session, work, before).save()
     manifest = json.loads((session / "session.json").read_text())  # rewritten, same meaning:
     (session / "session.json").write_text(json.dumps(manifest, indent=3))  # a new stamp
     os.utime(session / "session.json", ns=(OLD_NS + 2, OLD_NS + 2))
@@ -116,10 +128,7 @@ def test_a_retargeted_link_with_identical_names_sizes_and_mtimes_is_digested_aga
     depth = session / "grasp" / "depth"
     shutil.move(depth, session / "grasp" / "depth_a")
     shutil.copytree(session / "grasp" / "depth_a", session / "grasp" / "depth_b")
-    frame = sorted((session / "grasp" / "depth_b").iterdir())[2]
-    data = bytearray(frame.read_bytes())
-    data[-1] ^= 0xFF
-    frame.write_bytes(bytes(data))
+    _flip_last_byte(sorted((session / "grasp" / "depth_b").iterdir())[2])
     _age(session)
     depth.symlink_to("depth_a")
     work = WorkArea(tmp_path / "work")
@@ -128,12 +137,7 @@ def test_a_retargeted_link_with_identical_names_sizes_and_mtimes_is_digested_aga
     roles.save()
     depth.unlink()
     depth.symlink_to("depth_b")
-    _new_process()
-    swapped = SessionRoles(work, session)
-    assert swapped.digests == {}
-    after = _key(session, work, swapped)
-    _new_process()
-    assert after == _key(session, work, None) != before
+    _assert_digested_again(session, work, before)
 
 
 def test_role_digests_are_not_kept_while_a_file_is_racily_fresh_or_for_a_reader(session,
