@@ -165,6 +165,7 @@ def timeline(n: int, out: Path) -> None:
     finally:
         for s in sessions:
             (root / s.name).rename(s)
+        root.rmdir()
     log = (cold / "prefect.log").read_text()
     done = [(float(line.split("]")[0].strip("[ s")), int(line.split("(session ")[1].split("/")[0]))
             for line in log.splitlines() if line.startswith("[") and "(session " in line]
