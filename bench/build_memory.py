@@ -125,9 +125,10 @@ def _sampled_build(args: list[str], home: Path, objects_log: Path | None = None
     ``objects_log``: under the object-counting thread, which writes there)."""
     env = dict(os.environ, PREFECT_HOME=str(home))
     head = ["-c", _COUNTING, str(objects_log)] if objects_log else ["-m", "graspcap.cli"]
-    log = open(home.parent / f"{home.name}.log", "w")
-    proc = subprocess.Popen([sys.executable, *head, "build", *args], env=env, stdout=log,
-                            stderr=subprocess.STDOUT)
+    log = home.parent / f"{home.name}.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, *head, "build", *args], env=env, stdout=out,
+                                stderr=subprocess.STDOUT)
     t0, rows = time.perf_counter(), []
     while proc.poll() is None:
         try:
@@ -138,7 +139,7 @@ def _sampled_build(args: list[str], home: Path, objects_log: Path | None = None
             pass
         time.sleep(2)
     if proc.returncode not in (0, 1):
-        sys.exit(f"build exited {proc.returncode}: see {log.name}")
+        sys.exit(f"build exited {proc.returncode}: see {log}")
     return rows
 
 
@@ -176,6 +177,8 @@ def timeline(n: int, out: Path) -> None:
           "NumPy arrays owned MB |\n|---|---|---|---|---|---|")
     for m in range(int(rss[-1][0] // 60) + 1):
         inside = [r for t, r in rss if m * 60 <= t < (m + 1) * 60]
+        if not inside:
+            continue
         by = [k for t, k in done if t < (m + 1) * 60]
         seen = [c for c in counts if m * 60 <= c[0] < (m + 1) * 60]
         print(f"| {m + 1} | {max(by, default=0)} | {statistics.median(inside):.0f} | "
