@@ -22,7 +22,7 @@ made once under ``DIR/pool``) in a fresh process whose VmRSS is read every 2 s, 
 thread counts every object the garbage collector tracks and the bytes the live NumPy arrays own
 every 25 s; then the same sessions committed again from the cold build's work area into a new
 catalog (every stage cached: what assembling, the commit, compaction and the report hold), the
-peak VmRSS of that build. Prints per minute of the cold build: sessions done, VmRSS median and
+peak of that build (VmHWM). Prints per minute of the cold build: sessions done, VmRSS median and
 maximum, and the objects counted.
 """
 
@@ -120,27 +120,28 @@ sys.exit(main(sys.argv[1:]))
 
 
 def _sampled_build(args: list[str], home: Path, objects_log: Path | None = None
-                   ) -> list[tuple[float, float]]:
-    """``graspcap build ARGS`` in a fresh process: its (seconds, VmRSS MB) every 2 s (with
-    ``objects_log``: under the object-counting thread, which writes there)."""
+                   ) -> tuple[list[tuple[float, float]], float]:
+    """``graspcap build ARGS`` in a fresh process: its (seconds, VmRSS MB) every 2 s and its
+    peak (VmHWM, MB, at the last sample) (with ``objects_log``: under the object-counting
+    thread, which writes there)."""
+    from scale import status_kb
+
     env = dict(os.environ, PREFECT_HOME=str(home))
     head = ["-c", _COUNTING, str(objects_log)] if objects_log else ["-m", "graspcap.cli"]
     log = home.parent / f"{home.name}.log"
     with open(log, "w") as out:
         proc = subprocess.Popen([sys.executable, *head, "build", *args], env=env, stdout=out,
                                 stderr=subprocess.STDOUT)
-    t0, rows = time.perf_counter(), []
+    t0, rows, peak_kb = time.perf_counter(), [], 0
     while proc.poll() is None:
-        try:
-            status = Path(f"/proc/{proc.pid}/status").read_text()
-            rows.append((time.perf_counter() - t0,
-                         int(status.split("VmRSS:")[1].split()[0]) / 1024))
-        except (OSError, IndexError):
-            pass
+        rss_kb, hwm_kb = status_kb(proc.pid, "VmRSS"), status_kb(proc.pid)
+        if rss_kb is not None:
+            rows.append((time.perf_counter() - t0, rss_kb / 1024))
+        peak_kb = max(peak_kb, hwm_kb or 0)
         time.sleep(2)
     if proc.returncode not in (0, 1):
         sys.exit(f"build exited {proc.returncode}: see {log}")
-    return rows
+    return rows, peak_kb / 1024
 
 
 def timeline(n: int, out: Path) -> None:
@@ -158,11 +159,13 @@ def timeline(n: int, out: Path) -> None:
             shutil.rmtree(d, ignore_errors=True)
             d.mkdir()
         objects = cold / "objects.jsonl"
-        rss = _sampled_build([str(root), "--catalog", str(cold / "catalog"), "--preset",
-                              "fast"], cold / "prefect", objects)
+        rss, cold_peak = _sampled_build(
+            [str(root), "--catalog", str(cold / "catalog"), "--preset", "fast"],
+            cold / "prefect", objects)
         shutil.copytree(cold / "catalog" / "work", recommit / "catalog" / "work")
-        again = _sampled_build([str(root), "--catalog", str(recommit / "catalog"), "--preset",
-                                "fast"], recommit / "prefect")
+        _, again_peak = _sampled_build(
+            [str(root), "--catalog", str(recommit / "catalog"), "--preset", "fast"],
+            recommit / "prefect")
     finally:
         for s in sessions:
             (root / s.name).rename(s)
@@ -172,7 +175,7 @@ def timeline(n: int, out: Path) -> None:
             for line in log.splitlines() if line.startswith("[") and "(session " in line]
     counts = [json.loads(line) for line in objects.read_text().splitlines()] \
         if objects.exists() else []
-    print(f"cold build of {n} sessions: peak VmRSS {max(r for _, r in rss):.0f} MB")
+    print(f"cold build of {n} sessions: peak VmHWM {cold_peak:.0f} MB")
     print("| minute | sessions done | VmRSS median MB | VmRSS max MB | objects tracked | "
           "NumPy arrays owned MB |\n|---|---|---|---|---|---|")
     for m in range(int(rss[-1][0] // 60) + 1):
@@ -184,8 +187,8 @@ def timeline(n: int, out: Path) -> None:
         print(f"| {m + 1} | {max(by, default=0)} | {statistics.median(inside):.0f} | "
               f"{max(inside):.0f} | {seen[-1][1] if seen else '-'} | "
               f"{f'{seen[-1][2] / 2**20:.0f}' if seen else '-'} |")
-    print(f"the same sessions committed from the work area into a new catalog: peak VmRSS "
-          f"{max(r for _, r in again):.0f} MB")
+    print(f"the same sessions committed from the work area into a new catalog: peak VmHWM "
+          f"{again_peak:.0f} MB")
 
 
 def main() -> None:

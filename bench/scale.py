@@ -67,11 +67,12 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 PROBE = "--read-probe"
 
 
-def _hwm_kb(pid: int) -> int | None:
-    """Peak resident set size of a live process (``VmHWM``), kB."""
+def status_kb(pid: int, field: str = "VmHWM") -> int | None:
+    """A memory figure of a live process from ``/proc/PID/status``, kB: by default its peak
+    resident set size (``VmHWM``), ``VmRSS`` for the current one."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1])
     except OSError:
         return None
@@ -106,7 +107,7 @@ def run_build(args: list[str], log: Path) -> dict:
             except psutil.Error:
                 tree = []
             for p in tree:
-                kb = _hwm_kb(p.pid)
+                kb = status_kb(p.pid)
                 if kb is None:
                     continue
                 if p.pid not in peaks:
