@@ -6,7 +6,11 @@ accuracy benchmark and tests. Every metric is named with its unit.
 Object poses are scored twice: raw (``*_rot_deg``, ``*_trans_mm``: the mesh's origin and full
 rotation, the older tables' figures) and symmetry-aware (``*_rot_sym_deg``, ``*_trans_sym_mm``
 at the mesh's centroid, ``*_mssd_mm``, ``*_adds_mm``: over the symmetries found in the mesh,
-``graspcap.synth.symmetry``), which ``GOOD_IF`` judges. Cameras and joints are scored
+``graspcap.synth.symmetry``), which ``GOOD_IF`` judges. The contact map and the hand in the
+object frame are scored in the estimate's own object frame: for a symmetric object the truth is
+carried into it by the symmetry the grasp's per-frame poses make of the true ones
+(:func:`grasp_symmetry`), so a spin no sensor can see moves neither metric; the hand and the
+contact map must still agree with each other. Cameras and joints are scored
 relative to one anchor camera (``camera_*_deg``, ``joints_mpjpe_mm``: ``GOOD_IF``'s) and after
 one robust rigid alignment of the whole trajectory (``*_aligned_*``,
 ``graspcap.synth.alignment``), which one bad camera does not move.
@@ -22,8 +26,14 @@ from typing import Any
 import numpy as np
 
 from graspcap.synth.alignment import aligned_errors, aligned_mpjpe_mm
-from graspcap.synth.symmetry import find_symmetries, surface_scene, sym_pose_metrics
-from graspcap.tasks.core.geometry import inv_T, pose_error, transform_points
+from graspcap.synth.symmetry import (
+    closest_symmetry,
+    find_symmetries,
+    rotation_error_sym_deg,
+    surface_scene,
+    sym_pose_metrics,
+)
+from graspcap.tasks.core.geometry import inv_T, make_T, pose_error, transform_points
 
 
 def load_truth(session_dir: Path) -> dict[str, Any]:
@@ -159,10 +169,12 @@ def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
         # symmetry-aware: the object pose each T_adj makes of the true stage-1 pose
         T1 = truth["T_w_o_stage1"]
         out |= sym_pose_metrics("T_adj", est["T_adj"] @ T1, T_adj_true @ T1, *object_sym)
+    S = (grasp_symmetry(est["frame"], est["T_c_o"], truth, object_sym[0])
+         if object_sym is not None and "T_c_o" in est else None)
     if "contact" in est:
-        out |= _contact_metrics(est["contact"], est["observed"], session_dir)
+        out |= _contact_metrics(est["contact"], est["observed"], session_dir, S)
     if "hand_vertices_o" in est:
-        out |= _refinement_metrics(est, session_dir)
+        out |= _refinement_metrics(est, session_dir, S)
     if "steady_from" not in est:
         return out
     steady_est = int(est["steady_from"])
@@ -203,11 +215,41 @@ def evaluate(session_dir: Path, est: Mapping[str, Any]) -> dict[str, float]:
     return out
 
 
-def _contact_metrics(contact: np.ndarray, observed: np.ndarray, session_dir: Path
-                     ) -> dict[str, float]:
+def grasp_symmetry(frames: np.ndarray, T_c_o: np.ndarray, truth: Mapping[str, Any],
+                   sym: Any) -> np.ndarray | None:
+    """The object symmetry (4, 4; about the centroid) that carries the estimate's object frame
+    into the truth's, as the grasp's per-frame poses ``T_c_o`` (m, 4, 4) make it: that of the
+    steady frame whose symmetry-aware rotation error is the median (a frame of the estimate,
+    ``x``, is ``S x`` of the truth). None where the mesh has no symmetry but the identity, no
+    steady frame pairs with the truth, or the closest element is the identity."""
+    if sym is None or not (sym.sphere or sym.axis is not None or len(sym.discrete) > 1):
+        return None
+    steady_true = int(truth["steady_from"])
+    T_obj_true = truth["T_adj"] @ truth["T_w_o_stage1"]
+    pairs = []
+    for f, T in zip(np.asarray(frames), np.asarray(T_c_o), strict=True):
+        i = int(f) - steady_true
+        if 0 <= i < len(truth["T_w_c"]):
+            T_true = inv_T(truth["T_w_c"][i]) @ T_obj_true
+            pairs.append((rotation_error_sym_deg(T, T_true, sym), T, T_true))
+    if not pairs:
+        return None
+    _, T, T_true = sorted(pairs, key=lambda p: p[0])[len(pairs) // 2]
+    R = closest_symmetry(T, T_true, sym)
+    if np.allclose(R, np.eye(3), atol=1e-9):
+        return None
+    c = sym.centroid
+    return make_T(R, c - R @ c)
+
+
+def _contact_metrics(contact: np.ndarray, observed: np.ndarray, session_dir: Path,
+                     S: np.ndarray | None = None) -> dict[str, float]:
     """MAE on observed vertices, IoU of contact > 0.4, share of truly contacted (> 0.4)
-    vertices that were observed."""
+    vertices that were observed; the truth of each vertex taken at its image under the
+    symmetry ``S`` (:func:`grasp_symmetry`; the nearest vertex), where given."""
     truth = np.load(Path(session_dir) / "ground_truth" / "contact.npy")
+    if S is not None:
+        truth = truth[_symmetric_vertices(session_dir, S)]
     observed = np.asarray(observed, dtype=bool)
     est_on, true_on = (contact > 0.4) & observed, (truth > 0.4) & observed
     union = (est_on | true_on).sum()
@@ -218,19 +260,36 @@ def _contact_metrics(contact: np.ndarray, observed: np.ndarray, session_dir: Pat
     }
 
 
-def _refinement_metrics(est: Mapping[str, Any], session_dir: Path,
-                        near_mm: float = 3.0) -> dict[str, float]:
-    """Share of truly contacted (> 0.4) vertices within ``near_mm`` of the refined and of the
-    fit_hand's hand mesh (unsigned distance to the surface), penetration max before and after,
-    and the refinement time when the estimate has it."""
-    import open3d as o3d
+def _mesh_vertices(session_dir: Path) -> np.ndarray:
     import trimesh
 
-    truth = np.load(Path(session_dir) / "ground_truth" / "contact.npy")
     manifest = json.loads((Path(session_dir) / "session.json").read_text())
     mesh = trimesh.load(Path(session_dir) / manifest["object_mesh"], force="mesh", process=False)
-    V = np.asarray(mesh.vertices, dtype=float)
-    touched = V[truth > 0.4].astype(np.float32)
+    return np.asarray(mesh.vertices, dtype=float)
+
+
+def _symmetric_vertices(session_dir: Path, S: np.ndarray) -> np.ndarray:
+    """(n,) index of the vertex nearest each vertex's image under ``S`` (4, 4)."""
+    from scipy.spatial import cKDTree
+
+    V = _mesh_vertices(session_dir)
+    return cKDTree(V).query(transform_points(S, V))[1]
+
+
+def _refinement_metrics(est: Mapping[str, Any], session_dir: Path,
+                        S: np.ndarray | None = None, near_mm: float = 3.0) -> dict[str, float]:
+    """Share of truly contacted (> 0.4) vertices within ``near_mm`` of the refined and of the
+    fit_hand's hand mesh (unsigned distance to the surface), penetration max before and after,
+    and the refinement time when the estimate has it; the contacted vertices carried into the
+    estimate's frame by the inverse of the symmetry ``S`` (:func:`grasp_symmetry`), where
+    given."""
+    import open3d as o3d
+
+    truth = np.load(Path(session_dir) / "ground_truth" / "contact.npy")
+    touched = _mesh_vertices(session_dir)[truth > 0.4]
+    if S is not None:
+        touched = transform_points(inv_T(S), touched)
+    touched = touched.astype(np.float32)
     out: dict[str, float] = {}
     for key, faces, name in (("hand_vertices_o", "hand_faces", "refined"),
                              ("hand_vertices_fit_o", "hand_faces_fit", "fit")):

@@ -232,25 +232,37 @@ def find_symmetries(mesh_path: Path, tolerance_m: float = SYMMETRY_TOLERANCE_M) 
     return _symmetries_cached(str(p), st.st_mtime_ns, st.st_size, float(tolerance_m))
 
 
-def rotation_error_sym_deg(R_est: np.ndarray, R_true: np.ndarray, sym: Symmetries) -> float:
-    """min over the group of the angle of ``R_est^T R_true R_S`` (deg): 0 for a sphere; about
-    an axis of revolution ``a`` in closed form (``tr(M R_a(theta))`` is ``a^T M a + A cos theta
-    + B sin theta``, largest at ``a^T M a + hypot(A, B)``), which is the angle between the axis
-    as each pose maps it."""
-    if sym.sphere:
-        return 0.0
+def closest_symmetry(R_est: np.ndarray, R_true: np.ndarray, sym: Symmetries) -> np.ndarray:
+    """The element ``R_S`` (3, 3) of the group for which ``R_true R_S`` is closest to ``R_est``
+    (largest ``tr(R_est^T R_true R_S)``): the symmetry that maps the estimated object frame
+    onto the true one, a point ``x`` of the estimate's frame being ``c + R_S (x - c)`` of the
+    truth's. A sphere's is the error's own rotation; about an axis of revolution ``a`` in
+    closed form (``tr(M R_a(theta))`` is ``a^T M a + A cos theta + B sin theta``, largest at
+    ``theta = atan2(B, A)``)."""
     R_est, R_true = np.asarray(R_est)[:3, :3], np.asarray(R_true)[:3, :3]
-    best = -1.0
+    if sym.sphere:
+        return R_true.T @ R_est
+    best, best_R = -np.inf, np.eye(3)
     for D in sym.discrete:
         M = D @ R_est.T @ R_true  # tr(R_est^T R_true R_a D) = tr(M R_a)
         if sym.axis is None:
-            trace = float(np.trace(M))
+            trace, R = float(np.trace(M)), D
         else:
             a = sym.axis
             along = float(a @ M @ a)
-            trace = along + float(np.hypot(np.trace(M) - along, np.trace(M @ _skew(a))))
-        best = max(best, trace)
-    return float(np.degrees(np.arccos(np.clip((best - 1) / 2, -1.0, 1.0))))
+            A, B = float(np.trace(M)) - along, float(np.trace(M @ _skew(a)))
+            trace, R = along + float(np.hypot(A, B)), _rot(a, float(np.arctan2(B, A))) @ D
+        if trace > best:
+            best, best_R = trace, R
+    return best_R
+
+
+def rotation_error_sym_deg(R_est: np.ndarray, R_true: np.ndarray, sym: Symmetries) -> float:
+    """min over the group of the angle of ``R_est^T R_true R_S`` (deg) (:func:`closest_symmetry`;
+    0 for a sphere), which about an axis of revolution is the angle between the axis as each
+    pose maps it."""
+    R_est, R_true = np.asarray(R_est)[:3, :3], np.asarray(R_true)[:3, :3]
+    return rotation_error_deg(R_est, R_true @ closest_symmetry(R_est, R_true, sym))
 
 
 def _worst_m(moved: np.ndarray, x: np.ndarray, c: np.ndarray, G: np.ndarray) -> np.ndarray:
