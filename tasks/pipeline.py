@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from graspcap.tasks.contact import build_contactmap
+from graspcap.tasks.contact import build_contactmap, symmetric_contact
 from graspcap.tasks.core.config import StageConfig
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, rotation_error_deg, transform_points
@@ -259,8 +259,10 @@ def _register_scan(session: Session, config, **up):
 
 
 def _build_contactmap(session: Session, config, **up):
+    """The thermal contact map, carried into the grasp's frame on a symmetric object
+    (``contact.symmetric_contact``)."""
     cam, views = session.manifest.thermal_camera, session.manifest.scan.views
-    return build_contactmap.build_contactmap(
+    cmap = build_contactmap.build_contactmap(
         *session.read_mesh(),
         [(session.read_thermal_k(v.thermal), np.radians(v.angle_deg)) for v in views],
         np.asarray(cam.K, dtype=float), np.asarray(cam.T_color_thermal, dtype=float),
@@ -269,6 +271,14 @@ def _build_contactmap(session: Session, config, **up):
         view_names=[v.thermal for v in views],
         mesh_name=session.mesh_name,
     )
+    if not config.align_to_hand:
+        return cmap
+    hand_o = final_hand(up["fit_hand"], None, up["estimate_adjustment"].T_w_o).vertices_o
+    return symmetric_contact.align_to_hand(
+        *session.read_mesh(), cmap, hand_o, tolerance_m=config.symmetry_tolerance_m,
+        near_mm=config.align_near_mm, margin=config.align_margin, ratio=config.align_ratio,
+        contact_threshold=config.align_contact_threshold,
+    )  # fmt: skip
 
 
 def _refine_grasp(session: Session, config, **up):
@@ -409,8 +419,9 @@ STAGES: dict[str, Stage] = {
               ("load_session",), ("object_mesh", "scan_depth"), _register_scan,
               fields=("scan.views", _DEPTH_SCALE, _CAM, _T_TT, _MESH)),
         Stage("build_contactmap", build_contactmap.STAGE_VERSION, build_contactmap.PRESETS,
-              ("load_session", "register_scan"), ("object_mesh", "scan_thermal"),
-              _build_contactmap, fields=("thermal_camera", "scan.views", _T_TT, _MESH)),
+              ("load_session", "fit_hand", "estimate_adjustment", "register_scan"),
+              ("object_mesh", "scan_thermal"), _build_contactmap,
+              fields=("thermal_camera", "scan.views", _T_TT, _MESH)),
         Stage("refine_grasp", refine_grasp.STAGE_VERSION, refine_grasp.PRESETS,
               ("load_session", "fit_hand", "estimate_adjustment", "build_contactmap"),
               ("object_mesh",), _refine_grasp, fields=("hand", _MESH)),

@@ -53,7 +53,7 @@ from graspcap.tasks.core.mesh_proxy import PROXY_FACES, mesh_proxy
 
 # open3d: imported where used, so that importing the stage table stays cheap
 
-STAGE_VERSION = "build_contactmap/2"
+STAGE_VERSION = "build_contactmap/3"
 STAGE = "build_contactmap"
 
 
@@ -108,6 +108,24 @@ class BuildContactmapConfig(StageConfig):
     (:mod:`mesh_proxy`); the map is still given for every vertex of the mesh (979200-face mug:
     6.1 s on the mesh, 3.5 s on its proxy, contact 0.003 apart on average; a 1.31-million-face
     sphere: 18.4 s and 5.4 s)."""
+    align_to_hand: bool = True
+    """On a symmetric object, carry the map into the grasp's frame by the turn that brings its
+    contacted vertices nearest the fitted hand (``symmetric_contact``; the stage's glue, which
+    has the hand)."""
+    symmetry_tolerance_m: float = Field(0.005, gt=0)
+    """A turn about the centroid is a symmetry of the object when it moves no sampled surface
+    point further than this off the surface (the tracking's ``revolution_tolerance_m``)."""
+    align_near_mm: float = Field(10.0, gt=0)
+    """A contacted vertex within this of the fitted hand counts as on it when turns are
+    scored: a fit is millimetres off, a wrong turn puts the contact centimetres away."""
+    align_margin: float = Field(0.15, ge=0)
+    """The best turn's score must beat the scan's own frame's by this to be taken..."""
+    align_ratio: float = Field(2.0, ge=1)
+    """...and be at least this multiple of it: a fitted hand centimetres off can sit nearer a
+    wrong turn of a correct map by chance (wild ``[94397, 29]``, a glass: 0.45 against 0.29,
+    which would have turned a map of IoU 0.87 to 0.02; tuning, ``docs/benchmarks.md``)."""
+    align_contact_threshold: float = 0.4
+    """Contact at or above this counts as contacted when turns are scored."""
 
 
 PRESETS: dict[str, BuildContactmapConfig] = {
@@ -143,7 +161,10 @@ class ContactMap:
         Zero-area faces, left out of the vertex normals.
     notes : tuple of str
         What a person may want to know that changes no value: views left out (no reading or
-        constant), a map from one view only.
+        constant), a map from one view only; a map turned into the grasp's frame.
+    turned_deg : float
+        The turn of a symmetric object by which the map was carried from the scan's frame into
+        the grasp's (``symmetric_contact.align_to_hand``); 0 where it was not.
     """
 
     contact: np.ndarray
@@ -157,6 +178,7 @@ class ContactMap:
     coverage: float
     n_degenerate_faces: int
     notes: tuple[str, ...] = ()
+    turned_deg: float = 0.0
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int]:

@@ -59,11 +59,16 @@ def _variant(src: Path, dst: Path, edit=None) -> Path:
 
 
 def _run(folder: Path, *stages: str, **given) -> dict:
-    """Run ``stages`` of ``folder`` in order; ``given`` results stand in for upstream stages."""
+    """Run ``stages`` of ``folder`` in order; ``given`` results stand in for upstream stages
+    (no hand is: build_contactmap runs without carrying its map to one)."""
     results = {"load_session": pipeline.run_stage(
-        pipeline.STAGES["load_session"], folder, CONFIGS["load_session"], {}), **given}
+        pipeline.STAGES["load_session"], folder, CONFIGS["load_session"], {}),
+        "fit_hand": None, "estimate_adjustment": None, **given}
+    configs = dict(CONFIGS)
+    configs["build_contactmap"] = CONFIGS["build_contactmap"].model_copy(
+        update={"align_to_hand": False})
     for name in stages:
-        results[name] = pipeline.run_stage(pipeline.STAGES[name], folder, CONFIGS[name], results)
+        results[name] = pipeline.run_stage(pipeline.STAGES[name], folder, configs[name], results)
     return results
 
 

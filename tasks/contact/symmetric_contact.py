@@ -1,0 +1,165 @@
+"""The contact map of a symmetric object carried into the grasp's object frame.
+
+The thermal scan and the grasp are registered separately (``register_scan``,
+``register_object`` and ``estimate_adjustment``). On an object that a turn maps onto itself
+(a bulb, a glass, a ball, a can, a box's half turn), the depth of each cannot tell the turn,
+so the two registrations may settle on different ones: the contact map then lies where the
+hand is not (wild ``[94397, 4]``, a bulb: the grasp spun 109 deg, the map right in the mesh's
+own frame, so its IoU with the true contact in the grasp's frame 0.03; tuning). Every relation a
+user trains on (which vertex the hand touches) needs both in one frame.
+
+:func:`symmetric_motions` finds the turns about the object's centroid that map its surface
+onto itself (within ``tolerance_m``: spins about an axis of revolution, the tracking's test;
+half turns about its own flip axes and n-fold turns about its principal axes; every rotation
+for a ball); :func:`align_to_hand` scores each by the
+contacted vertices' nearness to the fitted hand and, where the best turn beats the scan's own
+frame clearly (by ``margin``, and ``ratio`` times), carries the map (every per-vertex field, each
+vertex taking the value of the vertex nearest its image) into the grasp's frame. An object
+without such a turn is left as the scan made it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from graspcap.tasks.contact.build_contactmap import ContactMap
+from graspcap.tasks.core.geometry import make_T, rotation_error_deg, transform_points
+from graspcap.tasks.object_pose.registration.engine import (
+    RegistrationConfig,
+    prepare_model,
+    strided,
+    surface_distance,
+)
+from graspcap.tasks.object_pose.registration.symmetry import about_axis, self_flip_axes
+
+# scipy: imported where used
+
+SPIN_STEP_DEG = 5.0
+"""Turns about an axis of revolution tried every this many degrees."""
+SPHERE_ROTATIONS = 4000
+"""Rotations tried for a ball (a fixed quasi-random set over all rotations, ~10 deg apart),
+each best one then refined by turns of 4, 2 and 1 deg about the three axes."""
+MAX_SCORED_POINTS = 600
+"""Contacted vertices scored per turn (an even stride of them)."""
+
+
+def _keeps(model, T: np.ndarray, tolerance_m: float, pts: np.ndarray) -> bool:
+    return float(surface_distance(model, transform_points(T, pts)).max()) <= tolerance_m
+
+
+def symmetric_motions(vertices: np.ndarray, faces: np.ndarray, tolerance_m: float
+                      ) -> tuple[str, list[np.ndarray]]:
+    """(kind, motions): the object-frame motions (4, 4) about the surface's centroid that move
+    no sampled surface point more than ``tolerance_m`` off the surface, the identity first;
+    kind is ``"sphere"``, ``"axis"``, ``"discrete"`` or ``"none"`` (only the identity)."""
+    from scipy.spatial.transform import Rotation
+
+    model = prepare_model(vertices, faces, RegistrationConfig())
+    pts = np.asarray(strided(model.dense, 800).points)
+    c = model.centroid
+    turns = np.radians(np.arange(30.0, 360.0, 30.0))
+    axes = [model.axes[:, k] / np.linalg.norm(model.axes[:, k]) for k in range(3)]
+    revolving = [a for a in axes
+                 if all(_keeps(model, about_axis(model, a, t), tolerance_m, pts) for t in turns)]
+    if len(revolving) >= 2:
+        R = Rotation.random(SPHERE_ROTATIONS, random_state=0).as_matrix()
+        return "sphere", [np.eye(4)] + [make_T(r, c - r @ c) for r in R]
+    half_turns = [about_axis(model, f, np.pi) for f in self_flip_axes(model, count=3)]
+    flips = [T for T in half_turns if _keeps(model, T, tolerance_m, pts)]
+    if revolving:
+        a = revolving[0]
+        ends = [np.eye(4)] + [T for T in flips if abs(_axis_of(T) @ a) < 0.2][:1]
+        spins = [about_axis(model, a, np.radians(t)) for t in np.arange(0.0, 360.0, SPIN_STEP_DEG)]
+        return "axis", [S @ D for D in ends for S in spins]
+    group = [np.eye(4)] + flips
+    for a in axes:  # n-fold turns about a principal axis (a glass whose foot breaks the spin)
+        for n in (3, 4, 6):
+            T = about_axis(model, a, 2 * np.pi / n)
+            if _keeps(model, T, tolerance_m, pts):
+                group += [np.linalg.matrix_power(T, k) for k in range(1, n)]
+    while True:  # closed under products (a box's third half turn)
+        new = [A @ B for A in group for B in group]
+        new = [T for T in new if all(rotation_error_deg(T[:3, :3], G[:3, :3]) > 1.0
+                                     for G in group)]
+        if not new or len(group) >= 48:
+            break
+        group.append(new[0])
+    return ("discrete" if len(group) > 1 else "none"), group
+
+
+def _axis_of(T: np.ndarray) -> np.ndarray:
+    """The unit axis of the rotation of ``T`` (4, 4)."""
+    from scipy.spatial.transform import Rotation
+
+    v = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    return v / max(float(np.linalg.norm(v)), 1e-12)
+
+
+def _refined(score, S: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``S`` turned about the centroid by 4, 2, then 1 deg about each axis while the score
+    grows (a ball's best rotation between the sampled ones)."""
+    from scipy.spatial.transform import Rotation
+
+    best = score(S)
+    for step in np.radians([4.0, 2.0, 1.0]):
+        grew = True
+        while grew:
+            grew = False
+            for axis in np.eye(3):
+                for sign in (1.0, -1.0):
+                    r = Rotation.from_rotvec(sign * step * axis).as_matrix()
+                    T = make_T(r, c - r @ c) @ S
+                    s = score(T)
+                    if s > best:
+                        S, best, grew = T, s, True
+    return S
+
+
+def align_to_hand(vertices: np.ndarray, faces: np.ndarray, contact_map: ContactMap,
+                  hand_vertices_o: np.ndarray, *, tolerance_m: float, near_mm: float,
+                  margin: float, ratio: float, contact_threshold: float) -> ContactMap:
+    """``contact_map`` carried into the frame of the hand ``hand_vertices_o`` (k, 3, object
+    frame, the fitted hand) by the object's symmetry that brings its contacted observed
+    vertices nearest it (each scores 1 on the hand, falling to 0 at ``near_mm``), where that
+    score beats the scan's own frame's by ``margin`` and is ``ratio`` times it; else
+    ``contact_map`` itself (module docstring)."""
+    from scipy.spatial import cKDTree
+
+    V = np.asarray(vertices, dtype=float)
+    on = np.flatnonzero(contact_map.observed & (contact_map.contact >= contact_threshold))
+    if len(on) == 0 or len(hand_vertices_o) == 0:
+        return contact_map
+    kind, motions = symmetric_motions(V, faces, tolerance_m)
+    if kind == "none":
+        return contact_map
+    hand = cKDTree(np.asarray(hand_vertices_o, dtype=float))
+    y = V[on][:: -(-len(on) // MAX_SCORED_POINTS)]  # the contacted vertices, scan frame
+
+    def score(S: np.ndarray) -> float:
+        # S maps the grasp's frame into the scan's: a contact at y sits at S^-1 y for the hand;
+        # each counts 1 on the hand's surface samples, falling to 0 at near_mm
+        x = (y - S[:3, 3]) @ S[:3, :3]
+        d = hand.query(x, distance_upper_bound=1e-3 * near_mm)[0]
+        return float(np.mean(np.clip(1.0 - d / (1e-3 * near_mm), 0.0, 1.0)))
+
+    scores = np.array([score(S) for S in motions])
+    best = int(np.argmax(scores))
+    S = motions[best]
+    if kind == "sphere":
+        S = _refined(score, S, prepare_model(V, faces, RegistrationConfig()).centroid)
+    own, found = float(scores[0]), score(S)
+    if found < own + margin or found < ratio * own:
+        return contact_map
+    turned = rotation_error_deg(np.eye(3), S[:3, :3])
+    src = cKDTree(V).query(transform_points(S, V))[1]  # each vertex's image, scan frame
+    note = (f"the object is symmetric ({kind}): the scan's contact map turned {turned:.0f} deg "
+            f"into the grasp's frame, where its contacted vertices score {found:.2f} against "
+            f"the fitted hand ({own:.2f} as the scan registered it; 1: all on it, 0: none "
+            f"within {near_mm:g} mm)")
+    return replace(
+        contact_map, contact=contact_map.contact[src], observed=contact_map.observed[src],
+        n_views_seen=contact_map.n_views_seen[src], temperature_k=contact_map.temperature_k[src],
+        turned_deg=float(turned), notes=contact_map.notes + (note,),
+    )  # fmt: skip
