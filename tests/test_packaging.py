@@ -131,7 +131,7 @@ SECTIONS: dict[str, set[str]] = {
     "hand_sfm": {"core", "hand"},
     "object_pose.registration": {"core"},
     "object_pose": {"core", "hand", "object_pose.registration"},
-    "contact": {"core"},
+    "contact": {"core", "object_pose.registration"},
     "outputs": {"core", "hand", "object_pose", "object_pose.registration"},
 }
 """``tasks/pipeline.py`` (the stage table) sits above them all and may import any; none of

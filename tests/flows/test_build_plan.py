@@ -95,7 +95,8 @@ def test_changed_helper_reruns_its_family_and_the_plan_names_it(warm, synth_root
     catalog = copy_catalog(warm[0], tmp_path / "catalog")
     family = _importers(HELPER)
     assert family == {"register_object", "register_scan", "estimate_adjustment",
-                      "propagate_poses"}  # propagate_poses tracks the object with it
+                      "propagate_poses",  # tracks the object with it
+                      "build_contactmap"}  # a symmetric object's turns (symmetric_contact)
     edited_source(HELPER, lambda src: src + b"\n_CHANGED_BODY = 1\n")
     plans = plan_build([synth_root], catalog, PRESET)
     named = {(p.session_id, p.stage) for p in plans if ("changed code", HELPER) in p.reasons}
