@@ -39,8 +39,9 @@ from graspcap.tasks.object_pose.registration.symmetry import about_axis, self_fl
 SPIN_STEP_DEG = 5.0
 """Turns about an axis of revolution tried every this many degrees."""
 SPHERE_ROTATIONS = 4000
-"""Rotations tried for a ball (a fixed quasi-random set over all rotations, ~10 deg apart),
-each best one then refined by turns of 4, 2 and 1 deg about the three axes."""
+"""Rotations tried for a ball (uniform over all rotations, pseudo-random with a fixed seed:
+half of all rotations lie within 8.5 deg of one of them); the best one is then refined by
+turns of 4, 2 and 1 deg about the three axes."""
 MAX_SCORED_POINTS = 600
 """Contacted vertices scored per turn (an even stride of them)."""
 
