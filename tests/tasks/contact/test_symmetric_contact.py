@@ -90,3 +90,17 @@ def test_a_balls_map_finds_the_hand():
     out = align_to_hand(V, F, cmap, hand, **ALIGN)
     assert out.turned_deg > 90
     assert _on_hand(out, V, hand, within_m=0.008) > 0.8
+
+
+@pytest.mark.parametrize("path, kind", [
+    ("ycb_meshes/YcbTomatoSoupCan/textured_simple_reoriented.obj", "axis"),
+    ("meshes_trimesh/bunny.ply", "none"),
+])
+def test_scanned_meshes(shared_data, path, kind):
+    """Real scans: YCB's soup can is a body of revolution within 5 mm, the Stanford bunny has
+    no symmetry."""
+    import trimesh
+
+    mesh = trimesh.load(shared_data / path, force="mesh", process=False)
+    found, _ = symmetric_motions(np.asarray(mesh.vertices, float), np.asarray(mesh.faces), 0.005)
+    assert found == kind
