@@ -262,8 +262,9 @@ def _build_contactmap(session: Session, config, **up):
     """The thermal contact map, carried into the grasp's frame on a symmetric object
     (``contact.symmetric_contact``)."""
     cam, views = session.manifest.thermal_camera, session.manifest.scan.views
+    mesh = session.read_mesh()
     cmap = build_contactmap.build_contactmap(
-        *session.read_mesh(),
+        *mesh,
         [(session.read_thermal_k(v.thermal), np.radians(v.angle_deg)) for v in views],
         np.asarray(cam.K, dtype=float), np.asarray(cam.T_color_thermal, dtype=float),
         session.T_color_turntable, up["register_scan"].T_turntable_o_scan, config,
@@ -275,7 +276,7 @@ def _build_contactmap(session: Session, config, **up):
         return cmap
     hand_o = final_hand(up["fit_hand"], None, up["estimate_adjustment"].T_w_o).vertices_o
     return symmetric_contact.align_to_hand(
-        *session.read_mesh(), cmap, hand_o, tolerance_m=config.symmetry_tolerance_m,
+        *mesh, cmap, hand_o, tolerance_m=config.symmetry_tolerance_m,
         near_mm=config.align_near_mm, margin=config.align_margin, ratio=config.align_ratio,
         contact_threshold=config.align_contact_threshold,
     )  # fmt: skip

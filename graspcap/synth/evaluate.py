@@ -19,7 +19,7 @@ one robust rigid alignment of the whole trajectory (``*_aligned_*``,
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -224,14 +224,8 @@ def grasp_symmetry(frames: np.ndarray, T_c_o: np.ndarray, truth: Mapping[str, An
     steady frame pairs with the truth, or the closest element is the identity."""
     if sym is None or not (sym.sphere or sym.axis is not None or len(sym.discrete) > 1):
         return None
-    steady_true = int(truth["steady_from"])
-    T_obj_true = truth["T_adj"] @ truth["T_w_o_stage1"]
-    pairs = []
-    for f, T in zip(np.asarray(frames), np.asarray(T_c_o), strict=True):
-        i = int(f) - steady_true
-        if 0 <= i < len(truth["T_w_c"]):
-            T_true = inv_T(truth["T_w_c"][i]) @ T_obj_true
-            pairs.append((rotation_error_sym_deg(T, T_true, sym), T, T_true))
+    pairs = [(rotation_error_sym_deg(T, T_true, sym), T, T_true)
+             for T, T_true in _true_object_poses(frames, T_c_o, truth)]
     if not pairs:
         return None
     _, T, T_true = sorted(pairs, key=lambda p: p[0])[len(pairs) // 2]
@@ -384,6 +378,18 @@ def _aligned_metrics(prefix: str, T_w_c: np.ndarray, steady_est: int,
     return out
 
 
+def _true_object_poses(frames: np.ndarray, T_c_o: np.ndarray, truth: Mapping[str, Any]
+                       ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(estimated, true) object pose in the camera of each of ``frames`` that lies in the
+    truth's steady window (``T_c_o`` (m, 4, 4), one per frame)."""
+    steady_true = int(truth["steady_from"])
+    T_obj_true = truth["T_adj"] @ truth["T_w_o_stage1"]
+    for f, T in zip(np.asarray(frames), np.asarray(T_c_o), strict=True):
+        i = int(f) - steady_true
+        if 0 <= i < len(truth["T_w_c"]):
+            yield T, inv_T(truth["T_w_c"][i]) @ T_obj_true
+
+
 def _per_frame_object_errors(
     frames: np.ndarray, T_c_o: np.ndarray, truth: Mapping[str, Any], object_sym: Any = None
 ) -> dict[str, float]:
@@ -391,16 +397,11 @@ def _per_frame_object_errors(
     median and p95 over the frames of the raw errors and, given ``(symmetries, scene)``
     (:func:`_object_symmetries`), the median and p95 of the symmetry-aware rotation and
     centroid errors and the median MSSD and ADD-S."""
-    steady_true = int(truth["steady_from"])
-    T_obj_true = truth["T_adj"] @ truth["T_w_o_stage1"]
     errs, sym = [], []
-    for f, T in zip(np.asarray(frames), T_c_o, strict=True):
-        i = int(f) - steady_true
-        if 0 <= i < len(truth["T_w_c"]):
-            T_true = inv_T(truth["T_w_c"][i]) @ T_obj_true
-            errs.append(pose_error(T, T_true))
-            if object_sym is not None:
-                sym.append(sym_pose_metrics("", T, T_true, *object_sym))
+    for T, T_true in _true_object_poses(frames, T_c_o, truth):
+        errs.append(pose_error(T, T_true))
+        if object_sym is not None:
+            sym.append(sym_pose_metrics("", T, T_true, *object_sym))
     if not errs:
         return {}
     e = np.asarray(errs)
