@@ -69,7 +69,7 @@ from graspcap.tasks.hand_sfm import steady_depth, steady_keypoints
 from graspcap.tasks.hand_sfm.frame_screen import hand_size_px
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/11"
+STAGE_VERSION = "select_steady/12"
 
 
 class SteadyMethod(StrEnum):

@@ -169,20 +169,18 @@ def depth_onset(z_signal: np.ndarray, kp_onset: int, before: int, after: int, dr
 def last_deforming(share: np.ndarray, z: np.ndarray, onset: int, strong: float,
                    drift: float) -> int:
     """The last frame before ``onset`` that the grasp is seen deforming in (-1 if none): the
-    last frame whose ``share`` is at least ``strong`` (a frame without a share keeps the state
-    of the last frame with one), extended over the frames after it whose share keeps falling
-    while still above the steady frames' (``z > drift``): a settling motion decelerates, so
-    its residual deformation shrinks frame by frame.
+    last frame whose ``share`` is at least ``strong``, extended over the frames after it whose
+    share keeps falling while still above the steady frames' (``z > drift``): a settling
+    motion decelerates, so its residual deformation shrinks frame by frame. Frames without a
+    share are not seen deforming: a change point after a run of them could lie anywhere in
+    the run (wild ``[50832, 11]``: deforming at frame 1, no surface on frames 2-11, the onset
+    4 frames late and unmarked while the unknown frames took the last known frame's state).
 
     share, z : (n,) float, the share and its standardised values (``depth_onset``), NaN where
         unknown.
     """
-    last, moving = -1, False
-    for i in range(min(onset, len(share))):
-        if np.isfinite(share[i]):
-            moving = share[i] >= strong
-        if moving:
-            last = i
+    seen = np.flatnonzero(share[:onset] >= strong)
+    last = int(seen[-1]) if len(seen) else -1
     while (last + 1 < onset and np.isfinite(share[last + 1]) and z[last + 1] > drift
            and (last < 0 or not np.isfinite(share[last]) or share[last + 1] <= share[last])):
         last += 1
@@ -273,7 +271,7 @@ def depth_doubt(share, z, depth_from, onset, at_end,
                 "detected) leave the end of the grasp anywhere among them; set "
                 "grasp.steady_from in session.json"), last
     rigid = rigid_between(share, z, last, cfg.depth_strong_share, drift)
-    if rigid >= 0 and last + 1 - rigid > cfg.depth_max_span:
+    if rigid >= 0 and depth_from - rigid > cfg.depth_max_span:
         return (f"the surface is rigid at frame {rigid} and deforms again up to frame {last}: "
                 f"two candidate onsets ({rigid} and {onset}); set grasp.steady_from in "
                 "session.json"), last

@@ -81,8 +81,18 @@ def test_a_sharp_or_settling_end_is_not_marked():
     assert _doubt([0.6, 0.7, 0.5, 0.4, 0.0, 0.0, 0.0, 0.0], 4) == ("", 3)
     # a settling tail: the share falls frame by frame through weak values
     assert _doubt([0.2, 0.4, 0.3, 0.21, 0.17, 0.15, 0.10, 0.05, 0.0, 0.0], 8) == ("", 7)
-    # frames without a surface inside the motion count as moving
-    assert _doubt([0.6, 0.6, np.nan, np.nan, np.nan, np.nan, 0.0, 0.0, 0.0], 6) == ("", 5)
+    # a frame or two without a surface between the motion and the change point
+    assert _doubt([0.6, 0.6, np.nan, np.nan, 0.0, 0.0, 0.0, 0.0], 4) == ("", 1)
+
+
+def test_a_change_after_a_run_of_unknown_frames_is_marked():
+    """Deforming at frame 1, no surface on frames 2-5, rigid from 6: the grasp may have
+    settled anywhere in the run, so the change point at 6 is no better than frame 2 (wild
+    ``[50832, 11]``: 10 unknown frames, the onset 4 frames late)."""
+    why, last = _doubt([0.6, 0.6, np.nan, np.nan, np.nan, np.nan, 0.0, 0.0, 0.0], 6)
+    assert last == 1
+    assert why.startswith("the depth sees the grasp deforming up to frame 1, the onset is "
+                          "frame 7")
 
 
 def test_weak_non_rigidity_that_does_not_fall_is_marked():
