@@ -193,11 +193,17 @@ class SelectSteadyConfig(StageConfig):
     hand detected, and the end of the grasp can lie anywhere among them; also when the
     surface is rigid more than this many frames before the last frame seen deforming (two
     candidate ends)."""
-    depth_settled_frames: int = 5
+    depth_settled_frames: int = 2
     """Where the onset is marked uncertain, it is moved to the first frame (plus
     ``depth_lag_frames``) from which this many frames in a row share below
     ``depth_settled_share`` after a frame read deforming (``depth_strong_share``), within the
-    searched window (``steady_depth.settled_after_deforming``), the mark kept. 0: off."""
+    searched window (``steady_depth.settled_after_deforming``), the mark kept. 0: off.
+    Two frames (5 before session 27): the surface that reads rigid and then 'deforms again'
+    is, on every such tuning session, the held grasp turning faster than the registration
+    follows (46-81 deg between the registered frames), and its first rigid run lasted 2-4
+    frames; taken there, 5 of 5 such wild 40-frame onsets 6-9 frames late came within 1
+    frame, and no other onset of 164 tuning sessions moved (``docs/benchmarks.md``,
+    "Session 27")."""
     depth_settled_share: float = 0.1
     """A share below this reads rigid for ``depth_settled_frames`` (steady frames: 0-0.03)."""
     depth_radius_m: float = 0.15

@@ -37,3 +37,21 @@ def test_a_rigid_run_too_short_is_passed_over():
 def test_nothing_before_the_first_deformation_and_nothing_after_the_window():
     assert settled_after_deforming(np.full(30, 0.01), 0.2, 0.1, 5, latest=20) == -1
     assert settled_after_deforming(SHARE, 0.2, 0.1, 5, latest=4) == -1
+
+
+def test_a_short_rigid_run_before_a_fast_turn_is_the_default_fallback():
+    """Wild ``[94397, 0]`` (40 frames, truth onset 8): the grasp deforms on 0-6, is rigid on
+    7-8, then turns 46-81 deg between registered frames, which reads 0.5-0.7 on 9-12; the
+    change point lands on 14 and is marked (rigid, then deforming again). With the default
+    two settled frames the fallback is frame 7 (onset 8 with the lag); the earlier default of
+    five passed over the short run to 13."""
+    from graspcap.tasks.hand_sfm.select_steady import SelectSteadyConfig
+
+    share = np.array([0.5, 0.5, 0.5, 0.757, 0.647, 0.701, 0.404, 0.001, 0.007, 0.514, 0.665,
+                      0.624, 0.642, 0.041, 0.019, 0.012, 0.005, 0.0, 0.0, 0.0, 0.0, 0.001, 0.0,
+                      0.002, 0.007, 0.49, 0.68, 0.725, 0.737, 0.696, np.nan, np.nan, 0.455,
+                      0.019, 0.007, 0.0, np.nan, np.nan, np.nan, np.nan])  # fmt: skip
+    cfg = SelectSteadyConfig()
+    args = (share, cfg.depth_strong_share, cfg.depth_settled_share)
+    assert settled_after_deforming(*args, cfg.depth_settled_frames, latest=20) == 7
+    assert settled_after_deforming(*args, 5, latest=20) == 13
