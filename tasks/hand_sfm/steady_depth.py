@@ -182,7 +182,7 @@ def last_deforming(share: np.ndarray, z: np.ndarray, onset: int, strong: float,
     seen = np.flatnonzero(share[:onset] >= strong)
     last = int(seen[-1]) if len(seen) else -1
     while (last + 1 < onset and np.isfinite(share[last + 1]) and z[last + 1] > drift
-           and (last < 0 or not np.isfinite(share[last]) or share[last + 1] <= share[last])):
+           and (last < 0 or share[last + 1] <= share[last])):
         last += 1
     return last
 
