@@ -191,8 +191,8 @@ class SelectSteadyConfig(StageConfig):
     ``depth_lag_frames``) after the last frame seen deforming: the frames between are weak
     non-rigidity that is not a settling tail, frames without a surface, or frames without the
     hand detected, and the end of the grasp can lie anywhere among them; also when the
-    surface is rigid more than this many frames before the last frame seen deforming (two
-    candidate ends)."""
+    surface is rigid more than this many frames before the depth's change point and seen
+    deforming again between them (two candidate ends)."""
     depth_settled_frames: int = 2
     """Where the onset is marked uncertain, it is moved to the first frame (plus
     ``depth_lag_frames``) from which this many frames in a row share below
