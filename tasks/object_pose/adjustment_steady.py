@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 
 from graspcap.tasks.core.errors import StageError
-from graspcap.tasks.core.geometry import inv_T
+from graspcap.tasks.core.geometry import inv_T, transform_points
 from graspcap.tasks.object_pose import estimate_adjustment as ea
 from graspcap.tasks.object_pose.adjustment_region import hand_mask
 from graspcap.tasks.object_pose.estimate_adjustment import (
@@ -21,6 +21,12 @@ from graspcap.tasks.object_pose.estimate_adjustment import (
     Adjustment,
     EstimateAdjustmentConfig,
     SteadyView,
+)
+from graspcap.tasks.object_pose.registration.engine import (
+    Model,
+    prepare_model,
+    strided,
+    surface_distance,
 )
 
 
@@ -52,7 +58,9 @@ def estimate_adjustment_steady(
     depth with the hand masked out (:func:`adjustment_region.hand_mask`). When that fails or
     fits below ``config.accept_fitness`` (the onset is often detected a few frames early, while
     the object still settles), also on the frame ``config.frames_after_onset`` later, its pose
-    carried back by that frame's virtual camera; the better fit is kept.
+    carried back by that frame's virtual camera; the better fit is kept. When both fail, the
+    pose several steady frames find alone (:func:`frame_consensus`: a small object inside the
+    fist shows too few pixels in any one frame).
 
     Parameters
     ----------
@@ -69,7 +77,8 @@ def estimate_adjustment_steady(
         depth = read_depth(k)
         return depth, hand_mask(depth.shape, K, inv_T(T_w_c[k]), hand_mesh_w, keypoints[k])
 
-    def attempt(k: int) -> Adjustment:
+    def attempt(k: int, cfg: EstimateAdjustmentConfig = config, fused: bool = True
+                ) -> Adjustment:
         depth, mask = view(k)
 
         def others(count: int) -> list[SteadyView]:
@@ -77,12 +86,31 @@ def estimate_adjustment_steady(
                     for j in spread_frames(pose_valid, k, count)]
 
         adj = ea.estimate_adjustment(
-            depth, K, mesh_vertices, mesh_faces, T_w_o_stage1, mask, config,
-            T_w_o_stage1_alt=T_w_o_stage1_alt, other_views=others,
+            depth, K, mesh_vertices, mesh_faces, T_w_o_stage1, mask, cfg,
+            T_w_o_stage1_alt=T_w_o_stage1_alt, other_views=others if fused else None,
         )
         return replace(adj, T_adj=T_w_c[k] @ adj.T_adj, T_w_o=T_w_c[k] @ adj.T_w_o)
 
-    k = min(config.frames_after_onset, len(T_w_c) - 1)
+    alone = config.model_copy(update={"min_points": config.min_points_floor})  # a few pixels
+    try:
+        return _registered(attempt, pose_valid, config)
+    except StageError as failed:
+        if config.consensus_views <= 0:
+            raise
+        frames = [0, *spread_frames(pose_valid, 0, config.consensus_views)]
+        model = prepare_model(mesh_vertices, mesh_faces, config.registration)
+        try:
+            return frame_consensus(lambda k: attempt(k, alone, fused=False), frames, model,
+                                   config)
+        except StageError as e:
+            raise StageError(ea.STAGE, f"{failed.reason}; {e.reason}") from None
+
+
+def _registered(attempt: Callable[[int], Adjustment], pose_valid: np.ndarray,
+                config: EstimateAdjustmentConfig) -> Adjustment:
+    """The first steady frame's registration, or the one ``frames_after_onset`` later where the
+    first fails or fits below ``accept_fitness`` (the better fit)."""
+    k = min(config.frames_after_onset, len(pose_valid) - 1)
     try:
         first = attempt(0)
     except StageError:
@@ -96,3 +124,47 @@ def estimate_adjustment_steady(
     except StageError:
         return first
     return later if later.fitness > first.fitness else first
+
+
+def pose_gap_m(model: Model, T_a: np.ndarray, T_b: np.ndarray, points: int = 400) -> float:
+    """How far apart two poses (4, 4) put the object: the mean distance from its surface at
+    ``T_a`` to its surface at ``T_b`` (``points`` samples), the larger of the two directions.
+    Poses the shape is symmetric under are 0 apart."""
+    pts = np.asarray(strided(model.coarse, points).points)
+    there = [surface_distance(model, transform_points(inv_T(U) @ T, pts)).mean()
+             for T, U in ((T_a, T_b), (T_b, T_a))]
+    return float(max(there))
+
+
+def frame_consensus(
+    register: Callable[[int], Adjustment], frames: list[int], model: Model,
+    config: EstimateAdjustmentConfig,
+) -> Adjustment:
+    """The pose that ``config.consensus_min_frames`` steady frames find independently:
+    ``register(k)`` registers the object in frame ``k`` alone (its pose carried into the first
+    steady frame), for each of ``frames``; those fitting at least ``consensus_min_fitness``
+    vote, two agreeing within ``consensus_m`` (:func:`pose_gap_m`). The pose with the most
+    frames agreeing with it (ties: more judged pixels, then the earlier frame) is kept, its
+    ``n_points`` the agreeing frames' pixels, ``views`` their number. Raises ``StageError``
+    when no pose gathers enough frames."""
+    found: list[tuple[int, Adjustment]] = []
+    for k in frames:
+        try:
+            adj = register(k)
+        except StageError:
+            continue
+        if adj.fitness >= config.consensus_min_fitness:
+            found.append((k, adj))
+    best: tuple[tuple[int, int, int], Adjustment] | None = None
+    for k, adj in found:
+        agree = [a for _, a in found if pose_gap_m(model, adj.T_w_o, a.T_w_o) <= config.consensus_m]
+        rank = (len(agree), sum(a.n_points for a in agree), -k)
+        if best is None or rank > best[0]:
+            best = (rank, replace(adj, path=ea.AdjustmentPath.FRAME_CONSENSUS, views=len(agree),
+                                  n_points=rank[1]))
+    if best is None or best[0][0] < config.consensus_min_frames:
+        most = 0 if best is None else best[0][0]
+        raise StageError(ea.STAGE, f"registered alone in {len(frames)} steady frames, {len(found)} "
+                                   f"fit; at most {most} agree on a pose (need "
+                                   f"{config.consensus_min_frames})")
+    return best[1]

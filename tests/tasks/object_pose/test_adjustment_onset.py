@@ -10,7 +10,10 @@ from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, make_T, rot_z
 from graspcap.tasks.object_pose import estimate_adjustment as ea
 from graspcap.tasks.object_pose.adjustment_region import hand_mask
-from graspcap.tasks.object_pose.adjustment_steady import estimate_adjustment_steady
+from graspcap.tasks.object_pose.adjustment_steady import (
+    estimate_adjustment_steady,
+    spread_frames,
+)
 
 K = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
 M = 8  # steady frames
@@ -27,7 +30,7 @@ def _run(monkeypatch, fitness: dict[int, float | None], **config):
     def fake(depth, K_, V, F, T_w_o, mask, config, T_w_o_stage1_alt=None, other_views=None):
         k = int(depth[0, 0])
         calls.append((k, mask.shape, T_w_o_stage1_alt))
-        if fitness[k] is None:
+        if fitness.get(k) is None:
             raise StageError("estimate_adjustment", f"frame {k} fails")
         return ea.Adjustment(np.eye(4), T_w_o, fitness[k], 0.001, 100,
                              ea.AdjustmentPath.STAGE1_ICP, False)
@@ -59,8 +62,37 @@ def test_a_weak_first_frame_tries_the_later_one_and_keeps_the_better(monkeypatch
 def test_a_failing_first_frame_falls_back_to_the_later_one(monkeypatch):
     result, frames = _run(monkeypatch, {0: None, 3: 0.7}, frames_after_onset=3)
     assert frames == [0, 3] and result.fitness == 0.7
-    with pytest.raises(StageError, match="frame 0 fails"):
+    with pytest.raises(StageError, match="frame 0 fails; registered alone in 7 steady frames"):
         _run(monkeypatch, {0: None}, frames_after_onset=0)
+
+
+def test_when_every_registration_fails_the_frames_that_agree_alone_decide(monkeypatch):
+    """The last resort (``frame_consensus``): each steady frame registered alone, without other
+    views and with ``min_points_floor`` pixels enough; three frames whose poses, carried by
+    their cameras, agree make the result."""
+    calls = []
+
+    def fake(depth, K_, V, F, T_w_o, mask, config, T_w_o_stage1_alt=None, other_views=None):
+        k = int(depth[0, 0])
+        alone = other_views is None and config.min_points == config.min_points_floor
+        calls.append((k, alone))
+        if not alone or k not in (2, 4, 6):
+            raise StageError("estimate_adjustment", f"frame {k} fails")
+        T_c_o = inv_T(T_W_C[k]) @ T_W_O1  # the object where it is, seen from frame k
+        return ea.Adjustment(T_c_o @ inv_T(T_w_o), T_c_o, 0.95, 0.001, 50,
+                             ea.AdjustmentPath.NEAR_HAND_GLOBAL, False)
+
+    monkeypatch.setattr(ea, "estimate_adjustment", fake)
+    result = estimate_adjustment_steady(
+        lambda k: np.full((48, 64), float(k)), K, *TRI, TRI, np.zeros((M, 21, 3)), T_W_C,
+        np.ones(M, bool), T_W_O1, ea.EstimateAdjustmentConfig(frames_after_onset=3),
+    )
+    assert calls[:2] == [(0, False), (3, False)]  # the first frame, then the later one
+    assert calls[2:] == [(k, True) for k in [0, *spread_frames(np.ones(M, bool), 0, 11)]]
+    assert result.path == ea.AdjustmentPath.FRAME_CONSENSUS
+    assert result.views == 3 and result.n_points == 150
+    np.testing.assert_allclose(result.T_w_o, T_W_O1, atol=1e-12)
+    np.testing.assert_allclose(result.T_adj, np.eye(4), atol=1e-12)
 
 
 def test_the_hand_mask_is_the_rendered_hand_plus_the_keypoint_bones():
