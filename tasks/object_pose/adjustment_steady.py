@@ -2,7 +2,9 @@
 the one ``frames_after_onset`` later when the first fails or fits poorly), and which other
 steady frames it is offered (:class:`.SteadyView`, evenly spread over the posed ones), each
 carried into the registered frame by ``reconstruct_hand``'s virtual cameras. The registration
-itself is :func:`.estimate_adjustment.estimate_adjustment`.
+itself is :func:`.estimate_adjustment.estimate_adjustment`. Where every one of those refuses,
+the last resort is :func:`frame_consensus`: the object registered in several steady frames
+alone, and a pose that three of them find independently kept.
 """
 
 from __future__ import annotations
