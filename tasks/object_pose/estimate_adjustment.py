@@ -183,12 +183,12 @@ class EstimateAdjustmentConfig(StageConfig):
     pose that ``consensus_min_frames`` of them find independently is kept (0: off). A small
     object inside the fist shows 50-120 judged pixels per frame, under ``min_points``, and
     the fused views' scene is dominated by what the views' camera errors smear (tuning wild
-    ``[44199, 4]``, a 85 mm ball: alone 1.00 over 51 pixels, 1.7 mm off; fused 0.07)."""
+    ``[44199, 4]``, an 85 mm ball: alone 1.00 over 51 pixels, 1.7 mm off; fused 0.07)."""
     consensus_min_frames: int = 3
     """...frames, each fitting at least ``consensus_min_fitness``, whose poses carried into the
     first steady frame by ``reconstruct_hand``'s cameras lie within ``consensus_m`` of each
-    other: one frame's few pixels can fit a wrong pose well (a 85 mm ball, fitness 0.98 over
-    180 pixels, 109 mm off), three frames seldom fit the same wrong one."""
+    other: one frame's few pixels can fit a wrong pose well (an 85 mm ball, fitness 0.98 over
+    180 pixels, 109 mm off carried by its frame's camera); three seldom fit the same wrong one."""
     consensus_min_fitness: float = 0.85
     """See ``consensus_min_frames``."""
     consensus_m: float = 0.01
