@@ -69,7 +69,7 @@ from graspcap.tasks.hand_sfm import steady_depth, steady_keypoints
 from graspcap.tasks.hand_sfm.frame_screen import hand_size_px
 
 STAGE = "select_steady"
-STAGE_VERSION = "select_steady/12"
+STAGE_VERSION = "select_steady/13"
 
 
 class SteadyMethod(StrEnum):
@@ -193,6 +193,12 @@ class SelectSteadyConfig(StageConfig):
     hand detected, and the end of the grasp can lie anywhere among them; also when the
     surface is rigid more than this many frames before the depth's change point and seen
     deforming again between them (two candidate ends)."""
+    max_undetected_skip: int = 3
+    """The onset is marked uncertain when the frames without the hand detected that follow the
+    change point (the depth's, else the keypoints') put it more than this many frames after
+    it, ``depth_lag_frames`` included: the grasp may have ended anywhere among them (tuning
+    wild ``[94397, 22]``: the right change point, on a frame without a detection, 3 more
+    after it, the onset +4 and unmarked)."""
     depth_settled_frames: int = 2
     """Where the onset is marked uncertain, it is moved to the first frame (plus
     ``depth_lag_frames``) from which this many frames in a row share below
@@ -356,19 +362,21 @@ def select_steady(
     # (dropped detection) has no pose of its own, so the onset moves to the next detected one
     detected = np.flatnonzero(ok.sum(1) >= cfg.min_points)
     keypoint_from, depth_from, share_of = onset, -1, np.empty(0)
+    candidate = onset  # the change point taken, before the lag and the move to a detected frame
     by_keypoints = False  # the clean keypoints' onset stood against an earlier depth one
     z_depth, at_end = None, False
     if cfg.depth_onset and depth_frame is not None and T_color_turntable is not None:
         depth_from, share_of, z_depth, at_end = steady_depth.onset_from_depth(
             uv, ok, K, onset, depth_frame, np.asarray(T_color_turntable, float), cfg)
         if depth_from >= 0:  # the lag never carries the onset past frames without the hand
+            candidate = depth_from
             want = min(depth_from + cfg.depth_lag_frames, n - 1)
             near = detected[(detected >= depth_from) & (detected <= want)]
             onset = int(near[-1]) if len(near) else want
             clean = _keypoint_noise(uv, ok, scores, keypoint_from, detected)[2] <= (
                 cfg.max_noise_share)
             if cfg.later_of_both and clean and keypoint_from > onset:
-                onset, by_keypoints = keypoint_from, True
+                onset, candidate, by_keypoints = keypoint_from, keypoint_from, True
     onset = int(detected[np.searchsorted(detected, onset)]) if onset <= detected[-1] else n
     if onset >= n - 2:
         raise StageError(
@@ -381,6 +389,9 @@ def select_steady(
     if depth_from >= 0 and not uncertain and not by_keypoints:
         uncertain, moving_to = steady_depth.depth_doubt(share_of, z_depth, depth_from, onset,
                                                         at_end, cfg)
+    if not uncertain and onset - candidate > cfg.max_undetected_skip:
+        uncertain = (f"the hand is not detected in frames {candidate}-{onset - 1}, where the "
+                     "grasp may have ended")
     if uncertain and cfg.depth_settled_frames > 0 and len(share_of):
         settled = steady_depth.settled_after_deforming(
             share_of, cfg.depth_strong_share, cfg.depth_settled_share, cfg.depth_settled_frames,

@@ -86,6 +86,21 @@ def test_onset_moves_past_a_frame_without_the_hand():
     sel = select_steady(kp, K, None)
     assert sel.steady_from == onset + 2, (onset, sel.steady_from)
     assert int(np.argmax(sel.cusum)) in (onset, onset + 1)
+    assert "not detected" not in sel.uncertain  # two frames skipped: within the tolerance
+
+
+def test_an_onset_moved_past_many_frames_without_the_hand_is_marked():
+    """Five frames without a detection from the detected onset: the grasp may have ended
+    anywhere among them, so the onset taken after them is marked uncertain (select_steady/13;
+    wild [94397, 22]: 4 frames skipped, +4, unmarked before)."""
+    kp, K = _slowing_hand(0)
+    onset = select_steady(kp, K, None).steady_from
+    kp[onset : onset + 5, :, 2] = 0.0
+    sel = select_steady(kp, K, None)
+    assert sel.steady_from == onset + 5
+    assert f"not detected in frames {onset}-{onset + 4}" in sel.uncertain
+    off = select_steady(kp, K, None, SelectSteadyConfig(max_undetected_skip=10))
+    assert "not detected" not in off.uncertain
 
 
 def _late_still_camera(seed: int, steady: int = 20, turn: int = 60, n: int = 120):
