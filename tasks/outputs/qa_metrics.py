@@ -36,7 +36,7 @@ from graspcap.tasks.outputs.qa_measures import (
     window_outlier_share,
 )
 
-STAGE_VERSION = "qa_metrics/14"
+STAGE_VERSION = "qa_metrics/15"
 STAGE = "qa_metrics"
 
 
@@ -354,13 +354,19 @@ def stage_notes(results: Mapping[str, Any]) -> list[str]:
     Also what the stages noted about unusual input: keypoint frames dropped (far outside the
     image, corrupt) or with several candidate hands, scan views sharing an angle or skipped,
     thermal views left out, a contact map from one view; the hand's shape left at the template's
-    proportions because the joints were too far off for it (``HandFit.shape_note``)."""
+    proportions because the joints were too far off for it (``HandFit.shape_note``); an object
+    pose estimate_adjustment found only by its last resort (``frame_consensus``: a small object
+    in the fist; the tracking and ``object_spread_deg`` judge it frame by frame)."""
     notes = []
     if _attr(results, "refine_grasp", "accepted") is False:
         notes.append(f"refine_grasp: refinement rejected, the stage-3 fit kept "
                      f"({_attr(results, 'refine_grasp', 'reason')})")
     if _attr(results, "estimate_adjustment", "ambiguous"):
         notes.append("estimate_adjustment: ambiguous (the pose nearest stage 1 kept)")
+    if str(_attr(results, "estimate_adjustment", "path")) == "frame_consensus":
+        notes.append(f"estimate_adjustment: the object found alone in "
+                     f"{_attr(results, 'estimate_adjustment', 'views')} steady frames that "
+                     "agree (too few depth pixels beside the hand in any one frame)")
     keypoints = results.get("detect_keypoints")
     if keypoints is not None and hasattr(keypoints, "qa_notes"):
         notes += keypoints.qa_notes()

@@ -291,6 +291,13 @@ def test_stage_warnings_flag_the_session(scene):
         report = run(results, scene)
         assert report.verdict == Verdict.OK and report.flags == ()
         assert len(report.notes) == 1 and note in report.notes[0]
+    results = good_results(V, contact)  # the last resort for a small object in the fist
+    results["estimate_adjustment"].path, results["estimate_adjustment"].views = (
+        "frame_consensus", 4)
+    report = run(results, scene)
+    assert report.verdict == Verdict.OK and report.flags == ()
+    assert report.notes == ("estimate_adjustment: the object found alone in 4 steady frames "
+                            "that agree (too few depth pixels beside the hand in any one frame)",)
 
 
 def test_window_outlier_share_finds_the_worst_window():
