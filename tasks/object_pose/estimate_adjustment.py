@@ -194,7 +194,7 @@ class EstimateAdjustmentConfig(StageConfig):
     consensus_m: float = 0.01
     """Two poses agree when the object's surface at one lies on average within this of its
     surface at the other (symmetric poses agree: a bulb's turn about its axis is 0): the
-    cameras carrying them are 4-6 mm apart on the wild rig."""
+    right frames of the tuning sessions, carried by stage 2's cameras, lay 1-4 mm apart."""
     views_below_fitness: float = 0.97
     """The other views are used when the first frame's pose fits below this (measured on rig
     sessions: right poses 0.99-1.00; a flipped mug 0.92, a mug 7.5 deg off 0.64)..."""
