@@ -4,7 +4,7 @@ a bulb or a small box held in the fist.
     .venv/bin/python bench/small_objects.py --root /tmp/small --frames 40 \\
         --set wild:44199:30 --set wild:50832:30 [--set PROFILE:SEED:N ...] [--compare]
 
-Each set's sessions ``[SEED, i]``, i < N, are generated under ``ROOT/PROFILE-FRAMES`` (skipped
+Each set's sessions ``[SEED, i]``, i < N (or FIRST <= i <= LAST), are generated under ``ROOT/PROFILE-FRAMES`` (skipped
 where already there); those whose object is a ball, a bulb or a small box run the stages up to
 ``fit_hand`` once (their results pickled beside the session, ``upstream.pkl``), then
 ``estimate_adjustment`` (default preset; ``--compare`` also with ``consensus_views=0``, i.e.
@@ -65,14 +65,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--root", type=Path, required=True)
     ap.add_argument("--frames", type=int, default=40)
-    ap.add_argument("--set", action="append", required=True, metavar="PROFILE:SEED:N")
+    ap.add_argument("--set", action="append", required=True,
+                    metavar="PROFILE:SEED:N or PROFILE:SEED:FIRST-LAST")
     ap.add_argument("--compare", action="store_true", help="also with consensus_views=0")
     args = ap.parse_args()
     default = configs_for()["estimate_adjustment"]
     before = default.model_copy(update={"consensus_views": 0})
     for spec in args.set:
-        profile, seed, n = spec.split(":")
-        for i in range(int(n)):
+        profile, seed, count = spec.split(":")
+        lo, hi = (int(x) for x in count.split("-")) if "-" in count else (0, int(count) - 1)
+        for i in range(lo, hi + 1):
             d = session_dir(args.root, profile, args.frames, int(seed), i)
             if d is None or not any(f"-{kind}-" in d.name for kind in SMALL):
                 continue
