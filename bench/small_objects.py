@@ -4,15 +4,15 @@ a bulb or a small box held in the fist.
     .venv/bin/python bench/small_objects.py --root /tmp/small --frames 40 \\
         --set wild:44199:30 --set wild:50832:30 [--set PROFILE:SEED:N ...] [--compare]
 
-Each set's sessions ``[SEED, i]``, i < N (or FIRST <= i <= LAST), are generated under ``ROOT/PROFILE-FRAMES`` (skipped
-where already there); those whose object is a ball, a bulb or a small box run the stages up to
-``fit_hand`` once (their results pickled beside the session, ``upstream.pkl``), then
-``estimate_adjustment`` (default preset; ``--compare`` also with ``consensus_views=0``, i.e.
-estimate_adjustment/24). Printed per session: the path that found the object or the refusal,
-the fitness, frames, and the object's pose at the first steady frame against the truth (over
-the object's symmetries; where the detected onset precedes the true one the truth is the
-onset's pose, so a settling object reads off there: the full pipeline's per-frame errors are
-``bench/accuracy.py``'s).
+Each set's sessions ``[SEED, i]``, i < N (or FIRST <= i <= LAST), are generated under
+``ROOT/PROFILE-FRAMES`` (skipped where already there); those whose object is a ball, a bulb or a
+small box run the stages up to ``fit_hand`` once (their results pickled beside the session,
+``upstream.pkl``), then ``estimate_adjustment`` (default preset; ``--compare`` also with
+``consensus_views=0``, i.e. estimate_adjustment/24). Printed per session: the path that found
+the object or the refusal, the fitness, frames, and the object's pose at the first steady frame
+against the truth (over the object's symmetries; where the detected onset precedes the true one
+the truth is the onset's pose, so a settling object reads off there: the full pipeline's
+per-frame errors are ``bench/accuracy.py``'s).
 """
 
 from __future__ import annotations
