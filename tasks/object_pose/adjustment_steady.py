@@ -157,9 +157,13 @@ def frame_consensus(
             continue
         if adj.fitness >= config.consensus_min_fitness:
             found.append((k, adj))
+    near = np.eye(len(found), dtype=bool)  # each pair's gap measured once
+    for i, j in zip(*np.triu_indices(len(found), 1), strict=True):
+        near[i, j] = near[j, i] = (
+            pose_gap_m(model, found[i][1].T_w_o, found[j][1].T_w_o) <= config.consensus_m)
     best: tuple[tuple[int, int, int], Adjustment] | None = None
-    for k, adj in found:
-        agree = [a for _, a in found if pose_gap_m(model, adj.T_w_o, a.T_w_o) <= config.consensus_m]
+    for (k, adj), row in zip(found, near, strict=True):
+        agree = [a for (_, a), close in zip(found, row, strict=True) if close]
         rank = (len(agree), sum(a.n_points for a in agree), -k)
         if best is None or rank > best[0]:
             best = (rank, replace(adj, path=ea.AdjustmentPath.FRAME_CONSENSUS, views=len(agree),
