@@ -9,10 +9,11 @@ Each set's sessions ``[SEED, i]``, i < N (or FIRST <= i <= LAST), are generated 
 small box run the stages up to ``fit_hand`` once (their results pickled beside the session,
 ``upstream.pkl``), then ``estimate_adjustment`` (default preset; ``--compare`` also with
 ``consensus_views=0``, i.e. estimate_adjustment/24). Printed per session: the path that found
-the object or the refusal, the fitness, frames, and the object's pose at the first steady frame
-against the truth (over the object's symmetries; where the detected onset precedes the true one
-the truth is the onset's pose, so a settling object reads off there: the full pipeline's
-per-frame errors are ``bench/accuracy.py``'s).
+the object or the refusal, the fitness, frames, and the object's pose the stage delivers at the
+first steady frame against the truth (``adjustment_rerun.steady_object_error``: over the
+object's symmetries; where the detected onset precedes the true one the truth is the onset's
+pose, so a settling object reads off there: the full pipeline's per-frame errors are
+``bench/accuracy.py``'s).
 """
 
 from __future__ import annotations
@@ -22,10 +23,9 @@ import pickle
 import time
 from pathlib import Path
 
-from onset_uncertainty import session_dir  # bench/, beside this script
+from adjustment_rerun import steady_object_error  # bench/, beside this script
+from onset_uncertainty import session_dir
 
-from graspcap.synth.evaluate import _object_symmetries, _T_adj_at, load_truth
-from graspcap.synth.symmetry import sym_pose_metrics
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
 
@@ -52,12 +52,9 @@ def line(d: Path, up: dict, config) -> str:
         adj = run_stage(STAGES["estimate_adjustment"], d, config, up)
     except StageError as e:
         return f"refused ({time.perf_counter() - t0:.0f} s): {e.reason}"
-    truth = load_truth(d)
-    T_true = _T_adj_at(truth, up["select_steady"].steady_from) @ truth["T_w_o_stage1"]
-    T = adj.T_w_o_first if adj.T_w_o_first is not None else adj.T_w_o
-    m = sym_pose_metrics("x", T, T_true, *_object_symmetries(d))
+    rot_deg, trans_mm = steady_object_error(d, {**up, "estimate_adjustment": adj})
     return (f"{adj.path} fitness {adj.fitness:.2f} frames {adj.views} "
-            f"{m['x_rot_sym_deg']:.1f} deg {m['x_trans_sym_mm']:.1f} mm "
+            f"{rot_deg:.1f} deg {trans_mm:.1f} mm "
             f"({time.perf_counter() - t0:.0f} s)")
 
 
