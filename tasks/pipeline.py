@@ -275,10 +275,26 @@ def _build_contactmap(session: Session, config, **up):
     if not config.align_to_hand:
         return cmap
     hand_o = final_hand(up["fit_hand"], None, up["estimate_adjustment"].T_w_o).vertices_o
+    tracking = getattr(up["estimate_adjustment"], "tracking", None)
+
+    def bare() -> np.ndarray | None:
+        """How often the grasp's depth saw each vertex bare, over up to ``align_bare_frames``
+        frames the object was tracked in (their poses supported by that depth)."""
+        if tracking is None or config.align_bare_frames <= 0 or not tracking.tracked.any():
+            return None
+        rows = np.flatnonzero(tracking.tracked)
+        rows = rows[np.unique(np.linspace(0, len(rows) - 1, config.align_bare_frames)
+                              .round().astype(int))]
+        s = up["select_steady"].steady_from
+        depths = [session.read_depth_m(session.grasp_path("depth", s + j)) for j in rows]
+        return symmetric_contact.bare_share(*mesh, tracking.T_c_o[rows], depths,
+                                            session.color_K, bare_m=config.align_bare_m,
+                                            window_px=config.align_bare_window_px)
+
     return symmetric_contact.align_to_hand(
         *mesh, cmap, hand_o, tolerance_m=config.symmetry_tolerance_m,
         near_mm=config.align_near_mm, margin=config.align_margin, ratio=config.align_ratio,
-        contact_threshold=config.align_contact_threshold,
+        contact_threshold=config.align_contact_threshold, bare=bare,
     )  # fmt: skip
 
 
@@ -420,9 +436,11 @@ STAGES: dict[str, Stage] = {
               ("load_session",), ("object_mesh", "scan_depth"), _register_scan,
               fields=("scan.views", _DEPTH_SCALE, _CAM, _T_TT, _MESH)),
         Stage("build_contactmap", build_contactmap.STAGE_VERSION, build_contactmap.PRESETS,
-              ("load_session", "fit_hand", "estimate_adjustment", "register_scan"),
-              ("object_mesh", "scan_thermal"), _build_contactmap,
-              fields=("thermal_camera", "scan.views", _T_TT, _MESH)),
+              ("load_session", "select_steady", "fit_hand", "estimate_adjustment",
+               "register_scan"),
+              ("object_mesh", "scan_thermal", "grasp_depth"), _build_contactmap,
+              fields=("thermal_camera", "scan.views", _T_TT, _MESH, _CAM, "grasp.count",
+                      "grasp.depth", _DEPTH_SCALE)),
         Stage("refine_grasp", refine_grasp.STAGE_VERSION, refine_grasp.PRESETS,
               ("load_session", "fit_hand", "estimate_adjustment", "build_contactmap"),
               ("object_mesh",), _refine_grasp, fields=("hand", _MESH)),

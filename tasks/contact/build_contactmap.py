@@ -53,7 +53,7 @@ from graspcap.tasks.core.mesh_proxy import PROXY_FACES, mesh_proxy
 
 # open3d: imported where used, so that importing the stage table stays cheap
 
-STAGE_VERSION = "build_contactmap/3"
+STAGE_VERSION = "build_contactmap/4"
 STAGE = "build_contactmap"
 
 
@@ -126,6 +126,15 @@ class BuildContactmapConfig(StageConfig):
     which would have turned a map of IoU 0.87 to 0.02; tuning, ``docs/benchmarks.md``)."""
     align_contact_threshold: float = 0.4
     """Contact at or above this counts as contacted when turns are scored."""
+    align_bare_frames: int = Field(16, ge=0)
+    """A turn's score is lowered where it puts contact on surface the grasp's depth saw bare,
+    over up to this many of the frames the object was tracked in (0: the hand alone scores)."""
+    align_bare_m: float = Field(0.006, gt=0)
+    """A vertex is seen bare where the depth's reading at its pixel lies within this of it, and
+    covered where the reading lies more than this in front of it (Kinect-like noise at 1 m is
+    2-3 mm)."""
+    align_bare_window_px: int = Field(3, ge=0)
+    """...and bare only where no reading within this many pixels lies in front of it."""
 
 
 PRESETS: dict[str, BuildContactmapConfig] = {

@@ -109,7 +109,7 @@ _SCENES_LOCK = threading.Lock()
 _SCENES_MAX = 8
 
 
-def _mesh_scene(vertices: np.ndarray, faces: np.ndarray) -> Any:
+def mesh_scene(vertices: np.ndarray, faces: np.ndarray) -> Any:
     """A ``RaycastingScene`` of one mesh in its own frame, built once per mesh content (the
     last ``_SCENES_MAX`` kept): building the BVH costs ~3x a cast of a few hundred pixels
     square, and the stages render the same object and hand in every frame."""
@@ -144,7 +144,7 @@ def render(
     camera ``K`` of ``width`` x ``height`` (meshes in their own frames, metres).
 
     One mesh is cast in its own frame (the rays moved by ``T_c_m``'s inverse) against a scene
-    built once for it (``_mesh_scene``); several are placed in the camera's frame and cast
+    built once for it (:func:`mesh_scene`); several are placed in the camera's frame and cast
     as :func:`cast_rays` does."""
     dirs = pixel_rays(K, width, height).astype(np.float32)
     if len(meshes) != 1:
@@ -156,5 +156,5 @@ def render(
     dirs_m = (dirs @ R).astype(np.float32)  # each ray R^T d in the mesh frame
     origin = np.broadcast_to((-R.T @ t).astype(np.float32), dirs.shape)
     rays = np.ascontiguousarray(np.concatenate([origin, dirs_m], axis=-1))
-    ans = _mesh_scene(*meshes[0]).cast_rays(o3d.core.Tensor(rays))
+    ans = mesh_scene(*meshes[0]).cast_rays(o3d.core.Tensor(rays))
     return _hits(ans, [0], dirs, dirs_m)

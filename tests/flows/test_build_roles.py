@@ -55,7 +55,8 @@ def test_one_grasp_depth_pixel_reruns_only_the_stages_that_read_grasp_depth(
 
     readers = {n for n, s in STAGES.items() if "grasp_depth" in s.reads}
     assert readers == {"load_session", "select_steady", "joint_solve", "reconstruct_hand",
-                       "estimate_adjustment", "propagate_poses", "pictures"}
+                       "estimate_adjustment", "build_contactmap", "propagate_poses",
+                       "pictures"}
     plans = plan_build([synth_root], catalog, PRESET)
     planned = {p.stage for p in plans if p.action == "run"}
     assert {p.session_id for p in plans if p.action == "run"} == {sid}
@@ -66,7 +67,7 @@ def test_one_grasp_depth_pixel_reruns_only_the_stages_that_read_grasp_depth(
         if p.stage in own and p.session_id == sid:
             assert ("changed input file", f"grasp_depth: {frame.relative_to(session)} "
                                           "(changed)") in p.reasons
-    for name in ("register_object", "register_scan", "build_contactmap", "detect_keypoints"):
+    for name in ("register_object", "register_scan", "detect_keypoints"):
         assert name not in planned
 
     report = build_dataset([synth_root], catalog, PRESET, build_id="pixel")
@@ -82,9 +83,9 @@ def test_one_grasp_depth_pixel_reruns_only_the_stages_that_read_grasp_depth(
     # one pixel 37 mm off in one frame leaves every reader's result as it was (a gated depth
     # reading), so nothing downstream runs: the plan's "run" lines are exactly what ran
     assert ran == planned
-    assert not {"register_object", "register_scan", "build_contactmap"} & ran
+    assert not {"register_object", "register_scan"} & ran
     cached = {st for s in report.sessions if s.session_id == sid for st in s.cached}
-    assert {"register_object", "register_scan", "build_contactmap"} <= cached
+    assert {"register_object", "register_scan"} <= cached
     assert other not in {s for s, _ in executions(catalog, "pixel")}
 
 

@@ -265,7 +265,7 @@ def test_weighted_median():
 
 
 def test_config_presets():
-    assert STAGE_VERSION == "build_contactmap/3"
+    assert STAGE_VERSION == "build_contactmap/4"
     assert set(PRESETS) >= {"default", "fixed_rise"}
     assert PRESETS["default"].digest() != PRESETS["fixed_rise"].digest()
     with pytest.raises(ValueError):

@@ -8,6 +8,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from graspcap.synth.objects import procedural_object, scaled_object
+from graspcap.tasks.contact import symmetric_contact
 from graspcap.tasks.contact.build_contactmap import ContactMap
 from graspcap.tasks.contact.symmetric_contact import align_to_hand, symmetric_motions
 from graspcap.tasks.core.geometry import inv_T, transform_points
@@ -104,3 +105,56 @@ def test_scanned_meshes(shared_data, path, kind):
     mesh = trimesh.load(shared_data / path, force="mesh", process=False)
     found, _ = symmetric_motions(np.asarray(mesh.vertices, float), np.asarray(mesh.faces), 0.005)
     assert found == kind
+
+
+def test_the_depth_sees_the_surface_bare_where_the_hand_is_not():
+    """A can 0.6 m in front of the camera with a finger-sized box across its front: the
+    vertices behind the box are covered, the rest of its front bare, its back never seen, and
+    the window keeps the front's vertices beside the box from counting bare (nor covered)."""
+    import trimesh
+
+    from graspcap.tasks.core.geometry import make_T
+    from graspcap.tasks.core.render import render
+
+    V, F = _object("can", 0.125)
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    c = V.mean(axis=0)
+    # the can's axis (object z) along the image's y, its centre 0.6 m away on the optical axis
+    R = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    T = make_T(R, np.array([0.0, 0.0, 0.6]) - R @ c)
+    box = trimesh.creation.box([0.2, 0.015, 0.01])
+    finger = make_T(np.eye(3), [0.0, 0.0, 0.6 - 0.033 - 0.006])  # just in front of the can
+    hits = render([(V, F), (np.asarray(box.vertices), np.asarray(box.faces))], [T, finger],
+                  K, 640, 480)
+    share = symmetric_contact.bare_share(V, F, [T], [hits.depth_m], K, bare_m=0.006)
+    P = transform_points(T, V)
+    front = P[:, 2] < 0.6 - 0.02  # facing the camera, well before the silhouette
+    behind = front & (np.abs(P[:, 1]) < 0.004)  # hidden by the finger
+    assert np.all(share[behind] == 0.0)
+    bare = front & (np.abs(P[:, 1]) > 0.02)
+    seen = share[bare][~np.isnan(share[bare])]  # grazing rims may go unseen
+    assert np.all(seen == 1.0) and len(seen) > 0.85 * bare.sum()
+    assert np.all(np.isnan(share[P[:, 2] > 0.6 + 0.01]))  # the back
+    windowed = symmetric_contact.bare_share(V, F, [T], [hits.depth_m], K, bare_m=0.006,
+                                            window_px=3)
+    beside = front & (np.abs(P[:, 1]) > 0.009) & (np.abs(P[:, 1]) < 0.011)  # 1-3 px away
+    assert np.mean(share[beside] == 1.0) > 0.9 and np.all(np.isnan(windowed[beside]))
+
+
+def test_the_bare_surface_places_a_map_the_hand_cannot():
+    """A hand wrapped all round a can is as near every spin of its contact patch: the hand
+    alone leaves the map as the scan registered it; the grasp's depth, bare everywhere but
+    under the patch's true place (and never seeing the can's ends), turns it there."""
+    V, F = _object("can", 0.125)
+    cmap, hand = _map_and_hand(V, F, 120.0)
+    model = prepare_model(V, F, RegistrationConfig())
+    c = model.centroid
+    band = np.abs(V[:, 2] - c[2]) < 0.03
+    ring = V[band]  # the hand: every side of the patch's height
+    assert align_to_hand(V, F, cmap, ring, **ALIGN) is cmap
+    patch_grasp = cKDTree(hand).query(V)[0] <= 0.006  # under the patch, the grasp's frame
+    bare = np.where(patch_grasp, 0.0, 1.0)
+    bare[np.abs(V[:, 2] - c[2]) > 0.05] = np.nan  # the ends never seen
+    out = align_to_hand(V, F, cmap, ring, **ALIGN, bare=lambda: bare)
+    assert out.turned_deg > 90  # 120 deg, or the end-for-end flip that lands it there too
+    assert _on_hand(out, V, hand) > 0.8
