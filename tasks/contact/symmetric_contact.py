@@ -135,9 +135,9 @@ def bare_share(vertices: np.ndarray, faces: np.ndarray, T_c_o: Sequence[np.ndarr
     of the frames where the vertex faces the camera unhidden by the object itself (the ray to
     it first hits the mesh within ``visible_m`` of it) and the depth has a reading at its pixel,
     those where the reading lies within ``bare_m`` of it and no reading within ``window_px``
-    pixels lies more than ``bare_m`` in front of it (a finger's rim on the surface is not bare
-    skin-free surface), against those where the reading lies more than ``bare_m`` in front (the
-    hand, or anything else, covers it); NaN where no frame saw it.
+    pixels lies more than ``bare_m`` in front of it (the rim of a finger lying on the surface
+    reads within ``bare_m`` of it), against those where the reading lies more than ``bare_m`` in
+    front (the hand, or anything else, covers it); NaN where no frame saw it.
 
     ``T_c_o`` (m, 4, 4): the object's pose in each frame's colour camera, ``depths``: those
     frames' depth (h, w) metres aligned to it (ideal pixels, 0 = none), ``K`` (3, 3)."""
