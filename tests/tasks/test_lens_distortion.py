@@ -100,7 +100,8 @@ def test_contact_map_honours_the_thermal_lens(short, tmp_path):
         truth = np.asarray(load_truth(path)["T_turntable_o_scan"])
         scan = SimpleNamespace(T_turntable_o_scan=truth)
         up = {"load_session": run_stage(STAGES["load_session"], path, CONFIGS["load_session"], {}),
-              "register_scan": scan, "fit_hand": None, "estimate_adjustment": None}
+              "register_scan": scan, "select_steady": None, "fit_hand": None,
+              "estimate_adjustment": None}
         thermal_only = CONFIGS["build_contactmap"].model_copy(update={"align_to_hand": False})
         contact = run_stage(STAGES["build_contactmap"], path, thermal_only, up)
         err = evaluate(path, {"contact": contact.contact, "observed": contact.observed})

@@ -63,7 +63,7 @@ def _run(folder: Path, *stages: str, **given) -> dict:
     (no hand is: build_contactmap runs without carrying its map to one)."""
     results = {"load_session": pipeline.run_stage(
         pipeline.STAGES["load_session"], folder, CONFIGS["load_session"], {}),
-        "fit_hand": None, "estimate_adjustment": None, **given}
+        "select_steady": None, "fit_hand": None, "estimate_adjustment": None, **given}
     configs = dict(CONFIGS)
     configs["build_contactmap"] = CONFIGS["build_contactmap"].model_copy(
         update={"align_to_hand": False})
