@@ -225,10 +225,12 @@ def align_to_hand(vertices: np.ndarray, faces: np.ndarray, contact_map: ContactM
         return contact_map
     turned = rotation_error_deg(np.eye(3), S[:3, :3])
     src = cKDTree(V).query(transform_points(S, V))[1]  # each vertex's image, scan frame
+    witness = ("" if seen is None else
+               ", less the share of the grasp's depth frames that saw them bare")
     note = (f"the object is symmetric ({kind}): the scan's contact map turned {turned:.0f} deg "
             f"into the grasp's frame, where its contacted vertices score {found:.2f} against "
-            f"the fitted hand ({own:.2f} as the scan registered it; 1: all on it, 0: none "
-            f"within {near_mm:g} mm)")
+            f"the fitted hand ({own:.2f} as the scan registered it; their nearness to it, 1 on "
+            f"it, 0 beyond {near_mm:g} mm{witness})")
     return replace(
         contact_map, contact=contact_map.contact[src], observed=contact_map.observed[src],
         n_views_seen=contact_map.n_views_seen[src], temperature_k=contact_map.temperature_k[src],
