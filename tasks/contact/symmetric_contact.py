@@ -224,7 +224,7 @@ def align_to_hand(vertices: np.ndarray, faces: np.ndarray, contact_map: ContactM
     if found < own + margin or found < ratio * own:
         return contact_map
     turned = rotation_error_deg(np.eye(3), S[:3, :3])
-    src = cKDTree(V).query(transform_points(S, V))[1]  # each vertex's image, scan frame
+    src = vertex.query(transform_points(S, V))[1]  # each vertex's image, scan frame
     witness = ("" if seen is None else
                ", less the share of the grasp's depth frames that saw them bare")
     note = (f"the object is symmetric ({kind}): the scan's contact map turned {turned:.0f} deg "
