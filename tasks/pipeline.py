@@ -275,21 +275,16 @@ def _build_contactmap(session: Session, config, **up):
     if not config.align_to_hand:
         return cmap
     hand_o = final_hand(up["fit_hand"], None, up["estimate_adjustment"].T_w_o).vertices_o
-    tracking = getattr(up["estimate_adjustment"], "tracking", None)
+    tracking, s = getattr(up["estimate_adjustment"], "tracking", None), up["select_steady"]
 
     def bare() -> np.ndarray | None:
-        """How often the grasp's depth saw each vertex bare, over up to ``align_bare_frames``
-        frames the object was tracked in (their poses supported by that depth)."""
-        if tracking is None or config.align_bare_frames <= 0 or not tracking.tracked.any():
+        if tracking is None:
             return None
-        rows = np.flatnonzero(tracking.tracked)
-        rows = rows[np.unique(np.linspace(0, len(rows) - 1, config.align_bare_frames)
-                              .round().astype(int))]
-        s = up["select_steady"].steady_from
-        depths = [session.read_depth_m(session.grasp_path("depth", s + j)) for j in rows]
-        return symmetric_contact.bare_share(*mesh, tracking.T_c_o[rows], depths,
-                                            session.color_K, bare_m=config.align_bare_m,
-                                            window_px=config.align_bare_window_px)
+        return symmetric_contact.tracked_bare_share(
+            *mesh, tracking.T_c_o, tracking.tracked, session.color_K,
+            lambda j: session.read_depth_m(session.grasp_path("depth", s.steady_from + j)),
+            frames=config.align_bare_frames, bare_m=config.align_bare_m,
+            window_px=config.align_bare_window_px)
 
     return symmetric_contact.align_to_hand(
         *mesh, cmap, hand_o, tolerance_m=config.symmetry_tolerance_m,

@@ -179,6 +179,21 @@ def bare_share(vertices: np.ndarray, faces: np.ndarray, T_c_o: Sequence[np.ndarr
         return np.where(looked > 0, bare / looked, np.nan)
 
 
+def tracked_bare_share(vertices: np.ndarray, faces: np.ndarray, T_c_o: np.ndarray,
+                       tracked: np.ndarray, K: np.ndarray, read_depth: Callable[[int], np.ndarray],
+                       *, frames: int, bare_m: float, window_px: int) -> np.ndarray | None:
+    """:func:`bare_share` over up to ``frames`` of the steady frames the object was tracked in
+    (their poses supported by their own depth), evenly spread: ``T_c_o`` (m, 4, 4) and
+    ``tracked`` (m,) per steady frame, ``read_depth(j)`` steady frame ``j``'s depth (ideal
+    pixels). None when ``frames`` is 0 or no frame was tracked."""
+    rows = np.flatnonzero(tracked)
+    if frames <= 0 or len(rows) == 0:
+        return None
+    rows = rows[np.unique(np.linspace(0, len(rows) - 1, frames).round().astype(int))]
+    return bare_share(vertices, faces, np.asarray(T_c_o)[rows], [read_depth(j) for j in rows],
+                      K, bare_m=bare_m, window_px=window_px)
+
+
 def align_to_hand(vertices: np.ndarray, faces: np.ndarray, contact_map: ContactMap,
                   hand_vertices_o: np.ndarray, *, tolerance_m: float, near_mm: float,
                   margin: float, ratio: float, contact_threshold: float,
