@@ -169,6 +169,17 @@ def swapped_fingers(
     return out
 
 
+def row_nanmedian(x: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(x, axis=1)`` of a 2-D array, bit for bit (NaN for a row without a
+    finite value, and no warning), without numpy's masked-array path for small arrays, which
+    made ``_smooth_triples``' thousands of (<= 8, 21) medians 7 % of a session's CPU."""
+    x = np.sort(np.asarray(x, dtype=float), axis=1)  # NaNs last
+    n = np.count_nonzero(~np.isnan(x), axis=1)
+    rows = np.arange(len(x))
+    lo, hi = x[rows, (n - 1) // 2], x[rows, n // 2]  # an empty row reads column -1 or 0: NaN out
+    return np.where(n > 0, (lo + hi) / 2, np.nan)
+
+
 def _smooth_triples(proj: np.ndarray, t: np.ndarray, gate_px: float, max_gap: int,
                     motion_share: float) -> dict[tuple[int, int], list[int]]:
     """(a, b) -> the c > b (rows of ``proj`` at frame times ``t``, consecutive ones at most
@@ -193,9 +204,8 @@ def _smooth_triples(proj: np.ndarray, t: np.ndarray, gate_px: float, max_gap: in
             step = np.maximum(t[b] - t[a], g_bc)
             with np.errstate(invalid="ignore"), warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # keypoints missing (NaN)
-                off = step * np.nanmedian(np.linalg.norm(v_bc - v_ab, axis=2), axis=1)
-                speed = np.nanmedian(np.linalg.norm(proj[c] - proj[a], axis=2), axis=1) / (
-                    t[c] - t[a])
+                off = step * row_nanmedian(np.linalg.norm(v_bc - v_ab, axis=2))
+                speed = row_nanmedian(np.linalg.norm(proj[c] - proj[a], axis=2)) / (t[c] - t[a])
                 limit = np.maximum(gate_px, motion_share * speed * step)
                 # across a hole of more than max_gap frames without a detection the motion
                 # is not predicted: such a step is not judged (the next triple judges b)

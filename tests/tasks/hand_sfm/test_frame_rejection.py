@@ -5,6 +5,8 @@ stays accurate."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -14,6 +16,7 @@ from graspcap.tasks.core.geometry import pose_error
 from graspcap.tasks.hand_sfm.frame_screen import (
     FINGERS,
     robust_sigma,
+    row_nanmedian,
     screen_jumps,
     smooth_chain,
     swapped_fingers,
@@ -199,3 +202,18 @@ def test_a_hole_in_the_detections_does_not_split_the_chain():
     ok[15:25] = False
     assert screen_jumps(uv, ok, jump_share=0.35, size_ratio=1.5, half_window=6,
                         min_points=6) == {}  # fmt: skip
+
+
+
+def test_row_nanmedian_is_numpys_nanmedian_bit_for_bit():
+    rng = np.random.default_rng(0)
+    for _ in range(500):
+        k, j = rng.integers(1, 9), rng.integers(1, 22)
+        x = rng.normal(size=(k, j)) * rng.uniform(0.1, 100)
+        x[rng.random((k, j)) < rng.uniform(0, 0.9)] = np.nan
+        if rng.random() < 0.2:
+            x[rng.integers(k)] = np.nan  # a row without a value
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # numpy's all-NaN slice warning
+            expected = np.nanmedian(x, axis=1)
+        np.testing.assert_array_equal(row_nanmedian(x), expected)
