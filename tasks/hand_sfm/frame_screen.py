@@ -31,8 +31,6 @@ the per-frame validity carries as ``hand_reason``).
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 FINGERS: tuple[tuple[int, ...], ...] = tuple(tuple(range(1 + 4 * f, 5 + 4 * f)) for f in range(5))
@@ -202,8 +200,7 @@ def _smooth_triples(proj: np.ndarray, t: np.ndarray, gate_px: float, max_gap: in
             v_ab = (proj[b] - proj[a]) / (t[b] - t[a])
             v_bc = (proj[c] - proj[b]) / g_bc[:, None, None]
             step = np.maximum(t[b] - t[a], g_bc)
-            with np.errstate(invalid="ignore"), warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # keypoints missing (NaN)
+            with np.errstate(invalid="ignore"):  # keypoints missing (NaN)
                 off = step * row_nanmedian(np.linalg.norm(v_bc - v_ab, axis=2))
                 speed = row_nanmedian(np.linalg.norm(proj[c] - proj[a], axis=2)) / (t[c] - t[a])
                 limit = np.maximum(gate_px, motion_share * speed * step)

@@ -204,7 +204,6 @@ def test_a_hole_in_the_detections_does_not_split_the_chain():
                         min_points=6) == {}  # fmt: skip
 
 
-
 def test_row_nanmedian_is_numpys_nanmedian_bit_for_bit():
     rng = np.random.default_rng(0)
     for _ in range(500):
