@@ -275,14 +275,14 @@ def _build_contactmap(session: Session, config, **up):
     if not config.align_to_hand:
         return cmap
     hand_o = final_hand(up["fit_hand"], None, up["estimate_adjustment"].T_w_o).vertices_o
-    tracking, s = getattr(up["estimate_adjustment"], "tracking", None), up["select_steady"]
+    tracking = getattr(up["estimate_adjustment"], "tracking", None)
 
     def bare() -> np.ndarray | None:
         if tracking is None:
             return None
+        read, s = session.grasp_depth_reader(), up["select_steady"].steady_from
         return symmetric_contact.tracked_bare_share(
-            *mesh, tracking.T_c_o, tracking.tracked, session.color_K,
-            lambda j: session.read_depth_m(session.grasp_path("depth", s.steady_from + j)),
+            *mesh, tracking.T_c_o, tracking.tracked, session.color_K, lambda j: read(s + j),
             frames=config.align_bare_frames, bare_m=config.align_bare_m,
             window_px=config.align_bare_window_px)
 
