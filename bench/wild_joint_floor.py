@@ -8,7 +8,10 @@ Per session (generated under ``--root``, reused when there), the upstream stages
 (``load_session``, ``detect_keypoints``, ``select_steady``) run once; then ``joint_solve``,
 ``reconstruct_hand`` and ``fit_hand`` run on each variant of the detections, with the build's
 own configs (``mode = auto``: the staged path where the detections are clean), and stage 2's
-joints and cameras are scored as ``bench/accuracy.py`` scores them (``synth.evaluate``):
+joints and cameras are scored as ``bench/accuracy.py`` scores them (``synth.evaluate``); beside
+them, each joint triangulated from the same detections with the TRUE cameras and no hand model
+(``bench/keypoint_floor.py``'s robust DLT): what the detections carry when the cameras are
+perfect:
 
 - ``detected``: the session's detections (what the build sees);
 - ``no_gross``: the same without the frames the rig corrupted (a frame whose detections miss
@@ -34,17 +37,19 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from keypoint_floor import triangulate_robust  # bench/ is the script's directory
 
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import evaluate, load_truth
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, transform_points
 from graspcap.tasks.hand_sfm import hand_depth
-from graspcap.tasks.pipeline import STAGES, configs_for, run_stage
+from graspcap.tasks.pipeline import STAGES, _ideal_keypoints, configs_for, run_stage
 
 VARIANTS = ("detected", "no_gross", "truth", "truth_iid", "object_free")
 UPSTREAM = ("load_session", "detect_keypoints", "select_steady")
@@ -62,7 +67,8 @@ def gross_frames(kp: np.ndarray, clean: np.ndarray) -> np.ndarray:
     seen = kp[..., 2] > 0
     err = np.where(seen, np.linalg.norm(kp[..., :2] - clean, axis=2), np.nan)
     size = np.linalg.norm(np.ptp(clean, axis=1), axis=1)
-    with np.errstate(all="ignore"):
+    with warnings.catch_warnings():  # frames or fingers without a detection: NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
         median = np.nanmedian(np.where(seen.any(1)[:, None], err, 0.0), axis=1) / size
         finger = np.stack([np.nanmean(err[:, f], axis=1) for f in FINGERS], 1)
         worst = np.nanmax(np.nan_to_num(finger, nan=0.0), axis=1) / size
@@ -128,6 +134,24 @@ class ObjectFreeCloud:
         hand_depth.hand_cloud = self.original
 
 
+def triangulated_mm(upstream: dict[str, Any], kp: np.ndarray, truth: dict[str, Any]) -> float:
+    """Mean joint error (mm) of the joints triangulated from detections ``kp`` with the true
+    cameras of the steady frames (no hand model, no frame rejection)."""
+    ideal = _ideal_keypoints(upstream["load_session"], kp)
+    K = upstream["load_session"].color_K
+    steady = int(truth["steady_from"])
+    frames = [i for i in range(len(truth["T_w_c"])) if steady + i < len(ideal)]
+    P = np.stack([K @ inv_T(truth["T_w_c"][i])[:3] for i in frames])
+    errors = []
+    for j in range(21):
+        obs = ideal[[steady + i for i in frames], j]
+        use = np.all(np.isfinite(obs), axis=1) & (obs[:, 2] >= 0.2)
+        if use.sum() >= 3:
+            X = triangulate_robust(P[use], obs[use, :2])
+            errors.append(1e3 * np.linalg.norm(X - truth["joints_w"][j]))
+    return float(np.mean(errors)) if errors else float("nan")
+
+
 def stage2(session_dir: Path, upstream: dict[str, Any], kp: np.ndarray,
            configs: dict[str, Any]) -> dict[str, float]:
     """Stage 2 and the hand fit on detections ``kp``, scored against the truth."""
@@ -184,21 +208,24 @@ def main() -> None:
                     row = stage2(d, upstream, keypoints, configs)
             else:
                 row = stage2(d, upstream, keypoints, configs)
+            row["triangulated_mm"] = triangulated_mm(upstream, keypoints, truth)
             table[v].append(row)
             line += (f" | {v} failed" if "failed" in row else
                      f" | {v} {row['joints_mm']:5.1f} mm {row['camera_deg']:4.2f} deg "
-                     f"{row['path']}")
+                     f"{row['path']} (true cameras {row['triangulated_mm']:4.1f})")
         print(line, flush=True)
     print(f"\n{args.profile} [{args.seed}, i] i < {args.sessions}, "
           f"{'/'.join(map(str, args.frames))} frames: stage 2's joints and cameras (medians)\n")
-    print("| detections | sessions | SfM joints mm | fitted mm | cameras deg | joint solve |")
-    print("|---|---|---|---|---|---|")
+    print("| detections | sessions | SfM joints mm | fitted mm | cameras deg | joint solve | "
+          "triangulated, true cameras mm |")
+    print("|---|---|---|---|---|---|---|")
     for v, rows in table.items():
         ok = [r for r in rows if "failed" not in r]
         med = {k: np.median([r[k] for r in ok]) if ok else np.nan
                for k in ("joints_mm", "fit_mm", "camera_deg")}
+        tri = np.nanmedian([r["triangulated_mm"] for r in rows])
         print(f"| {v} | {len(ok)} of {len(rows)} | {med['joints_mm']:.2f} | {med['fit_mm']:.2f}"
-              f" | {med['camera_deg']:.2f} | {sum(r['path'] == 'joint' for r in ok)} |")
+              f" | {med['camera_deg']:.2f} | {sum(r['path'] == 'joint' for r in ok)} | {tri:.2f} |")
 
 
 if __name__ == "__main__":
