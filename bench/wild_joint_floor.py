@@ -2,7 +2,8 @@
 the evidence, not a stage; the truth is used to make the inputs, never by the pipeline).
 
     .venv/bin/python bench/wild_joint_floor.py --profile wild --seed 16432 --sessions 12 \\
-        --frames 40 60 [--root /tmp/floor] [--variants detected truth ...]
+        --frames 40 60 [--root /tmp/floor] [--variants detected truth ...] \\
+        [--shares 0.02 0.04 0.06]
 
 Per session (generated under ``--root``, reused when there), the upstream stages
 (``load_session``, ``detect_keypoints``, ``select_steady``) run once; then ``joint_solve``,
@@ -24,6 +25,10 @@ perfect:
 - ``truth_iid``: the true projections plus independent Gaussian noise of the RMS of the
   detections on the frames ``no_gross`` keeps: the detector's noise level without its
   correlation over frames and joints;
+- ``truth+S``, one per ``--shares`` value S: the true projections plus independent Gaussian
+  noise whose mean per-joint error is S of the hand's image size (the rig's detector: 5-10 %
+  on visible joints, twice that on hidden ones, ``docs/synth.md``): how accurate detections
+  must be for stage 2 to reach a given joint error;
 - ``object_free``: the detections, with the depth refinement's cloud cleared of every point
   within 5 mm of the object's true surface (``hand_sfm.hand_depth.hand_cloud`` patched): a
   perfect hand / object segmentation of the depth.
@@ -83,9 +88,14 @@ def variant_keypoints(name: str, kp: np.ndarray, clean: np.ndarray, rng: np.rand
     out = kp.copy()
     if name == "no_gross":
         out[gross, :, 2] = 0.0
-    elif name in ("truth", "truth_iid"):
+    elif name.startswith("truth"):
         out[..., :2] = np.where(seen[..., None], clean, kp[..., :2])
-        if name == "truth_iid":
+        if name.startswith("truth+"):  # a 2-D Gaussian's mean length is sigma sqrt(pi / 2)
+            size = np.linalg.norm(np.ptp(clean, axis=1), axis=1)[:, None, None]
+            sigma = float(name[len("truth+"):].rstrip("%")) / 100 * size / np.sqrt(np.pi / 2)
+            out[..., :2] += np.where(seen[..., None], rng.normal(size=out[..., :2].shape) * sigma,
+                                     0.0)
+        elif name == "truth_iid":
             keep = seen & ~gross[:, None]
             rms = float(np.sqrt(np.mean(np.sum((kp[..., :2] - clean)[keep] ** 2, axis=1))))
             noise = rng.normal(0.0, rms / np.sqrt(2.0), out[..., :2].shape)
@@ -181,9 +191,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, nargs="+", default=[40, 60])
     ap.add_argument("--root", type=Path, default=Path("/tmp/wild_joint_floor"))
     ap.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
+    ap.add_argument("--shares", type=float, nargs="*", default=[],
+                    help="also the true projections plus iid noise of these mean shares")
     args = ap.parse_args()
     configs = configs_for()
-    table: dict[str, list[dict[str, float]]] = {v: [] for v in args.variants}
+    variants = list(args.variants) + [f"truth+{100 * x:g}%" for x in args.shares]
+    table: dict[str, list[dict[str, float]]] = {v: [] for v in variants}
     for i in range(args.sessions):
         frames = args.frames[i % len(args.frames)]
         root = args.root / args.profile
@@ -201,7 +214,7 @@ def main() -> None:
         clean = np.load(d / "ground_truth" / "keypoints_clean.npy")
         truth = load_truth(d)
         line = f"[{args.seed}, {i}] {frames} fr {d.name.split('-', 3)[-1][:18]:18s}"
-        for v in args.variants:
+        for v in variants:
             keypoints = variant_keypoints(v, kp, clean, np.random.default_rng([args.seed, i]))
             if v == "object_free":
                 with ObjectFreeCloud(d, truth):
