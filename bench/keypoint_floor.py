@@ -40,15 +40,10 @@ def triangulate_robust(P: np.ndarray, uv: np.ndarray, rounds: int = 10) -> np.nd
     return X
 
 
-def floor_mm(d: Path) -> tuple[float, float]:
-    """Mean and median joint error (mm) of the joints triangulated with the true cameras."""
-    truth = load_truth(d)
+def true_camera_errors_mm(kp: np.ndarray, K: np.ndarray, truth: dict) -> np.ndarray:
+    """Error (mm) of each joint seen in >= 3 steady frames, triangulated from the detections
+    ``kp`` (n, 21, 3; ideal pixels, confidence) with the true cameras of ``truth``."""
     steady = int(truth["steady_from"])
-    configs, up = configs_for(), {}
-    for name in ("load_session", "detect_keypoints"):
-        up[name] = run_stage(STAGES[name], d, configs[name], up)
-    kp = _ideal_keypoints(up["load_session"], up["detect_keypoints"].keypoints)
-    K = up["load_session"].color_K
     frames = [i for i in range(len(truth["T_w_c"])) if steady + i < len(kp)]
     P = np.stack([K @ inv_T(truth["T_w_c"][i])[:3] for i in frames])
     errors = []
@@ -58,6 +53,17 @@ def floor_mm(d: Path) -> tuple[float, float]:
         if use.sum() >= 3:
             X = triangulate_robust(P[use], obs[use, :2])
             errors.append(1e3 * np.linalg.norm(X - truth["joints_w"][j]))
+    return np.asarray(errors)
+
+
+def floor_mm(d: Path) -> tuple[float, float]:
+    """Mean and median joint error (mm) of the joints triangulated with the true cameras."""
+    truth = load_truth(d)
+    configs, up = configs_for(), {}
+    for name in ("load_session", "detect_keypoints"):
+        up[name] = run_stage(STAGES[name], d, configs[name], up)
+    kp = _ideal_keypoints(up["load_session"], up["detect_keypoints"].keypoints)
+    errors = true_camera_errors_mm(kp, up["load_session"].color_K, truth)
     return float(np.mean(errors)), float(np.median(errors))
 
 

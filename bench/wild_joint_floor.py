@@ -47,7 +47,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from keypoint_floor import triangulate_robust  # bench/ is the script's directory
+from keypoint_floor import true_camera_errors_mm  # bench/ is the script's directory
 
 from graspcap.synth import config_for, generate_session
 from graspcap.synth.evaluate import evaluate, load_truth
@@ -148,18 +148,8 @@ def triangulated_mm(upstream: dict[str, Any], kp: np.ndarray, truth: dict[str, A
     """Mean joint error (mm) of the joints triangulated from detections ``kp`` with the true
     cameras of the steady frames (no hand model, no frame rejection)."""
     ideal = _ideal_keypoints(upstream["load_session"], kp)
-    K = upstream["load_session"].color_K
-    steady = int(truth["steady_from"])
-    frames = [i for i in range(len(truth["T_w_c"])) if steady + i < len(ideal)]
-    P = np.stack([K @ inv_T(truth["T_w_c"][i])[:3] for i in frames])
-    errors = []
-    for j in range(21):
-        obs = ideal[[steady + i for i in frames], j]
-        use = np.all(np.isfinite(obs), axis=1) & (obs[:, 2] >= 0.2)
-        if use.sum() >= 3:
-            X = triangulate_robust(P[use], obs[use, :2])
-            errors.append(1e3 * np.linalg.norm(X - truth["joints_w"][j]))
-    return float(np.mean(errors)) if errors else float("nan")
+    errors = true_camera_errors_mm(ideal, upstream["load_session"].color_K, truth)
+    return float(np.mean(errors)) if len(errors) else float("nan")
 
 
 def stage2(session_dir: Path, upstream: dict[str, Any], kp: np.ndarray,
