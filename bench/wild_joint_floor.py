@@ -54,12 +54,12 @@ from graspcap.synth.evaluate import evaluate, load_truth
 from graspcap.tasks.core.errors import StageError
 from graspcap.tasks.core.geometry import inv_T, transform_points
 from graspcap.tasks.hand_sfm import hand_depth
+from graspcap.tasks.hand_sfm.frame_screen import FINGERS
 from graspcap.tasks.pipeline import STAGES, _ideal_keypoints, configs_for, run_stage
 
 VARIANTS = ("detected", "no_gross", "truth", "truth_iid", "object_free")
 UPSTREAM = ("load_session", "detect_keypoints", "select_steady")
 STAGE2 = ("joint_solve", "reconstruct_hand", "fit_hand")
-FINGERS = [list(range(1 + 4 * k, 5 + 4 * k)) for k in range(5)]
 GROSS_MEDIAN, GROSS_FINGER = 0.15, 0.30
 """A frame is gross when its median joint misses by more than this share of the hand's image
 size (bounding-box diagonal of the true projections), or one finger's mean by more."""
@@ -75,7 +75,7 @@ def gross_frames(kp: np.ndarray, clean: np.ndarray) -> np.ndarray:
     with warnings.catch_warnings():  # frames or fingers without a detection: NaN
         warnings.simplefilter("ignore", RuntimeWarning)
         median = np.nanmedian(np.where(seen.any(1)[:, None], err, 0.0), axis=1) / size
-        finger = np.stack([np.nanmean(err[:, f], axis=1) for f in FINGERS], 1)
+        finger = np.stack([np.nanmean(err[:, list(f)], axis=1) for f in FINGERS], 1)
         worst = np.nanmax(np.nan_to_num(finger, nan=0.0), axis=1) / size
     return seen.any(1) & ((median > GROSS_MEDIAN) | (worst > GROSS_FINGER))
 
